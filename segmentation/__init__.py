@@ -1,0 +1,1 @@
+"""Downstream segmentation host: sparse-free voxel nets, LaserMix mean teacher, mIoU/ECE."""

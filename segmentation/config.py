@@ -1,0 +1,102 @@
+"""Typed config of a segmentation training run (`u4d seg-train CONFIG [key=value ...]`).
+
+Defaults here, yaml presets in configs/seg/*.yaml, `a.b=value` overrides on the command line
+(`u4d_aug.config.load_config`). The resolved config is saved as OUT/config.yaml and inside every checkpoint.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from segmentation.data import AugmentConfig
+from segmentation.models import SegModelConfig
+
+Sequences = str | list[str | int] | None  # split name ('train' / 'val' / 'test'), a list of sequences, or all
+
+
+@dataclass
+class SegDataConfig:
+    """Where the scans are and which of them train / validate (SemanticKITTI layout root)."""
+
+    root: Path = Path("data/sim")
+    train_sequences: Sequences = "train"  # SemanticKITTI split name, a list like ["00", "01"], or null = all
+    val_sequences: Sequences = "val"
+    # labeled part of the train scans (LaserMix splits, written beside the data under ROOT/splits/)
+    label_fraction: float = 1.0
+    split_mode: Literal["uniform", "sequence"] = "uniform"
+    split_seed: int = 0
+    max_points: int | None = None  # random subset of each training scan (CPU presets); eval keeps all
+    val_max_scans: int | None = None  # evenly spaced subset of the val scans for the periodic evaluation
+
+    def __post_init__(self) -> None:
+        # yaml reads 00 and 01 as integers: store sequence names as the folder names '00', '01'
+        for name in ("train_sequences", "val_sequences"):
+            value = getattr(self, name)
+            if isinstance(value, (list, tuple)):
+                setattr(self, name, [f"{v:02d}" if isinstance(v, int) else str(v) for v in value])
+        if not 0.0 < self.label_fraction <= 1.0:
+            raise ValueError(f"data.label_fraction must be in (0, 1], got {self.label_fraction}")
+        if self.max_points is not None and self.max_points < 1:
+            raise ValueError(f"data.max_points must be >= 1 or null, got {self.max_points}")
+        if self.val_max_scans is not None and self.val_max_scans < 1:
+            raise ValueError(f"data.val_max_scans must be >= 1 or null, got {self.val_max_scans}")
+
+
+@dataclass
+class OptimConfig:
+    """AdamW with linear warm-up then cosine decay to min_lr_ratio * lr (per step), gradient clipping."""
+
+    lr: float = 2e-3
+    weight_decay: float = 0.01  # on weights with >= 2 dims only (biases and norms are not decayed)
+    betas: tuple[float, float] = (0.9, 0.999)
+    warmup_steps: int = 100
+    min_lr_ratio: float = 0.01
+    steps: int = 2000
+    batch_size: int = 2  # scans per step over all ranks (each rank takes batch_size / world_size)
+    grad_clip: float = 10.0  # max global grad norm; 0 = off
+
+    def __post_init__(self) -> None:
+        if self.steps < 1 or self.batch_size < 1 or self.warmup_steps < 0:
+            raise ValueError("optim.steps and optim.batch_size must be >= 1 and optim.warmup_steps >= 0")
+        if self.lr <= 0 or not 0.0 <= self.min_lr_ratio <= 1.0:
+            raise ValueError("optim.lr must be positive and optim.min_lr_ratio in [0, 1]")
+
+
+@dataclass
+class LossConfig:
+    """Supervised loss = ce_weight * CE + lovasz_weight * Lovász-softmax (Cylinder3D uses 1 + 3)."""
+
+    ce_weight: float = 1.0
+    lovasz_weight: float = 0.0  # 0 = cross-entropy only, as mmdet3d MinkUNet
+    label_smoothing: float = 0.0
+
+
+@dataclass
+class SegTrainConfig:
+    """One training run: data, net, optimiser, loss, augmentation and the loop's bookkeeping."""
+
+    mode: Literal["supervised"] = "supervised"  # issue 5 adds the semi-supervised mean-teacher mode
+    data: SegDataConfig = field(default_factory=SegDataConfig)
+    model: SegModelConfig = field(default_factory=SegModelConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
+    eval_every: int = 500  # steps; the last step is always evaluated
+    checkpoint_every: int = 500  # steps; the last step always writes one
+    keep_checkpoints: int = 2  # newest OUT/checkpoints/step_*.pt kept; 0 = keep all
+    log_every: int = 10  # steps between train records in OUT/log.jsonl
+    max_minutes: float = 0.0  # wall-clock budget: stop (evaluate + checkpoint) once exceeded; 0 = off
+    seed: int = 0
+    device: str = "auto"  # auto | cpu | cuda | cuda:N
+    num_workers: int = 0  # DataLoader workers that load + augment scans
+    threads: int = 0  # torch intra-op threads per process; 0 = torch's default (OMP_NUM_THREADS)
+    out_dir: Path = Path("runs/seg")
+
+    def __post_init__(self) -> None:
+        for name in ("eval_every", "checkpoint_every", "log_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if min(self.keep_checkpoints, self.num_workers, self.threads, self.max_minutes) < 0:
+            raise ValueError("keep_checkpoints, num_workers, threads and max_minutes must be >= 0")

@@ -1,0 +1,113 @@
+"""Scans for segmentation training: label splits (uniform / sequence-disjoint), augmentation, batching."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from u4d_aug.errors import InputError
+from u4d_aug.io import atomic_write_json
+
+FrameId = tuple[str, str]  # (sequence, frame), e.g. ("00", "000123")
+
+
+@dataclass
+class AugmentConfig:
+    """Scan augmentation as the LaserMix MinkUNet config: rotation about z, flips, scaling, jitter."""
+
+    rotate: bool = True
+    flip: bool = True
+    scale_min: float = 0.95
+    scale_max: float = 1.05
+    jitter_std: float = 0.01
+
+
+def augment(points: torch.Tensor, generator: torch.Generator, cfg: AugmentConfig) -> torch.Tensor:
+    """Random rigid-ish transform of one scan (N, 4): rotate about z, flip x/y, scale, jitter xyz."""
+    xyz = points[:, :3]
+    angle = float(torch.rand((), generator=generator)) * 2.0 * math.pi if cfg.rotate else 0.0
+    c, s = math.cos(angle), math.sin(angle)
+    rotation = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=points.dtype)
+    if cfg.flip:
+        flips = torch.rand(2, generator=generator) < 0.5
+        rotation = rotation @ torch.diag(
+            torch.tensor([-1.0 if flips[0] else 1.0, -1.0 if flips[1] else 1.0, 1.0], dtype=points.dtype)
+        )
+    scale = cfg.scale_min + float(torch.rand((), generator=generator)) * (cfg.scale_max - cfg.scale_min)
+    xyz = (xyz @ rotation.T.to(xyz.device)) * scale
+    if cfg.jitter_std > 0:
+        noise = torch.randn(xyz.shape, generator=generator, dtype=xyz.dtype) * cfg.jitter_std
+        xyz = xyz + noise.to(xyz.device)
+    return torch.cat([xyz, points[:, 3:]], dim=1)
+
+
+def make_split(
+    frames: list[FrameId],
+    fraction: float,
+    seed: int,
+    mode: Literal["uniform", "sequence"] = "uniform",
+) -> tuple[list[FrameId], list[FrameId]]:
+    """Labeled / unlabeled split of a train set (LaserMix track 1 'uniform', or whole sequences labeled)."""
+    if not 0.0 < fraction <= 1.0:
+        raise InputError(f"split fraction must be in (0, 1], got {fraction}")
+    if not frames:
+        raise InputError("cannot split an empty list of frames")
+    rng = np.random.default_rng(seed)
+    if fraction >= 1.0:
+        # "Full": the whole train set is both the labeled and the unlabeled set (LaserMix issue #34).
+        return list(frames), list(frames)
+    if mode == "uniform":
+        count = max(1, round(fraction * len(frames)))
+        chosen = set(rng.choice(len(frames), size=count, replace=False).tolist())
+    elif mode == "sequence":
+        sequences = sorted({seq for seq, _ in frames})
+        order = rng.permutation(len(sequences))
+        target = fraction * len(frames)
+        chosen_seqs: set[str] = set()
+        labeled_count = 0
+        for index in order:
+            if labeled_count >= target and chosen_seqs:
+                break
+            seq = sequences[index]
+            chosen_seqs.add(seq)
+            labeled_count += sum(1 for s, _ in frames if s == seq)
+        chosen = {i for i, (seq, _) in enumerate(frames) if seq in chosen_seqs}
+    else:
+        raise ValueError(f"split mode must be 'uniform' or 'sequence', got {mode!r}")
+    labeled = [f for i, f in enumerate(frames) if i in chosen]
+    unlabeled = [f for i, f in enumerate(frames) if i not in chosen]
+    return labeled, unlabeled
+
+
+def split_path(root: Path, fraction: float, seed: int, mode: str) -> Path:
+    """Where a split is stored beside the data: ROOT/splits/<mode>_<percent>pct_seed<seed>.json."""
+    percent = f"{100.0 * fraction:g}".replace(".", "p")
+    return Path(root) / "splits" / f"{mode}_{percent}pct_seed{seed}.json"
+
+
+def load_or_make_split(
+    root: Path, frames: list[FrameId], fraction: float, seed: int, mode: Literal["uniform", "sequence"]
+) -> tuple[list[FrameId], list[FrameId]]:
+    """Reuse the split file beside the data when it matches these frames, else draw it and write it."""
+    path = split_path(root, fraction, seed, mode)
+    if path.is_file():
+        try:
+            data = json.loads(path.read_text())
+            labeled = [tuple(x) for x in data["labeled"]]
+            unlabeled = [tuple(x) for x in data["unlabeled"]]
+        except (json.JSONDecodeError, KeyError, TypeError):
+            raise InputError(f"{path}: not a split file (expected json with 'labeled' and 'unlabeled')") from None
+        if set(labeled) | set(unlabeled) == set(frames):
+            return labeled, unlabeled
+    labeled, unlabeled = make_split(frames, fraction, seed, mode)
+    atomic_write_json(
+        path,
+        {"fraction": fraction, "seed": seed, "mode": mode, "labeled": labeled, "unlabeled": unlabeled},
+    )
+    return labeled, unlabeled

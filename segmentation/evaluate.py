@@ -1,0 +1,195 @@
+"""mIoU and ECE of a segmentation checkpoint on labeled scans (`u4d seg-eval CKPT DATA`).
+
+One pass gives the confusion matrix (mmdet3d `seg_eval`) and the Calib3D ECE both per scan and pooled
+(segmentation.metrics), as Calib3D's `[SegMetric, ECEMetric]` evaluator does on uncalibrated logits.
+Under torchrun each rank evaluates every world_size-th scan and the counts are gathered.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import nn
+from tqdm import tqdm
+
+from segmentation.metrics import CalibrationAccumulator, ConfusionMatrix, iou_per_class, summarize
+from segmentation.plots import plot_reliability
+from segmentation.predict import (
+    load_checkpoint,
+    model_from_checkpoint,
+    parse_sequences,
+    predict_probs,
+)
+from u4d_aug.data.datasets import ScanDataset
+from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
+from u4d_aug.distributed import DistInfo, cleanup, init_distributed, shard
+from u4d_aug.errors import InputError
+
+
+def accumulate(
+    model: nn.Module,
+    dataset: ScanDataset,
+    indices: Sequence[int],
+    device: torch.device,
+    num_classes: int,
+    ignore_index: int = SEMANTICKITTI_IGNORE,
+    rank: int = 0,
+    world_size: int = 1,
+    progress: bool = False,
+) -> tuple[ConfusionMatrix, CalibrationAccumulator]:
+    """Confusion matrix + calibration over dataset[indices] (this rank's share, then gathered over ranks)."""
+    was_training = model.training
+    model.eval()
+    cm = ConfusionMatrix(num_classes, ignore_index)
+    calibration = CalibrationAccumulator(ignore_index)
+    for index in tqdm(shard(list(indices), rank, world_size), desc="eval", disable=not progress, leave=False):
+        item = dataset[index]
+        if item["labels"] is None:
+            continue
+        probs = predict_probs(model, item["points"], device)  # (N, K)
+        target = torch.from_numpy(item["labels"])  # (N,) train ids, ignore id kept
+        cm.update(probs.argmax(dim=1), target)
+        calibration.update(probs, target)
+    model.train(was_training)
+    if world_size > 1 and dist.is_available() and dist.is_initialized():
+        gathered: list = [None] * world_size
+        dist.all_gather_object(gathered, (cm.matrix, calibration.scan_eces, calibration.pooled))
+        cm, calibration = ConfusionMatrix(num_classes, ignore_index), CalibrationAccumulator(ignore_index)
+        for matrix, scan_eces, pooled in gathered:
+            cm.update_matrix(matrix)
+            calibration.scan_eces.extend(scan_eces)
+            calibration.pooled = calibration.pooled + pooled
+    return cm, calibration
+
+
+def summary_of(cm: ConfusionMatrix, calibration: CalibrationAccumulator, class_names: Sequence[str]) -> dict:
+    """`metrics.summarize` plus the mIoU over the classes that have ground-truth points (sim-to-real)."""
+    summary = summarize(cm, calibration, tuple(class_names))
+    present = cm.matrix.sum(axis=1) > 0  # (K,) classes with ground-truth points
+    iou = iou_per_class(cm.matrix)
+    summary["classes_present"] = [name for name, p in zip(class_names, present) if p]
+    summary["miou_present"] = float(np.nanmean(iou[present])) if present.any() else None
+    summary["num_points"] = int(cm.matrix.sum())
+    return summary
+
+
+def evaluate(
+    checkpoint: str | Path,
+    data_root: str | Path,
+    sequences: str | Sequence[str] | None = None,
+    device: str = "auto",
+    max_scans: int | None = None,
+    reliability_png: str | Path | None = None,
+    dist_info: DistInfo | None = None,
+    progress: bool = False,
+) -> dict:
+    """Summary dict (per-class IoU, mIoU, mIoU over present classes, ECE per scan and pooled, bins)."""
+    info = dist_info or init_distributed(device)
+    ckpt = load_checkpoint(checkpoint)
+    model = model_from_checkpoint(ckpt, info.device, str(checkpoint))
+    num_classes = model.cfg.num_classes
+    class_names = list(ckpt.get("class_names") or SEMANTICKITTI_CLASSES[:num_classes])
+    dataset = ScanDataset(data_root, sequences, labeled_only=True)
+    if len(dataset) == 0:
+        raise InputError(f"{data_root}: no labeled scan in sequences {dataset.sequences} (labels/*.label)")
+    indices = evenly_spaced(len(dataset), max_scans)
+    cm, calibration = accumulate(
+        model, dataset, indices, info.device, num_classes, SEMANTICKITTI_IGNORE,
+        info.rank, info.world_size, progress and info.is_main,
+    )  # fmt: skip
+    summary = summary_of(cm, calibration, class_names)
+    summary.update(
+        checkpoint=str(checkpoint),
+        step=ckpt.get("step"),
+        data_root=str(data_root),
+        sequences=dataset.sequences,
+    )
+    if reliability_png is not None and info.is_main:
+        plot_reliability(calibration.pooled, reliability_png, title=Path(checkpoint).stem)
+    return summary
+
+
+def evenly_spaced(count: int, limit: int | None) -> list[int]:
+    """All indices 0..count-1, or `limit` of them evenly spaced (first and last included)."""
+    if limit is None or limit >= count:
+        return list(range(count))
+    return sorted({round(i) for i in np.linspace(0, count - 1, limit)})
+
+
+def format_summary(summary: dict) -> str:
+    """Human-readable table: per-class IoU (%), mIoU, mIoU over present classes, both ECEs (%)."""
+
+    def pct(value: float | None) -> str:
+        return "   n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{100 * value:6.2f}"
+
+    present = set(summary.get("classes_present", []))
+    width = max(len(name) for name in summary["iou"])
+    lines = [f"{'class':<{width}}  IoU (%)"]
+    for name, value in summary["iou"].items():
+        mark = "" if name in present else "   (no ground truth)"
+        lines.append(f"{name:<{width}}  {pct(value)}{mark}")
+    lines += [
+        "",
+        f"mIoU (classes with a union)         {pct(summary['miou'])} %",
+        f"mIoU (classes with ground truth)    {pct(summary.get('miou_present'))} %",
+        f"ECE per scan (Calib3D, mean)        {pct(summary['ece_per_scan'])} %",
+        f"ECE pooled over all points          {pct(summary['ece_pooled'])} %",
+        f"scans {summary['num_scans']}, points {summary.get('num_points', 'n/a')}",
+    ]
+    return "\n".join(lines)
+
+
+def add_seg_eval_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of `u4d seg-eval CKPT DATA [--sequences ..] [--json] [--png OUT]`."""
+    parser.add_argument("checkpoint", type=Path, help="segmentation checkpoint (.pt from u4d seg-train)")
+    parser.add_argument("data", type=Path, help="SemanticKITTI-layout root with labels")
+    parser.add_argument("--sequences", nargs="+", default=None, help="sequences (e.g. 08) or a split name; default all")
+    parser.add_argument("--json", action="store_true", help="print the summary as json")
+    parser.add_argument("--png", type=Path, default=None, help="write the reliability diagram here")
+    parser.add_argument("--max-scans", type=int, default=None, help="evaluate this many evenly spaced scans")
+    parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+
+
+def run_seg_eval(args: argparse.Namespace) -> int:
+    """`u4d seg-eval`: print per-class IoU, mIoU and both ECEs; optionally the reliability diagram."""
+    if args.max_scans is not None and args.max_scans < 1:
+        raise InputError(f"--max-scans must be >= 1, got {args.max_scans}")
+    info = init_distributed(args.device)
+    try:
+        summary = evaluate(
+            args.checkpoint,
+            args.data,
+            parse_sequences(args.sequences),
+            max_scans=args.max_scans,
+            reliability_png=args.png,
+            dist_info=info,
+            progress=not args.json,
+        )
+    finally:
+        cleanup()
+    if info.is_main:
+        print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m segmentation.evaluate CKPT DATA ...`: as `u4d seg-eval`."""
+    parser = argparse.ArgumentParser(prog="python -m segmentation.evaluate", description=run_seg_eval.__doc__)
+    add_seg_eval_arguments(parser)
+    try:
+        return run_seg_eval(parser.parse_args(argv))
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,66 @@
+"""Segmentation losses: cross-entropy with an ignore id and the Lovász-softmax (Berman et al., CVPR 2018).
+
+The Lovász-softmax is the Lovász extension of the per-class Jaccard loss 1 - IoU_c evaluated at the per-point
+errors m_i(c) = |1[y_i = c] - p_i(c)| (Berman, Rannen Triki, Blaschko 2018, Eq. 9 and Alg. 1), averaged over
+the classes present in the target ("present" mode of the reference implementation).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from segmentation.config import LossConfig
+
+
+def lovasz_grad(fg_sorted: torch.Tensor) -> torch.Tensor:
+    """Gradient of the Lovász extension of Δ_J w.r.t. sorted errors (Berman et al. 2018, Alg. 1)."""
+    # fg_sorted: (M,) float, ground-truth membership of the points in decreasing order of error
+    gts = fg_sorted.sum()
+    intersection = gts - fg_sorted.cumsum(0)  # |fg \ first i mispredicted|
+    union = gts + (1.0 - fg_sorted).cumsum(0)  # |fg ∪ first i mispredicted|
+    jaccard = 1.0 - intersection / union  # Δ_J(S_i) for i = 1..M
+    if fg_sorted.numel() > 1:
+        jaccard = torch.cat([jaccard[:1], jaccard[1:] - jaccard[:-1]])
+    return jaccard
+
+
+def lovasz_softmax(probs: torch.Tensor, target: torch.Tensor, ignore_index: int | None = None) -> torch.Tensor:
+    """Lovász-softmax of probs (N, K) against target (N,), mean over classes present in the target.
+
+    Returns 0 (with a graph) when no valid point is left.
+    """
+    if ignore_index is not None:
+        keep = target != ignore_index
+        probs, target = probs[keep], target[keep]
+    if target.numel() == 0:
+        return probs.sum() * 0.0
+    losses = []
+    for c in torch.unique(target).tolist():
+        fg = (target == c).to(probs.dtype)  # (M,)
+        errors = (fg - probs[:, c]).abs()  # m_i(c)
+        errors_sorted, order = torch.sort(errors, descending=True)
+        losses.append(torch.dot(errors_sorted, lovasz_grad(fg[order])))
+    return torch.stack(losses).mean()
+
+
+def segmentation_loss(
+    logits: torch.Tensor, target: torch.Tensor, cfg: LossConfig, ignore_index: int
+) -> dict[str, torch.Tensor]:
+    """{"loss", "loss_ce", ["loss_lovasz"]} of logits (N, K) against train ids (N,), ignore id dropped."""
+    valid = target != ignore_index
+    if not bool(valid.any()):
+        zero = logits.sum() * 0.0  # keeps every parameter in the graph (DDP needs a gradient for each)
+        out = {"loss": zero, "loss_ce": zero.detach()}
+        if cfg.lovasz_weight > 0:
+            out["loss_lovasz"] = zero.detach()
+        return out
+    loss_ce = F.cross_entropy(logits.float(), target, ignore_index=ignore_index, label_smoothing=cfg.label_smoothing)
+    out = {"loss_ce": loss_ce}
+    loss = cfg.ce_weight * loss_ce
+    if cfg.lovasz_weight > 0:
+        loss_lovasz = lovasz_softmax(logits.float().softmax(dim=1), target, ignore_index)
+        out["loss_lovasz"] = loss_lovasz
+        loss = loss + cfg.lovasz_weight * loss_lovasz
+    out["loss"] = loss
+    return out

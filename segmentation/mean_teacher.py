@@ -1,0 +1,117 @@
+"""Mean teacher for LaserMix (Tarvainen & Valpola 2017; LaserMix `semi_base.py` + mmdet `MeanTeacherHook`).
+
+BatchNorm policy (`MeanTeacherConfig.bn_mode`), chosen explicitly:
+
+- "batch" (default, as upstream): `ema_update` averages parameters only; the teacher's forward passes use
+  batch statistics (`teacher_mode` puts its BatchNorm layers in train mode), and its running statistics are
+  updated by those forwards, so the teacher evaluated at the end carries statistics of its own weights
+  rather than the student's. Upstream gets this by accident (mmengine calls `model.train()` every
+  iteration); we do it on purpose. It is sound here because BatchNorm on voxel features normalises over
+  all occupied voxels of the batch (tens of thousands even for one scan), so batch statistics are stable
+  at the small batches of a CPU preset. Deviation: dropout (SPVCNN's) stays off in the teacher, so
+  pseudo-labels are deterministic given the batch; upstream leaves it on.
+- "copy_student": the teacher runs fully in eval mode and `ema_update` is followed by `copy_buffers`
+  (BatchNorm running statistics copied from the student). Pseudo-labels then do not depend on the
+  batch composition, at the price of statistics that belong to slightly different weights.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+@dataclass
+class MeanTeacherConfig:
+    """Semi-supervised hyper-parameters; defaults are the LaserMix MinkUNet18 SemanticKITTI config."""
+
+    ema_decay: float = 0.99  # teacher <- decay * teacher + (1 - decay) * student, every step (mmdet momentum 0.01)
+    pseudo_threshold: float = 0.9  # teacher confidence below this -> ignore id (0.95 upstream on nuScenes)
+    # L_mt weight: 200 for MinkUNet18 / SemanticKITTI upstream (Cylinder3D: 250 SK, 500 nuScenes); large
+    # because the MSE is averaged over N x C, so the right value scales with the number of classes.
+    consistency_weight: float = 200.0
+    sup_weight: float = 1.0  # weight of L_sup (labeled scans)
+    mix_weight: float = 1.0  # weight of L_mix (LaserMix scans with GT / pseudo-labels)
+    num_areas_choices: tuple[int, ...] = (3, 4, 5, 6)  # LaserMix MinkUNet18 config
+    # (down, up) pitch range in degrees; None = the sensor's (fov_down_deg, fov_up_deg)
+    pitch_range_deg: tuple[float, float] | None = None
+    bn_mode: Literal["batch", "copy_student"] = "batch"
+
+
+def make_teacher(student: nn.Module) -> nn.Module:
+    """Teacher = a frozen deep copy of the student (the mmdet hook copies the student at iteration 0)."""
+    teacher = copy.deepcopy(student)
+    teacher.requires_grad_(False)
+    return teacher
+
+
+def teacher_mode(teacher: nn.Module, bn_mode: Literal["batch", "copy_student"] = "batch") -> nn.Module:
+    """Teacher's training-time mode: eval, but BatchNorm in train mode when bn_mode == "batch"."""
+    if bn_mode not in ("batch", "copy_student"):
+        raise ValueError(f"bn_mode must be 'batch' or 'copy_student'; got {bn_mode!r}")
+    teacher.eval()
+    if bn_mode == "batch":
+        for module in teacher.modules():
+            if isinstance(module, nn.modules.batchnorm._BatchNorm):
+                module.train()
+    return teacher
+
+
+@torch.no_grad()
+def ema_update(teacher: nn.Module, student: nn.Module, decay: float) -> None:
+    """teacher <- decay * teacher + (1 - decay) * student, parameters only (mmdet MeanTeacherHook)."""
+    if not 0.0 <= decay <= 1.0:
+        raise ValueError(f"ema decay must be in [0, 1]; got {decay}")
+    t_params, s_params = dict(teacher.named_parameters()), dict(student.named_parameters())
+    if t_params.keys() != s_params.keys():
+        raise ValueError("teacher and student have different parameters")
+    for name, t in t_params.items():
+        # lerp is exact at both ends: weight 0 keeps t, weight 1 gives s
+        t.lerp_(s_params[name].detach().to(t.dtype), 1.0 - decay)
+
+
+@torch.no_grad()
+def copy_buffers(teacher: nn.Module, student: nn.Module) -> None:
+    """Copy every buffer (BatchNorm running mean/var, counters) from the student (bn_mode "copy_student")."""
+    t_buffers, s_buffers = dict(teacher.named_buffers()), dict(student.named_buffers())
+    if t_buffers.keys() != s_buffers.keys():
+        raise ValueError("teacher and student have different buffers")
+    for name, t in t_buffers.items():
+        t.copy_(s_buffers[name])
+
+
+@torch.no_grad()
+def pseudo_labels(
+    teacher_logits: torch.Tensor, threshold: float = 0.9, ignore_index: int = 19
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pseudo-labels (N,) = argmax softmax, ignore_index where confidence (N,) < threshold (LaserMix)."""
+    confidence, labels = F.softmax(teacher_logits.float(), dim=1).max(dim=1)  # (N,), (N,)
+    labels = labels.masked_fill(confidence < threshold, ignore_index)
+    return labels, confidence
+
+
+def consistency_loss(student_logits: torch.Tensor, teacher_logits: torch.Tensor) -> torch.Tensor:
+    """L_mt = MSE(softmax(student), softmax(teacher).detach()), mean over N x C (LaserMix `loss_mse`)."""
+    if student_logits.shape != teacher_logits.shape:
+        raise ValueError(
+            f"student and teacher logits differ in shape: {tuple(student_logits.shape)} vs "
+            f"{tuple(teacher_logits.shape)}"
+        )
+    p_student = F.softmax(student_logits.float(), dim=1)  # (N, C)
+    p_teacher = F.softmax(teacher_logits.detach().float(), dim=1)  # (N, C)
+    return F.mse_loss(p_student, p_teacher)
+
+
+def total_loss(
+    loss_sup: torch.Tensor, loss_mix: torch.Tensor, loss_mt: torch.Tensor | None, config: MeanTeacherConfig
+) -> torch.Tensor:
+    """L = w_sup * L_sup + w_mix * L_mix + w_mt * L_mt (LaserMix `SemiBase3DSegmentor.loss`)."""
+    loss = config.sup_weight * loss_sup + config.mix_weight * loss_mix
+    if loss_mt is not None:
+        loss = loss + config.consistency_weight * loss_mt
+    return loss

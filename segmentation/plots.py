@@ -1,0 +1,126 @@
+"""PNG figures for the segmentation reports: reliability diagram (Guo et al. 2017) and learning curves.
+
+Figures are built with `matplotlib.figure.Figure` (Agg canvas, no pyplot global state) and written atomically.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from segmentation.metrics import ReliabilityBins
+from u4d_aug.io import atomic_open
+
+X_KEYS = ("step", "iteration", "iter", "epoch")
+# bookkeeping keys left out of the default curves (other scales than losses and metrics)
+NOT_CURVES = frozenset(X_KEYS) | {
+    "lr",
+    "time",
+    "elapsed",
+    "wall_time",
+    "seconds",
+    "rank",
+    "seed",
+    "world_size",
+}
+
+
+def _save(fig: Figure, path: str | os.PathLike) -> None:
+    FigureCanvasAgg(fig)
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=120)
+
+
+def plot_reliability(bins: ReliabilityBins, path: str | os.PathLike, title: str = "") -> None:
+    """Reliability diagram: accuracy per confidence bin against the diagonal, gaps shaded, counts below."""
+    edges = bins.edges
+    centres, width = (edges[:-1] + edges[1:]) / 2, edges[1] - edges[0]
+    accuracy, confidence = np.nan_to_num(bins.accuracy), np.nan_to_num(bins.confidence)
+    filled = bins.count > 0
+
+    fig = Figure(figsize=(4.5, 5.5))
+    top, bottom = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [3, 1]})
+    top.bar(centres[filled], accuracy[filled], width=width, edgecolor="black", color="tab:blue", label="accuracy")
+    top.bar(
+        centres[filled],
+        (confidence - accuracy)[filled],
+        bottom=accuracy[filled],
+        width=width,
+        edgecolor="tab:red",
+        color="tab:red",
+        alpha=0.3,
+        label="gap to confidence",
+    )
+    top.plot([0, 1], [0, 1], "k--", linewidth=1, label="perfect calibration")
+    top.set_xlim(0, 1)
+    top.set_ylim(0, 1)
+    top.set_ylabel("accuracy")
+    ece = bins.ece
+    ece_text = "n/a" if math.isnan(ece) else f"{100 * ece:.2f}%"
+    top.set_title(f"{title}  (pooled ECE {ece_text})" if title else f"pooled ECE {ece_text}")
+    top.legend(loc="upper left", fontsize=8)
+    bottom.bar(centres, bins.count / max(bins.total, 1), width=width, edgecolor="black", color="tab:gray")
+    bottom.set_xlabel("confidence")
+    bottom.set_ylabel("fraction")
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def plot_learning_curve(
+    records: Iterable[dict],
+    path: str | os.PathLike,
+    x_key: str | None = None,
+    keys: Sequence[str] | None = None,
+) -> None:
+    """Learning curves from jsonl log records: keys containing "loss" on the left panel, other metrics right.
+
+    `x_key` defaults to the first of step / iteration / iter / epoch present; `keys` defaults to every numeric
+    key except bookkeeping ones (`NOT_CURVES`: lr, time, ...); records without a key are skipped for that
+    curve (e.g. eval metrics logged less often).
+    """
+    records = list(records)
+    if x_key is None:
+        x_key = next((k for k in X_KEYS if any(k in r for r in records)), None)
+    if keys is None:
+        keys = sorted(
+            {
+                k
+                for r in records
+                for k, v in r.items()
+                if k != x_key and k not in NOT_CURVES and isinstance(v, int | float) and not isinstance(v, bool)
+            }
+        )
+    series: dict[str, tuple[list[float], list[float]]] = {}
+    for key in keys:
+        xs, ys = [], []
+        for i, r in enumerate(records):
+            v = r.get(key)
+            if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v):
+                xs.append(float(r.get(x_key, i)) if x_key else float(i))
+                ys.append(float(v))
+        if xs:
+            series[key] = (xs, ys)
+
+    fig = Figure(figsize=(10, 4))
+    left, right = fig.subplots(1, 2)
+    for ax, group, ylabel in (
+        (left, [k for k in series if "loss" in k], "loss"),
+        (right, [k for k in series if "loss" not in k], "metric"),
+    ):
+        for key in group:
+            xs, ys = series[key]
+            ax.plot(xs, ys, marker="o" if len(xs) < 30 else None, markersize=3, label=key)
+        ax.set_xlabel(x_key or "record")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        if group:
+            ax.legend(fontsize=8)
+        else:
+            ax.text(0.5, 0.5, "no data", ha="center", va="center", transform=ax.transAxes)
+    fig.tight_layout()
+    _save(fig, path)

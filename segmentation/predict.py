@@ -1,0 +1,216 @@
+"""Checkpoint + scans -> per-point class probabilities, the contract with `u4d_aug.uncertainty`.
+
+`u4d seg-predict CKPT DATA --out DIR` writes, for every scan `DATA/sequences/XX/velodyne/NNNNNN.bin`,
+`DIR/sequences/XX/probs/NNNNNN.npy`: float16 (N, K) softmax probabilities, rows in the order of the scan's
+points (all N rows of the .bin; a NaN/inf point gets the uniform 1/K row), plus `DIR/manifest.json` naming the
+checkpoint (sha256[:16]) and its config. Any segmentor that writes these files can drive U4D. Files are
+written atomically and existing ones are skipped, so a re-run resumes; under torchrun each rank takes every
+world_size-th scan.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from segmentation.models import SegModelConfig, build_model
+from u4d_aug.config import config_from_dict
+from u4d_aug.data.datasets import SEMANTICKITTI_SPLITS, list_frames, resolve_sequences, scan_path
+from u4d_aug.data.formats import read_kitti_scan
+from u4d_aug.data.labels import SEMANTICKITTI_CLASSES
+from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
+from u4d_aug.errors import InputError
+from u4d_aug.io import atomic_save_npy, atomic_write_json
+
+MANIFEST_FORMAT = "u4d-seg-probs"
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Read a checkpoint written by segmentation.train (on CPU; tensors and plain python only)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: checkpoint not found")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for a file that is not a checkpoint
+        raise InputError(f"{path}: not a readable torch checkpoint ({type(exc).__name__})") from None
+    if not isinstance(ckpt, dict) or "model" not in ckpt or "config" not in ckpt:
+        raise InputError(f"{path}: not a segmentation checkpoint (expected keys 'config' and 'model')")
+    return ckpt
+
+
+def model_from_checkpoint(ckpt: dict, device: torch.device, source: str = "checkpoint") -> nn.Module:
+    """Rebuild the net from the checkpoint's config['model'] and load its weights, in eval mode."""
+    model_cfg = config_from_dict(SegModelConfig, ckpt["config"].get("model", {}), source=f"{source} config")
+    model = build_model(model_cfg)
+    model.load_state_dict(ckpt["model"])
+    return model.to(device).eval()
+
+
+def checkpoint_hash(path: str | Path) -> str:
+    """sha256 of the checkpoint file, first 16 hex digits (names the segmentor in manifests)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()[:16]
+
+
+@torch.no_grad()
+def predict_probs(model: nn.Module, points: np.ndarray | torch.Tensor, device: torch.device) -> torch.Tensor:
+    """Softmax probabilities (N, K) float32 on the CPU of one scan (N, 4); the model must be in eval mode."""
+    points = torch.as_tensor(points, dtype=torch.float32)
+    logits = model([points.to(device)])  # (N, K)
+    return logits.float().softmax(dim=1).cpu()
+
+
+def scan_probs(model: nn.Module, points: np.ndarray, device: torch.device, num_classes: int) -> np.ndarray:
+    """(N, K) float16 for all N rows of a raw scan; rows with NaN/inf coordinates get the uniform 1/K."""
+    finite = np.isfinite(points).all(axis=1)
+    probs = np.full((len(points), num_classes), 1.0 / num_classes, dtype=np.float32)
+    if finite.any():
+        probs[finite] = predict_probs(model, points[finite], device).numpy()
+    return probs.astype(np.float16)
+
+
+def probs_path(out_dir: str | Path, seq: str, frame: str) -> Path:
+    """DIR/sequences/seq/probs/frame.npy."""
+    return Path(out_dir) / "sequences" / seq / "probs" / f"{frame}.npy"
+
+
+def predict_root(
+    checkpoint: str | Path,
+    data_root: str | Path,
+    out_dir: str | Path,
+    sequences: str | list[str] | None = None,
+    dist_info: DistInfo | None = None,
+    progress: bool = True,
+) -> dict:
+    """Write the probabilities of every scan of `sequences` under out_dir (skip existing) and the manifest."""
+    info = dist_info or init_distributed("auto")
+    out_dir = Path(out_dir)
+    ckpt = load_checkpoint(checkpoint)
+    model = model_from_checkpoint(ckpt, info.device, str(checkpoint))
+    num_classes = int(ckpt["config"].get("model", {}).get("num_classes", SegModelConfig.num_classes))
+    sequences = resolve_sequences(data_root, sequences)
+    entries = [(seq, frame) for seq in sequences for frame in list_frames(data_root, seq)]
+    manifest = {
+        "format": MANIFEST_FORMAT,
+        "version": 1,
+        "checkpoint": str(Path(checkpoint).resolve()),
+        "checkpoint_sha256": checkpoint_hash(checkpoint),
+        "config": ckpt["config"],
+        "step": ckpt.get("step"),
+        "num_classes": num_classes,
+        "class_names": list(ckpt.get("class_names") or SEMANTICKITTI_CLASSES[:num_classes]),
+        "dtype": "float16",
+        "layout": "sequences/XX/probs/NNNNNN.npy, (N, K) rows in scan point order",
+        "data_root": str(Path(data_root).resolve()),
+        "sequences": sequences,
+        "num_scans": len(entries),
+        "complete": False,
+    }
+    manifest_path = out_dir / "manifest.json"
+    _check_manifest(manifest_path, manifest)
+    if info.is_main:
+        atomic_write_json(manifest_path, manifest)
+    barrier()
+
+    mine = shard(entries, info.rank, info.world_size)
+    written = skipped = 0
+    for seq, frame in tqdm(mine, desc="seg-predict", disable=not (progress and info.is_main), unit="scan"):
+        target = probs_path(out_dir, seq, frame)
+        if target.is_file():
+            skipped += 1
+            continue
+        points = read_kitti_scan(scan_path(data_root, seq, frame))
+        atomic_save_npy(target, scan_probs(model, points, info.device, num_classes))
+        written += 1
+    barrier()
+    if info.is_main:
+        manifest["complete"] = True
+        atomic_write_json(manifest_path, manifest)
+    return {"written": written, "skipped": skipped, "num_scans": len(entries), "out_dir": str(out_dir)}
+
+
+def _check_manifest(path: Path, manifest: dict) -> None:
+    """A resumed run must use the same checkpoint, else the folder would mix two segmentors."""
+    if not path.is_file():
+        return
+    try:
+        old = json.loads(path.read_text())
+    except json.JSONDecodeError:
+        raise InputError(f"{path}: not valid json; remove it or choose another --out") from None
+    if old.get("checkpoint_sha256") != manifest["checkpoint_sha256"]:
+        raise InputError(
+            f"{path}: written by checkpoint {old.get('checkpoint_sha256')}, not "
+            f"{manifest['checkpoint_sha256']}; choose another --out (two segmentors' probabilities would mix)"
+        )
+
+
+def parse_sequences(values: list[str] | None) -> str | list[str] | None:
+    """CLI --sequences: nothing -> all, one split name -> that split, else the listed sequences."""
+    if not values:
+        return None
+    if len(values) == 1 and values[0] in SEMANTICKITTI_SPLITS:
+        return values[0]
+    return [v.strip() for value in values for v in value.split(",") if v.strip()]
+
+
+def add_seg_predict_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of `u4d seg-predict CKPT DATA --out DIR [--sequences ..]`."""
+    parser.add_argument("checkpoint", type=Path, help="segmentation checkpoint (.pt from u4d seg-train)")
+    parser.add_argument("data", type=Path, help="SemanticKITTI-layout root (ROOT/sequences/XX/velodyne)")
+    parser.add_argument("--out", type=Path, required=True, help="output root: OUT/sequences/XX/probs/*.npy")
+    parser.add_argument(
+        "--sequences", nargs="+", default=None, help="sequences (e.g. 00 01) or a split name; default all"
+    )
+    parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run_seg_predict(args: argparse.Namespace) -> int:
+    """`u4d seg-predict`: per-point probabilities of every scan (resumable, shardable with torchrun)."""
+    info = init_distributed(args.device)
+    try:
+        result = predict_root(
+            args.checkpoint,
+            args.data,
+            args.out,
+            parse_sequences(args.sequences),
+            dist_info=info,
+            progress=not args.no_progress,
+        )
+    finally:
+        cleanup()
+    if info.is_main:
+        where = " (rank 0's share)" if info.world_size > 1 else ""
+        print(
+            f"{result['num_scans']} scans: wrote {result['written']}, skipped {result['skipped']} existing"
+            f"{where} -> {result['out_dir']}",
+            file=sys.stderr,
+        )
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m segmentation.predict CKPT DATA --out DIR`: as `u4d seg-predict`, handy under torchrun."""
+    parser = argparse.ArgumentParser(prog="python -m segmentation.predict", description=run_seg_predict.__doc__)
+    add_seg_predict_arguments(parser)
+    try:
+        return run_seg_predict(parser.parse_args(argv))
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

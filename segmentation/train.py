@@ -1,0 +1,462 @@
+"""Segmentation training loop (`u4d seg-train CONFIG [key=value ...] [--resume [CKPT]] [--out DIR]`).
+
+Reads top to bottom like nanoGPT's train.py: set-up, data, model, optimiser, then one loop that takes a batch,
+computes the loss with the step function of the configured mode (`supervised_step`; the semi-supervised
+mean-teacher step of issue 5 is its sibling), steps AdamW at the warm-up + cosine learning rate of that step,
+evaluates, logs and checkpoints.
+
+Exact resume: the scans of step s, their point subsets and augmentations depend only on (seed, step, slot
+in the batch), and the global torch RNG (dropout) is re-seeded from (seed, step, rank) before every step,
+so a run resumed from the checkpoint of step s ends with the same weights as an uninterrupted one (same
+device, same world size). Checkpoints hold the config, step, model, optimiser, schedule, EMA (None when
+supervised) and RNG states, and are written atomically by rank 0.
+
+Outputs in OUT (cfg.out_dir): config.yaml, log.jsonl (train records every log_every steps, eval records),
+learning_curve.png, reliability.png, checkpoints/step_XXXXXXX.pt, model.pt (final weights + config + metrics),
+metrics.json (final evaluation).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader, Dataset
+from tqdm import tqdm
+
+from segmentation.config import OptimConfig, SegTrainConfig
+from segmentation.data import augment, load_or_make_split
+from segmentation.evaluate import accumulate, evenly_spaced, summary_of
+from segmentation.losses import segmentation_loss
+from segmentation.models import build_model
+from segmentation.plots import plot_learning_curve, plot_reliability
+from segmentation.predict import load_checkpoint
+from u4d_aug.config import config_to_dict, load_config, save_config
+from u4d_aug.data.datasets import ScanDataset
+from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
+from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, cleanup, init_distributed
+from u4d_aug.errors import InputError
+from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_json, atomic_write_text, read_jsonl
+
+CHECKPOINT_FORMAT = "u4d-seg-checkpoint"
+CURVE_KEYS = ("loss", "loss_ce", "loss_lovasz", "val_miou", "val_ece_per_scan", "val_ece_pooled")
+# seed domains, so that the streams of epochs, scans and dropout never share a seed
+_EPOCH, _SCAN, _STEP = 1, 2, 3
+
+
+# ---------------------------------------------------------------------------------------------------- helpers
+
+
+def derived_seed(*parts: int) -> int:
+    """A 63-bit seed hashed from non-negative integers (numpy SeedSequence; no global state)."""
+    return int(np.random.SeedSequence(list(parts)).generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+
+def batch_indices(step: int, num_scans: int, batch_size: int, seed: int) -> list[int]:
+    """Scan indices of the global batch of `step`: consecutive slices of one seeded permutation per epoch."""
+    positions = range(step * batch_size, (step + 1) * batch_size)
+    permutations: dict[int, torch.Tensor] = {}
+    out = []
+    for position in positions:
+        epoch, within = divmod(position, num_scans)
+        if epoch not in permutations:
+            generator = torch.Generator().manual_seed(derived_seed(seed, _EPOCH, epoch))
+            permutations[epoch] = torch.randperm(num_scans, generator=generator)
+        out.append(int(permutations[epoch][within]))
+    return out
+
+
+def learning_rate(step: int, cfg: OptimConfig) -> float:
+    """Linear warm-up over warmup_steps, then cosine from lr down to min_lr_ratio * lr (nanoGPT get_lr)."""
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    decay_steps = max(1, cfg.steps - cfg.warmup_steps)
+    progress = min(1.0, (step - cfg.warmup_steps) / decay_steps)
+    min_lr = cfg.lr * cfg.min_lr_ratio
+    return min_lr + 0.5 * (1.0 + math.cos(math.pi * progress)) * (cfg.lr - min_lr)
+
+
+def make_optimizer(model: nn.Module, cfg: OptimConfig) -> torch.optim.AdamW:
+    """AdamW with weight decay on >= 2-d weights only (convs, linears), not on biases and norms (nanoGPT)."""
+    params = [p for p in model.parameters() if p.requires_grad]
+    groups = [
+        {"params": [p for p in params if p.dim() >= 2], "weight_decay": cfg.weight_decay},
+        {"params": [p for p in params if p.dim() < 2], "weight_decay": 0.0},
+    ]
+    return torch.optim.AdamW(groups, lr=cfg.lr, betas=cfg.betas)
+
+
+class TrainBatches(Dataset):
+    """Item `step` = this rank's share of the global batch of that step: loaded, subsampled, augmented scans.
+
+    Slot j of the global batch goes to rank j % world_size; its randomness is seeded by (seed, step, j), so
+    the global batch does not depend on the number of ranks or DataLoader workers.
+    """
+
+    def __init__(self, scans: ScanDataset, cfg: SegTrainConfig, rank: int, world_size: int) -> None:
+        self.scans, self.cfg, self.rank, self.world_size = scans, cfg, rank, world_size
+
+    def __len__(self) -> int:
+        return self.cfg.optim.steps
+
+    def __getitem__(self, step: int) -> dict:
+        cfg = self.cfg
+        indices = batch_indices(step, len(self.scans), cfg.optim.batch_size, cfg.seed)
+        points, labels = [], []
+        for slot in range(self.rank, cfg.optim.batch_size, self.world_size):
+            item = self.scans[indices[slot]]
+            generator = torch.Generator().manual_seed(derived_seed(cfg.seed, _SCAN, step, slot))
+            scan = torch.from_numpy(item["points"])  # (N, 4)
+            target = torch.from_numpy(item["labels"])  # (N,) train ids
+            if cfg.data.max_points is not None and scan.shape[0] > cfg.data.max_points:
+                keep = torch.randperm(scan.shape[0], generator=generator)[: cfg.data.max_points]
+                scan, target = scan[keep], target[keep]
+            points.append(augment(scan, generator, cfg.augment))
+            labels.append(target)
+        return {"step": step, "points": points, "labels": labels}
+
+
+def supervised_step(model: nn.Module, batch: dict, cfg: SegTrainConfig, device: torch.device) -> dict:
+    """Losses of one labeled batch: {"loss", "loss_ce", ["loss_lovasz"]} (the loop backpropagates "loss")."""
+    logits = model([p.to(device, non_blocking=True) for p in batch["points"]])  # (sum N_b, K)
+    target = torch.cat(batch["labels"]).to(device)  # (sum N_b,)
+    return segmentation_loss(logits, target, cfg.loss, SEMANTICKITTI_IGNORE)
+
+
+def train_scans(cfg: SegTrainConfig, info: DistInfo) -> ScanDataset:
+    """Labeled scans of the train sequences, restricted to the labeled split if label_fraction < 1."""
+    scans = ScanDataset(cfg.data.root, cfg.data.train_sequences, labeled_only=True)
+    if len(scans) == 0:
+        raise InputError(f"{cfg.data.root}: no labeled scan in the train sequences {scans.sequences}")
+    if cfg.data.label_fraction < 1.0:
+        # rank 0 draws and writes the split file beside the data; the others then read it
+        if info.is_main:
+            labeled, _ = load_or_make_split(
+                cfg.data.root,
+                scans.entries,
+                cfg.data.label_fraction,
+                cfg.data.split_seed,
+                cfg.data.split_mode,
+            )
+        barrier()
+        if not info.is_main:
+            labeled, _ = load_or_make_split(
+                cfg.data.root,
+                scans.entries,
+                cfg.data.label_fraction,
+                cfg.data.split_seed,
+                cfg.data.split_mode,
+            )
+        chosen = set(labeled)
+        scans.entries = [entry for entry in scans.entries if entry in chosen]
+    return scans
+
+
+def find_checkpoint(out_dir: Path, resume: str | Path) -> Path:
+    """`--resume` without a path -> newest OUT/checkpoints/step_*.pt; with a path -> that file."""
+    if str(resume) != "last":
+        path = Path(resume)
+        if not path.is_file():
+            raise InputError(f"{path}: checkpoint to resume from not found")
+        return path
+    found = sorted((out_dir / "checkpoints").glob("step_*.pt"))
+    if not found:
+        raise InputError(f"{out_dir / 'checkpoints'}: no step_*.pt checkpoint to resume from")
+    return found[-1]
+
+
+def save_checkpoint(path: Path, state: dict, keep: int) -> None:
+    """Write atomically, then delete all but the newest `keep` step_*.pt beside it (0 = keep all)."""
+    atomic_torch_save(path, state)
+    if keep > 0:
+        for old in sorted(path.parent.glob("step_*.pt"))[:-keep]:
+            old.unlink(missing_ok=True)
+
+
+def evaluate_val(model: nn.Module, cfg: SegTrainConfig, val_scans: ScanDataset | None, info: DistInfo):
+    """Periodic evaluation on the val scans, shared by all ranks: (summary, pooled bins) or (None, None)."""
+    if val_scans is None:
+        return None, None
+    indices = evenly_spaced(len(val_scans), cfg.data.val_max_scans)
+    cm, calibration = accumulate(
+        model, val_scans, indices, info.device, cfg.model.num_classes, SEMANTICKITTI_IGNORE,
+        info.rank, info.world_size,
+    )  # fmt: skip
+    return summary_of(cm, calibration, class_names(cfg)), calibration.pooled
+
+
+def sync_buffers(model: nn.Module) -> None:
+    """Copy rank 0's buffers (BatchNorm statistics) to every rank, so that all ranks evaluate one model."""
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        for buffer in model.buffers():
+            torch.distributed.broadcast(buffer, src=0)
+
+
+def class_names(cfg: SegTrainConfig) -> list[str]:
+    """Train-id names of the net's classes (SemanticKITTI)."""
+    names = list(SEMANTICKITTI_CLASSES[: cfg.model.num_classes])
+    return names + [f"class_{k}" for k in range(len(names), cfg.model.num_classes)]
+
+
+def rewrite_log(path: Path, last_step: int) -> None:
+    """On resume: drop log records written after the checkpoint (they will be written again)."""
+    if path.is_file():
+        records = [r for r in read_jsonl(path) if r.get("step", 0) <= last_step]
+        atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in records))
+
+
+# ------------------------------------------------------------------------------------------------------ loop
+
+
+def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool = True) -> dict:
+    """Train as configured; returns the final evaluation summary (empty without val scans)."""
+    info = init_distributed(cfg.device)
+    device = info.device
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    out_dir = Path(cfg.out_dir)
+    log_path = out_dir / "log.jsonl"
+    if resume is None and (log_path.exists() or (out_dir / "checkpoints").exists()):
+        raise InputError(f"{out_dir}: holds a previous run; pass --resume to continue it or choose another --out")
+    if cfg.model.num_classes != len(SEMANTICKITTI_CLASSES):
+        raise InputError(
+            f"model.num_classes={cfg.model.num_classes}: the scans carry the "
+            f"{len(SEMANTICKITTI_CLASSES)} SemanticKITTI train ids"
+        )
+    if cfg.optim.batch_size < info.world_size:
+        raise InputError(
+            f"optim.batch_size={cfg.optim.batch_size} is smaller than the {info.world_size} processes; "
+            "every rank needs at least one scan per step"
+        )
+
+    # ---- data
+    scans = train_scans(cfg, info)
+    val_scans = None
+    if cfg.data.val_sequences is not None:
+        val_scans = ScanDataset(cfg.data.root, cfg.data.val_sequences, labeled_only=True)
+        val_scans = val_scans if len(val_scans) else None
+
+    # ---- model and optimiser (same initial weights on every rank; DDP also broadcasts rank 0's)
+    torch.manual_seed(cfg.seed)
+    model = build_model(cfg.model).to(device)
+    optimizer = make_optimizer(model, cfg.optim)
+    start_step, elapsed_before, last_summary = 0, 0.0, None
+    if resume is not None:
+        ckpt_path = find_checkpoint(out_dir, resume)
+        ckpt = load_checkpoint(ckpt_path)
+        if ckpt.get("format") != CHECKPOINT_FORMAT or "optimizer" not in ckpt:
+            raise InputError(
+                f"{ckpt_path}: not a seg-train training checkpoint (resume from OUT/checkpoints/step_*.pt)"
+            )
+        _warn_config_changes(ckpt["config"], config_to_dict(cfg), ckpt_path)
+        model.load_state_dict(ckpt["model"])
+        optimizer.load_state_dict(ckpt["optimizer"])
+        start_step, elapsed_before = int(ckpt["step"]), float(ckpt.get("elapsed", 0.0))
+        last_summary = ckpt.get("metrics")
+        torch.set_rng_state(ckpt["rng"]["torch"])
+        if info.is_main:
+            rewrite_log(log_path, start_step)
+            print(f"resuming from {ckpt_path} at step {start_step}", file=sys.stderr)
+    if info.is_main:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        save_config(cfg, out_dir / "config.yaml")
+    ddp_model = DistributedDataParallel(model) if info.world_size > 1 else model
+
+    loader = DataLoader(
+        TrainBatches(scans, cfg, info.rank, info.world_size),
+        batch_size=None,
+        sampler=range(start_step, cfg.optim.steps),
+        num_workers=cfg.num_workers,
+        pin_memory=device.type == "cuda",
+        generator=torch.Generator().manual_seed(cfg.seed),  # the global RNG is left alone
+    )
+    bar = tqdm(total=cfg.optim.steps, initial=start_step, desc="seg-train", disable=not (progress and info.is_main))
+    t0 = time.perf_counter()
+    sums: dict[str, torch.Tensor] = {}
+    count, done, lr = 0, start_step, learning_rate(start_step, cfg.optim)
+    model.train()
+
+    # ---- loop: after the body of step s, done = s + 1 steps are finished
+    for batch in loader:
+        step = int(batch["step"])
+        lr = learning_rate(step, cfg.optim)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        torch.manual_seed(derived_seed(cfg.seed, _STEP, step, info.rank))  # dropout of this step only
+
+        if cfg.mode == "supervised":
+            losses = supervised_step(ddp_model, batch, cfg, device)
+        else:
+            raise ValueError(f"mode must be 'supervised'; got {cfg.mode!r}")
+        optimizer.zero_grad(set_to_none=True)
+        losses["loss"].backward()
+        grad_norm = (
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip) if cfg.optim.grad_clip > 0 else None
+        )
+        optimizer.step()
+        done = step + 1
+
+        for key, value in losses.items():
+            sums[key] = sums.get(key, 0.0) + value.detach().float()
+        if grad_norm is not None:
+            sums["grad_norm"] = sums.get("grad_norm", 0.0) + grad_norm.detach().float()
+        count += 1
+        bar.update(1)
+        bar.set_postfix(loss=f"{losses['loss'].item():.3f}", lr=f"{lr:.2e}")
+        elapsed = elapsed_before + time.perf_counter() - t0
+        out_of_time = _out_of_time(cfg, elapsed)
+        last = done == cfg.optim.steps or out_of_time
+
+        if done % cfg.log_every == 0 or last:
+            record = {"step": done, "lr": lr, "time": round(elapsed, 3)}
+            for key, value in sums.items():
+                record[key] = float(all_reduce_mean(torch.as_tensor(value / count, device=device)))
+            sums, count = {}, 0
+            if info.is_main:
+                append_jsonl(log_path, record)
+
+        if done % cfg.eval_every == 0 or last:
+            sync_buffers(model)
+            summary, bins = evaluate_val(model, cfg, val_scans, info)
+            if summary is not None:
+                last_summary = summary
+                if info.is_main:
+                    append_jsonl(log_path, {
+                        "step": done,
+                        "time": round(elapsed, 3),
+                        "val_miou": summary["miou"],
+                        "val_ece_per_scan": summary["ece_per_scan"],
+                        "val_ece_pooled": summary["ece_pooled"],
+                        "val_iou": summary["iou"],
+                    })  # fmt: skip
+                    plot_reliability(bins, out_dir / "reliability.png", title=f"step {done}")
+                    bar.write(
+                        f"step {done}: val mIoU {_pct(summary['miou'])}, ECE per scan "
+                        f"{_pct(summary['ece_per_scan'])}, pooled {_pct(summary['ece_pooled'])}"
+                    )
+            if info.is_main:
+                plot_learning_curve(read_jsonl(log_path), out_dir / "learning_curve.png", "step", CURVE_KEYS)
+
+        if done % cfg.checkpoint_every == 0 or last:
+            if info.is_main:
+                state = {
+                    "format": CHECKPOINT_FORMAT,
+                    "config": config_to_dict(cfg),
+                    "step": done,
+                    "model": model.state_dict(),
+                    "optimizer": optimizer.state_dict(),
+                    "scheduler": {"name": "warmup_cosine", "step": done, "lr": lr},
+                    "ema": None,  # the mean teacher's weights in the semi-supervised mode
+                    "rng": {"torch": torch.get_rng_state(), "seed": cfg.seed},
+                    "elapsed": elapsed,
+                    "metrics": last_summary,
+                    "class_names": class_names(cfg),
+                }
+                save_checkpoint(out_dir / "checkpoints" / f"step_{done:07d}.pt", state, cfg.keep_checkpoints)
+            barrier()
+        if out_of_time:
+            if info.is_main:
+                bar.write(f"stopping at step {done}: wall-clock budget of {cfg.max_minutes} min used")
+            break
+    bar.close()
+
+    # ---- final outputs: weights + config for seg-eval / seg-predict, and the last evaluation
+    if info.is_main:
+        atomic_torch_save(out_dir / "model.pt", {
+            "format": CHECKPOINT_FORMAT,
+            "config": config_to_dict(cfg),
+            "step": done,
+            "model": model.state_dict(),
+            "metrics": last_summary,
+            "class_names": class_names(cfg),
+        })  # fmt: skip
+        atomic_write_json(out_dir / "metrics.json", {"step": done, **(last_summary or {})})
+    barrier()
+    return last_summary or {}
+
+
+def _out_of_time(cfg: SegTrainConfig, elapsed: float) -> bool:
+    """Wall-clock budget check, decided by rank 0 so that every rank stops at the same step."""
+    if cfg.max_minutes <= 0:
+        return False
+    flag = torch.tensor(float(elapsed > 60.0 * cfg.max_minutes))
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        torch.distributed.broadcast(flag, src=0)
+    return bool(flag)
+
+
+def _pct(value: float | None) -> str:
+    return "n/a" if value is None else f"{100 * value:.2f}%"
+
+
+def _warn_config_changes(old: dict, new: dict, path: Path) -> None:
+    """Resuming with another config is allowed (e.g. more steps) but not exact: warn which keys differ."""
+    changed = [f"{key}: {a!r} -> {b!r}" for key, a, b in _differences(old, new) if key != "out_dir"]
+    if changed:
+        warnings.warn(f"{path}: resuming with a changed config ({'; '.join(changed)})", stacklevel=2)
+
+
+def _differences(old: dict, new: dict, prefix: str = "") -> list[tuple[str, object, object]]:
+    out = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _differences(a, b, f"{prefix}{key}.")
+        elif a != b:
+            out.append((f"{prefix}{key}", a, b))
+    return out
+
+
+# ------------------------------------------------------------------------------------------------------- CLI
+
+
+def add_seg_train_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of `u4d seg-train CONFIG [key=value ...] [--resume [CKPT]] [--out DIR]`."""
+    parser.add_argument("config", type=Path, help="yaml preset, e.g. configs/seg/cpu_minkunet.yaml")
+    parser.add_argument("overrides", nargs="*", help="key=value overrides, e.g. optim.steps=100 model.width=0.5")
+    parser.add_argument(
+        "--resume",
+        nargs="?",
+        const="last",
+        default=None,
+        metavar="CKPT",
+        help="continue a run: from CKPT, or without a value from the newest OUT/checkpoints/step_*.pt",
+    )
+    parser.add_argument("--out", type=Path, default=None, help="output folder (overrides out_dir)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run_seg_train(args: argparse.Namespace) -> int:
+    """`u4d seg-train`: supervised training (torchrun for several processes)."""
+    cfg = load_config(SegTrainConfig, args.config, args.overrides)
+    if args.out is not None:
+        cfg.out_dir = args.out
+    try:
+        train(cfg, resume=args.resume, progress=not args.no_progress)
+    finally:
+        cleanup()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m segmentation.train CONFIG ...`: the same as `u4d seg-train`, handy under torchrun."""
+    parser = argparse.ArgumentParser(prog="python -m segmentation.train", description=run_seg_train.__doc__)
+    add_seg_train_arguments(parser)
+    try:
+        return run_seg_train(parser.parse_args(argv))
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,78 @@
+"""Typed configs: defaults <- yaml <- key=value; unknown keys and wrong types are rejected by name."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import pytest
+import yaml
+
+from u4d_aug.config import config_from_dict, config_to_dict, load_config, parse_override, save_config
+from u4d_aug.errors import InputError
+
+
+@dataclass
+class Inner:
+    steps: int = 10
+    lr: float = 1e-3
+    mode: Literal["ddpm", "ddim"] = "ddpm"
+
+
+@dataclass
+class Outer:
+    name: str = "run"
+    sizes: tuple[int, int] = (64, 1024)
+    widths: list[int] = field(default_factory=lambda: [32, 64])
+    seed: int | None = None
+    inner: Inner = field(default_factory=Inner)
+
+
+def test_defaults_yaml_then_overrides(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("name: a\ninner:\n  steps: 5\n  lr: 1\n")
+    cfg = load_config(Outer, path, ["inner.steps=7", "sizes=[32, 512]", "seed=3"])
+    assert cfg.name == "a"
+    assert cfg.inner.steps == 7
+    assert cfg.inner.lr == 1.0 and isinstance(cfg.inner.lr, float)
+    assert cfg.sizes == (32, 512)
+    assert cfg.seed == 3
+    assert cfg.widths == [32, 64]
+
+
+def test_unknown_key_is_named_with_valid_keys(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("inner:\n  stepz: 5\n")
+    with pytest.raises(InputError, match=r"unknown config key 'inner.stepz'; valid keys here: lr, mode, steps"):
+        load_config(Outer, path)
+
+
+def test_wrong_type_in_yaml_is_named(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("inner:\n  steps: many\n")
+    with pytest.raises(InputError, match=r"c.yaml: key 'inner.steps' expects int, got 'many'"):
+        load_config(Outer, path)
+
+
+def test_literal_lists_allowed_values():
+    with pytest.raises(InputError, match=r"'inner.mode' must be one of 'ddpm', 'ddim'"):
+        load_config(Outer, None, ["inner.mode=euler"])
+
+
+def test_bad_yaml_and_missing_file(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("a: [1, 2\n")
+    with pytest.raises(InputError, match="not valid yaml"):
+        load_config(Outer, path)
+    with pytest.raises(InputError, match="config file not found"):
+        load_config(Outer, tmp_path / "nope.yaml")
+    with pytest.raises(InputError, match="expected key=value"):
+        parse_override("inner.steps")
+
+
+def test_resolved_config_round_trips(tmp_path):
+    cfg = load_config(Outer, None, ["inner.mode=ddim", "widths=[1, 2, 3]"])
+    save_config(cfg, tmp_path / "resolved.yaml")
+    data = yaml.safe_load((tmp_path / "resolved.yaml").read_text())
+    assert data == config_to_dict(cfg)
+    assert config_from_dict(Outer, data) == cfg

@@ -1,0 +1,126 @@
+"""segmentation.mean_teacher: EMA ends (decay 0 copies, 1 keeps), pseudo-label threshold, MSE consistency."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from segmentation.mean_teacher import (
+    MeanTeacherConfig,
+    consistency_loss,
+    copy_buffers,
+    ema_update,
+    make_teacher,
+    pseudo_labels,
+    teacher_mode,
+    total_loss,
+)
+
+
+def _net(seed: int) -> nn.Module:
+    net = nn.Sequential(nn.Linear(4, 8), nn.BatchNorm1d(8), nn.ReLU(), nn.Dropout(0.3), nn.Linear(8, 3))
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.copy_(torch.randn(p.shape, generator=gen))
+    return net
+
+
+def _params(model: nn.Module) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in model.parameters()]
+
+
+def _buffers(model: nn.Module) -> list[torch.Tensor]:
+    return [b.detach().clone() for b in model.buffers()]
+
+
+def test_ema_decay_zero_copies_student_and_one_keeps_teacher():
+    student, teacher = _net(0), _net(1)
+    student(
+        torch.randn(16, 4, generator=torch.Generator().manual_seed(2))
+    )  # train-mode forward: student BN running stats move away from the teacher's
+    teacher_params, teacher_buffers = _params(teacher), _buffers(teacher)
+
+    ema_update(teacher, student, decay=1.0)
+    for t, before in zip(teacher.parameters(), teacher_params):
+        assert torch.equal(t, before)
+
+    ema_update(teacher, student, decay=0.0)
+    for t, s in zip(teacher.parameters(), student.parameters()):
+        assert torch.equal(t, s)
+    for t, before in zip(teacher.buffers(), teacher_buffers):  # parameters only: buffers untouched
+        assert torch.equal(t, before)
+
+
+def test_ema_intermediate_decay_and_validation():
+    student, teacher = _net(0), _net(1)
+    expected = [0.99 * t + 0.01 * s for t, s in zip(_params(teacher), _params(student))]
+    ema_update(teacher, student, decay=0.99)
+    for t, e in zip(teacher.parameters(), expected):
+        torch.testing.assert_close(t, e)
+    with pytest.raises(ValueError, match="decay"):
+        ema_update(teacher, student, decay=1.5)
+    with pytest.raises(ValueError, match="different parameters"):
+        ema_update(teacher, nn.Linear(4, 3), decay=0.5)
+
+
+def test_make_teacher_copy_buffers_and_teacher_mode():
+    student = _net(0)
+    teacher = make_teacher(student)
+    assert all(not p.requires_grad for p in teacher.parameters())
+    assert all(p.requires_grad for p in student.parameters())
+    for t, s in zip(teacher.parameters(), student.parameters()):
+        assert torch.equal(t, s) and t.data_ptr() != s.data_ptr()
+
+    student(torch.randn(16, 4, generator=torch.Generator().manual_seed(2)))
+    copy_buffers(teacher, student)
+    for t, s in zip(teacher.buffers(), student.buffers()):
+        assert torch.equal(t, s)
+
+    teacher_mode(teacher, "batch")
+    assert teacher[1].training and not teacher[3].training  # BN on batch statistics, dropout off
+    teacher_mode(teacher, "copy_student")
+    assert not any(m.training for m in teacher.modules())
+    with pytest.raises(ValueError, match="bn_mode"):
+        teacher_mode(teacher, "ema")
+
+
+def test_pseudo_labels_below_threshold_get_ignore_id():
+    logits = torch.tensor(
+        [
+            [5.0, 0.0, 0.0],  # p = 0.987 -> kept, class 0
+            [0.0, 1.0, 0.0],  # p = 0.576 -> ignored
+            [0.0, 0.0, 3.0],  # p = 0.909 -> kept, class 2
+            [0.0, 2.9, 0.0],  # p = 0.901 -> kept at 0.9, ignored at 0.95
+        ]
+    )
+    labels, confidence = pseudo_labels(logits, threshold=0.9, ignore_index=19)
+    assert labels.tolist() == [0, 19, 2, 1]
+    torch.testing.assert_close(confidence, torch.softmax(logits, 1).max(1).values)
+    labels, _ = pseudo_labels(logits, threshold=0.95, ignore_index=16)
+    assert labels.tolist() == [0, 16, 16, 16]
+    assert pseudo_labels(logits, threshold=0.0)[0].tolist() == [0, 1, 2, 1]
+
+
+def test_consistency_loss_is_mse_of_softmaxes_and_only_trains_student():
+    gen = torch.Generator().manual_seed(0)
+    student_logits = torch.randn(50, 6, generator=gen, requires_grad=True)
+    teacher_logits = torch.randn(50, 6, generator=gen, requires_grad=True)
+    loss = consistency_loss(student_logits, teacher_logits)
+    expected = ((torch.softmax(student_logits, 1) - torch.softmax(teacher_logits, 1)) ** 2).mean()  # over N x C
+    torch.testing.assert_close(loss, expected)
+    loss.backward()
+    assert student_logits.grad is not None and teacher_logits.grad is None
+    assert consistency_loss(teacher_logits, teacher_logits).item() == 0.0
+    with pytest.raises(ValueError, match="shape"):
+        consistency_loss(torch.zeros(3, 2), torch.zeros(3, 4))
+
+
+def test_config_defaults_and_total_loss():
+    cfg = MeanTeacherConfig()
+    assert (cfg.ema_decay, cfg.pseudo_threshold, cfg.consistency_weight) == (0.99, 0.9, 200.0)
+    assert cfg.num_areas_choices == (3, 4, 5, 6) and cfg.bn_mode == "batch"
+    one = torch.tensor(1.0)
+    assert total_loss(one, 2 * one, 0.01 * one, cfg).item() == pytest.approx(1 + 2 + 2)
+    assert total_loss(one, 2 * one, None, cfg).item() == pytest.approx(3)

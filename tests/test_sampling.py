@@ -1,0 +1,172 @@
+"""DDPM / DDIM samplers (one signature, generator in, extra out) and the EMA of weights used for sampling."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from u4d_aug.diffusion import LOG_SNR_MAX, LOG_SNR_MIN, alpha_sigma, log_snr
+from u4d_aug.ema import EMA
+from u4d_aug.nn.unet import RangeUNet, UNetConfig
+from u4d_aug.sampling import ddim_sample, ddpm_sample
+
+SAMPLERS = [ddpm_sample, ddim_sample]
+SHAPE = (2, 2, 8, 16)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny nets run fastest on one thread; on a busy 2-core machine extra threads only spin."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def oracle(x0: torch.Tensor):
+    """A perfect denoiser for a single known x0: ε = (x_t − α x0) / σ; returns (ε, log_snr) as its extra."""
+
+    def denoise(x_t: torch.Tensor, lam: torch.Tensor, cond: torch.Tensor | None):
+        alpha, sigma = alpha_sigma(lam.double().view(-1, 1, 1, 1))
+        return ((x_t.double() - alpha * x0.double()) / sigma).float(), lam
+
+    return denoise
+
+
+def random_net() -> RangeUNet:
+    cfg = UNetConfig(
+        base_channels=8,
+        channel_multipliers=(1, 2),
+        num_res_blocks=1,
+        attention=False,
+        fourier_features=False,
+        gn_groups=4,
+        mask_head=True,
+    )
+    net = RangeUNet(cfg)
+    generator = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.copy_(torch.randn(p.shape, generator=generator) * 0.2)
+    return net.eval()
+
+
+@pytest.mark.parametrize("sampler", SAMPLERS)
+def test_same_generator_same_sample_different_generator_different(sampler):
+    net = random_net()
+    a = sampler(net, SHAPE, 4, torch.Generator().manual_seed(7)).x0
+    b = sampler(net, SHAPE, 4, torch.Generator().manual_seed(7)).x0
+    c = sampler(net, SHAPE, 4, torch.Generator().manual_seed(8)).x0
+    assert torch.equal(a, b)
+    assert not torch.allclose(a, c)
+    assert a.shape == SHAPE and a.min() >= -1 and a.max() <= 1  # x̂0 clamped to [-1, 1]
+
+
+@pytest.mark.parametrize("sampler", SAMPLERS)
+@pytest.mark.parametrize("steps", [1, 8, 64])
+def test_perfect_denoiser_recovers_x0(sampler, steps):
+    x0 = torch.rand(SHAPE, generator=torch.Generator().manual_seed(1)) * 1.8 - 0.9
+    sample = sampler(oracle(x0), SHAPE, steps, torch.Generator().manual_seed(2))
+    # one step divides by alpha(t=1) ~ 5.5e-4, which magnifies float32 rounding of ε̂ about 2000 times
+    assert torch.allclose(sample.x0, x0, atol=1e-3 if steps == 1 else 1e-5)
+
+
+@pytest.mark.parametrize("sampler", SAMPLERS)
+def test_log_snr_grid_and_last_extra(sampler):
+    """The denoiser sees log-SNR (B,) rising from −15; the last call's extra comes back with the sample."""
+    x0 = torch.zeros(SHAPE)
+    steps = 5
+    sample = sampler(oracle(x0), SHAPE, steps, torch.Generator().manual_seed(0))
+    expected_last = log_snr(torch.linspace(1.0, 0.0, steps + 1, dtype=torch.float64))[steps - 1].item()
+    assert sample.extra.shape == (SHAPE[0],)
+    assert torch.allclose(sample.extra, torch.full((SHAPE[0],), expected_last))
+    assert LOG_SNR_MIN < expected_last < LOG_SNR_MAX
+
+
+def test_stage1_style_denoiser_returns_mask_logits_and_plain_eps_returns_none():
+    net = random_net()
+    x0, logits = ddim_sample(net, SHAPE, 3, torch.Generator().manual_seed(0))
+    assert logits.shape == (SHAPE[0], 1, *SHAPE[2:])
+    plain = ddim_sample(lambda x, lam, cond: torch.zeros_like(x), SHAPE, 3, torch.Generator().manual_seed(0))
+    assert plain.extra is None
+
+
+def test_condition_is_passed_and_ddim_is_deterministic_given_x1():
+    seen = []
+
+    def denoise(x_t, lam, cond):
+        seen.append(cond)
+        return torch.zeros_like(x_t)
+
+    cond = torch.ones(SHAPE)
+    ddim_sample(denoise, SHAPE, 3, torch.Generator().manual_seed(0), cond=cond, device="cpu")
+    assert len(seen) == 3 and all(c is cond for c in seen)
+    with pytest.raises(ValueError, match="steps"):
+        ddpm_sample(denoise, SHAPE, 0, torch.Generator())
+
+
+def test_ddim_draws_only_x1_ddpm_draws_fresh_noise_per_step():
+    """Generator use: DDIM draws x_1 only; ancestral DDPM draws x_1 and one noise per step but the last."""
+    zero = lambda x, lam, cond: torch.zeros_like(x)  # noqa: E731
+    steps = 6
+    for sampler, draws in ((ddim_sample, 1), (ddpm_sample, steps)):
+        used = torch.Generator().manual_seed(5)
+        sampler(zero, SHAPE, steps, used)
+        reference = torch.Generator().manual_seed(5)
+        for _ in range(draws):
+            torch.randn(SHAPE, generator=reference)
+        assert torch.equal(used.get_state(), reference.get_state()), sampler.__name__
+
+
+# --- EMA (u4d_aug/ema.py): the weights the samplers run with ---------------------------------------------
+
+
+def linear_pair() -> tuple[nn.Module, nn.Module]:
+    torch.manual_seed(0)
+    a = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4))
+    b = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4))
+    with torch.no_grad():
+        for p in b.parameters():
+            p.add_(1.0)
+        b[1].running_mean.fill_(2.0)
+    return a, b
+
+
+def test_ema_decay_zero_copies_and_decay_one_keeps():
+    a, b = linear_pair()
+    ema = EMA(a, decay=0.0)
+    ema.update(b)
+    target = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4))
+    ema.copy_to(target)
+    for p, q in zip(target.state_dict().values(), b.state_dict().values()):
+        assert torch.equal(p, q)
+
+    a, b = linear_pair()
+    start = {k: v.clone() for k, v in a.named_parameters()}
+    ema = EMA(a, decay=1.0)
+    ema.update(b)
+    ema.copy_to(a)
+    for name, p in a.named_parameters():
+        assert torch.equal(p, start[name])
+    assert torch.equal(a[1].running_mean, b[1].running_mean)  # buffers are copied, not averaged
+
+
+def test_ema_average_warmup_and_state_roundtrip():
+    a, b = linear_pair()
+    ema = EMA(a, decay=0.75, warmup_steps=1)
+    assert ema.current_decay() == 0.0
+    ema.update(a)  # warm-up: copy
+    ema.update(b)  # 0.75 a + 0.25 b
+    expected = {n: 0.75 * p + 0.25 * dict(b.named_parameters())[n] for n, p in a.named_parameters()}
+    restored = EMA(b, decay=0.1)
+    restored.load_state_dict(ema.state_dict())
+    target = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4))
+    restored.copy_to(target)
+    for name, p in target.named_parameters():
+        assert torch.allclose(p, expected[name].detach(), atol=1e-6)
+    assert restored.decay == 0.75 and restored.num_updates == 2
+    with pytest.raises(ValueError, match="do not match"):
+        EMA(nn.Linear(3, 4)).load_state_dict(ema.state_dict())
+    with pytest.raises(ValueError, match="decay"):
+        EMA(a, decay=1.5)

@@ -1,0 +1,179 @@
+"""Per-point probability export (the contract with u4d_aug.uncertainty) and checkpoint evaluation."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from test_seg_train import TINY, write_toy_root  # the toy SemanticKITTI root of the training tests
+
+from segmentation.config import SegTrainConfig
+from segmentation.evaluate import (
+    add_seg_eval_arguments,
+    evaluate,
+    evenly_spaced,
+    format_summary,
+    run_seg_eval,
+)
+from segmentation.metrics import CalibrationAccumulator, ConfusionMatrix, mean_iou
+from segmentation.predict import (
+    add_seg_predict_arguments,
+    checkpoint_hash,
+    load_checkpoint,
+    model_from_checkpoint,
+    predict_probs,
+    predict_root,
+    probs_path,
+    run_seg_predict,
+)
+from segmentation.train import train
+from u4d_aug.config import load_config
+from u4d_aug.data.datasets import ScanDataset
+from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
+from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
+from u4d_aug.errors import InputError
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(toy root, model.pt of a 4-step tiny run on it)."""
+    torch.set_num_threads(1)
+    root = write_toy_root(tmp_path_factory.mktemp("toy"))
+    out = tmp_path_factory.mktemp("run")
+    cfg = load_config(SegTrainConfig, TINY, [f"data.root={root}", f"out_dir={out}", "optim.steps=4", "eval_every=4"])
+    train(cfg, progress=False)
+    return root, out / "model.pt"
+
+
+def _predict_args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_seg_predict_arguments(parser)
+    return parser.parse_args(list(argv))
+
+
+def test_predict_writes_float16_probs_in_scan_order_and_resumes(trained, tmp_path):
+    root, ckpt = trained
+    out = tmp_path / "probs"
+    assert run_seg_predict(_predict_args(str(ckpt), str(root), "--out", str(out), "--no-progress")) == 0
+    files = sorted(out.glob("sequences/*/probs/*.npy"))
+    assert [f"{f.parent.parent.name}/{f.stem}" for f in files] == [
+        f"{s}/{i:06d}" for s in ("00", "01") for i in range(3)
+    ]
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["checkpoint_sha256"] == checkpoint_hash(ckpt) and len(manifest["checkpoint_sha256"]) == 16
+    assert manifest["complete"] and manifest["num_classes"] == 19 and manifest["dtype"] == "float16"
+    assert manifest["config"]["model"]["voxel_size"] == 0.5
+
+    # same rows as a direct forward of the scan, in the scan's point order
+    model = model_from_checkpoint(load_checkpoint(ckpt), torch.device("cpu"))
+    points = read_kitti_scan(root / "sequences" / "01" / "velodyne" / "000002.bin")
+    probs = np.load(probs_path(out, "01", "000002"))
+    assert probs.dtype == np.float16 and probs.shape == (len(points), 19)
+    np.testing.assert_allclose(probs.astype(np.float32).sum(1), 1.0, atol=1e-2)
+    np.testing.assert_allclose(probs, predict_probs(model, points, torch.device("cpu")).numpy(), atol=1e-3)
+    # permuting the points permutes the rows
+    perm = np.random.default_rng(0).permutation(len(points))
+    np.testing.assert_allclose(predict_probs(model, points[perm], torch.device("cpu")).numpy(), probs[perm], atol=1e-3)
+
+    # resumable: existing files are skipped, a missing one is rewritten
+    probs_path(out, "00", "000001").unlink()
+    stamp = probs_path(out, "01", "000000").stat().st_mtime_ns
+    result = predict_root(ckpt, root, out, progress=False)
+    assert (result["written"], result["skipped"]) == (1, 5)
+    assert probs_path(out, "01", "000000").stat().st_mtime_ns == stamp
+
+
+def test_predict_refuses_to_mix_checkpoints_and_keeps_nan_rows(trained, tmp_path):
+    root, ckpt = trained
+    out = tmp_path / "probs"
+    predict_root(ckpt, root, out, sequences=["01"], progress=False)
+    other = tmp_path / "other.pt"
+    state = torch.load(ckpt, weights_only=True)
+    state["step"] = 99
+    torch.save(state, other)
+    with pytest.raises(InputError, match="manifest.json"):
+        predict_root(other, root, out, sequences=["01"], progress=False)
+
+    # a NaN point keeps its row (uniform), so row i is still point i of the .bin
+    nan_root = tmp_path / "nan"
+    points = read_kitti_scan(root / "sequences" / "00" / "velodyne" / "000000.bin").copy()
+    points[5] = np.nan
+    write_kitti_scan(nan_root / "sequences" / "00" / "velodyne" / "000000.bin", points)
+    predict_root(ckpt, nan_root, tmp_path / "nan_probs", progress=False)
+    probs = np.load(probs_path(tmp_path / "nan_probs", "00", "000000")).astype(np.float32)
+    assert probs.shape == (len(points), 19)
+    np.testing.assert_allclose(probs[5], 1 / 19, rtol=1e-3)
+
+
+def test_predict_rejects_bad_inputs(trained, tmp_path):
+    root, ckpt = trained
+    with pytest.raises(InputError, match="checkpoint not found"):
+        predict_root(tmp_path / "missing.pt", root, tmp_path / "o", progress=False)
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(InputError, match="junk.pt"):
+        predict_root(tmp_path / "junk.pt", root, tmp_path / "o", progress=False)
+    with pytest.raises(InputError, match="07"):
+        predict_root(ckpt, root, tmp_path / "o", sequences=["07"], progress=False)
+
+
+def test_evaluate_matches_metrics_by_hand(trained, tmp_path):
+    root, ckpt = trained
+    png = tmp_path / "rel.png"
+    summary = evaluate(ckpt, root, ["01"], reliability_png=png)
+    assert png.is_file() and summary["num_scans"] == 3 and summary["sequences"] == ["01"]
+
+    model = model_from_checkpoint(load_checkpoint(ckpt), torch.device("cpu"))
+    cm, calibration = ConfusionMatrix(19, SEMANTICKITTI_IGNORE), CalibrationAccumulator(SEMANTICKITTI_IGNORE)
+    for item in ScanDataset(root, ["01"]):
+        probs = predict_probs(model, item["points"], torch.device("cpu"))
+        cm.update(probs.argmax(1), item["labels"])
+        calibration.update(probs, item["labels"])
+    assert summary["miou"] == pytest.approx(mean_iou(cm.matrix))
+    assert summary["ece_per_scan"] == pytest.approx(calibration.ece_per_scan)
+    assert summary["ece_pooled"] == pytest.approx(calibration.ece_pooled)
+    assert summary["classes_present"] == ["car", "road", "building"]
+    present = [summary["iou"][c] for c in summary["classes_present"]]
+    assert summary["miou_present"] == pytest.approx(np.mean(present))
+    assert "mIoU" in format_summary(summary)
+
+
+def test_run_seg_eval_prints_table_and_json(trained, tmp_path, capsys):
+    root, ckpt = trained
+    parser = argparse.ArgumentParser()
+    add_seg_eval_arguments(parser)
+    assert run_seg_eval(parser.parse_args([str(ckpt), str(root), "--sequences", "01", "--json"])) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert set(summary) >= {"miou", "iou", "ece_per_scan", "ece_pooled", "bins", "miou_present"}
+    png = tmp_path / "r.png"
+    assert run_seg_eval(parser.parse_args([str(ckpt), str(root), "--max-scans", "2", "--png", str(png)])) == 0
+    text = capsys.readouterr().out
+    assert "ECE per scan" in text and "road" in text and png.is_file()
+
+
+def test_evenly_spaced():
+    assert evenly_spaced(5, None) == [0, 1, 2, 3, 4]
+    assert evenly_spaced(10, 3) == [0, 4, 9] or evenly_spaced(10, 3) == [0, 5, 9]
+    assert evenly_spaced(3, 10) == [0, 1, 2]
+
+
+@pytest.mark.real
+def test_evaluate_on_real_semantickitti(trained, real_root):
+    """Sim-to-real style: a checkpoint evaluated on real labeled scans; only GT classes enter miou_present."""
+    _, ckpt = trained
+    summary = evaluate(ckpt, real_root / "semantickitti", ["00"], max_scans=1)
+    assert summary["num_scans"] == 1 and summary["num_points"] > 100_000
+    assert {"road", "car", "building", "vegetation"} <= set(summary["classes_present"])
+    assert 0.0 <= summary["miou_present"] <= 1.0 and not math.isnan(summary["ece_pooled"])

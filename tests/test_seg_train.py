@@ -1,0 +1,293 @@
+"""Supervised segmentation training: Lovász-softmax, schedule, data order, a tiny run, exact resume, CLI."""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from segmentation.config import LossConfig, OptimConfig, SegTrainConfig
+from segmentation.losses import lovasz_softmax, segmentation_loss
+from segmentation.train import (
+    add_seg_train_arguments,
+    batch_indices,
+    learning_rate,
+    run_seg_train,
+    train,
+)
+from u4d_aug.config import load_config
+from u4d_aug.data.formats import write_kitti_label, write_kitti_scan
+from u4d_aug.errors import InputError
+from u4d_aug.io import read_jsonl
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = REPO / "configs" / "seg" / "tiny.yaml"
+
+# ------------------------------------------------------------------------------------- toy SemanticKITTI root
+
+
+def toy_scan(rng: np.random.Generator, num_points: int = 3000) -> tuple[np.ndarray, np.ndarray]:
+    """Ground plane = road (raw 40), a box = car (10), a wall = building (50), a few unlabeled points (0)."""
+    n_road, n_car, n_wall = num_points // 2, num_points // 4, num_points // 5
+    n_none = num_points - n_road - n_car - n_wall
+    radius, angle = 20.0 * np.sqrt(rng.random(n_road)), 2 * np.pi * rng.random(n_road)
+    road = np.stack([radius * np.cos(angle), radius * np.sin(angle), np.full(n_road, -1.7)], 1)
+    centre = np.array([rng.uniform(4, 8), rng.uniform(-4, 4), -0.95])  # a 4 x 2 x 1.5 m box on the road
+    face = rng.integers(0, 3, n_car)
+    car = rng.uniform(-0.5, 0.5, (n_car, 3))
+    car[np.arange(n_car), face] = np.where(rng.random(n_car) < 0.5, -0.5, 0.5)
+    car = centre + car * np.array([4.0, 2.0, 1.5])
+    wall_x = rng.uniform(-14, -10)
+    wall = np.stack([np.full(n_wall, wall_x), rng.uniform(-10, 10, n_wall), rng.uniform(-1.7, 5, n_wall)], 1)
+    none = rng.uniform([-20, -20, 3], [20, 20, 8], (n_none, 3))
+    xyz = np.concatenate([road, car, wall, none]) + rng.normal(0, 0.02, (num_points, 3))
+    intensity = np.concatenate(
+        [np.full(n_road, 0.2), np.full(n_car, 0.6), np.full(n_wall, 0.4), np.full(n_none, 0.1)]
+    ) + rng.normal(0, 0.02, num_points)
+    raw = np.concatenate([np.full(n_road, 40), np.full(n_car, 10), np.full(n_wall, 50), np.zeros(n_none)])
+    order = rng.permutation(num_points)
+    points = np.concatenate([xyz, intensity[:, None]], 1)[order].astype(np.float32)
+    return points, raw[order].astype(np.uint16)
+
+
+def write_toy_root(root: Path, sequences: tuple[str, ...] = ("00", "01"), frames: int = 3, seed: int = 0) -> Path:
+    """A tiny SemanticKITTI-layout root: len(sequences) x frames labeled scans of the toy scene."""
+    rng = np.random.default_rng(seed)
+    for seq in sequences:
+        for frame in range(frames):
+            points, raw = toy_scan(rng)
+            write_kitti_scan(root / "sequences" / seq / "velodyne" / f"{frame:06d}.bin", points)
+            write_kitti_label(root / "sequences" / seq / "labels" / f"{frame:06d}.label", raw)
+    return root
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """One intra-op thread: tiny nets run faster so, and a busy 2-core machine is not oversubscribed."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def toy_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_toy_root(tmp_path_factory.mktemp("toy"))
+
+
+def tiny_config(root: Path, out: Path, *overrides: str) -> SegTrainConfig:
+    return load_config(SegTrainConfig, TINY, [f"data.root={root}", f"out_dir={out}", *overrides])
+
+
+# ------------------------------------------------------------------------------------------------ Lovász
+
+
+def _jaccard_loss(errors_set: np.ndarray, fg: np.ndarray) -> float:
+    """Δ_J(M) = |M| / |fg ∪ M| for the mispredicted set M (Berman et al. 2018, Eq. 5)."""
+    union = np.logical_or(fg, errors_set).sum()
+    return 0.0 if union == 0 else errors_set.sum() / union
+
+
+def _lovasz_brute(probs: np.ndarray, target: np.ndarray) -> float:
+    """Lovász extension in integral form f(m) = ∫_0^1 Δ({i : m_i >= t}) dt per class, mean over present."""
+    losses = []
+    for c in np.unique(target):
+        fg = target == c
+        m = np.abs(fg.astype(float) - probs[:, c])
+        levels = np.concatenate([[0.0], np.sort(np.unique(m))])
+        total = 0.0
+        for lo, hi in itertools.pairwise(levels):  # on (lo, hi] the set {m >= t} is {m >= hi}
+            total += (hi - lo) * _jaccard_loss(m >= hi, fg)
+        losses.append(total)
+    return float(np.mean(losses))
+
+
+def test_lovasz_matches_brute_force_extension():
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        logits = torch.from_numpy(rng.normal(size=(7, 3)))
+        target = torch.from_numpy(rng.integers(0, 3, 7))
+        probs = logits.softmax(1)
+        got = float(lovasz_softmax(probs, target))
+        assert got == pytest.approx(_lovasz_brute(probs.numpy(), target.numpy()), abs=1e-12)
+
+
+def test_lovasz_on_hard_predictions_is_one_minus_iou_and_ignores():
+    target = torch.tensor([0, 0, 0, 1, 1, 2, 2])
+    pred = torch.tensor([0, 0, 1, 1, 2, 2, 2])
+    probs = torch.nn.functional.one_hot(pred, 3).double()
+    # IoU: class 0 = 2/3, class 1 = 1/3, class 2 = 2/3 -> mean Jaccard loss = (1/3 + 2/3 + 1/3) / 3
+    assert float(lovasz_softmax(probs, target)) == pytest.approx(4 / 9)
+    # a point with the ignore id changes nothing; perfect predictions give 0
+    assert float(lovasz_softmax(torch.cat([probs, probs[:1]]), torch.cat([target, torch.tensor([9])]), 9)) == (
+        pytest.approx(4 / 9)
+    )
+    assert float(lovasz_softmax(torch.nn.functional.one_hot(target, 3).double(), target)) == 0.0
+
+
+def test_segmentation_loss_weights_and_all_ignored():
+    logits = torch.randn(10, 4, requires_grad=True)
+    target = torch.tensor([0, 1, 2, 3, 4, 4, 0, 1, 2, 3])  # 4 = ignore
+    out = segmentation_loss(logits, target, LossConfig(ce_weight=1.0, lovasz_weight=2.0), ignore_index=4)
+    ce = torch.nn.functional.cross_entropy(logits, target, ignore_index=4)
+    assert float(out["loss_ce"].detach()) == pytest.approx(float(ce.detach()))
+    assert float(out["loss"].detach()) == pytest.approx(float((ce + 2 * out["loss_lovasz"]).detach()))
+    out["loss"].backward()
+    assert logits.grad[4:6].abs().sum() == 0  # ignored points get no gradient
+    empty = segmentation_loss(logits, torch.full((10,), 4), LossConfig(), ignore_index=4)
+    assert float(empty["loss"].detach()) == 0.0 and empty["loss"].requires_grad
+
+
+# ------------------------------------------------------------------------------------------- schedule, data
+
+
+def test_learning_rate_warmup_then_cosine():
+    cfg = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1)
+    assert learning_rate(0, cfg) == pytest.approx(0.1)
+    assert learning_rate(9, cfg) == pytest.approx(1.0)
+    assert learning_rate(10, cfg) == pytest.approx(1.0)
+    assert learning_rate(60, cfg) == pytest.approx(0.55)  # half-way down the cosine
+    assert learning_rate(110, cfg) == pytest.approx(0.1)
+    lrs = [learning_rate(s, cfg) for s in range(10, 111)]
+    assert all(a >= b for a, b in itertools.pairwise(lrs))
+
+
+def test_batch_indices_are_epochs_of_permutations_and_depend_on_seed_and_step_only():
+    order = [i for step in range(6) for i in batch_indices(step, 5, 3, seed=7)]  # 18 draws = 3 epochs + 3
+    for epoch in range(3):
+        assert sorted(order[5 * epoch : 5 * epoch + 5]) == list(range(5))
+    assert batch_indices(4, 5, 3, seed=7) == batch_indices(4, 5, 3, seed=7)
+    assert [batch_indices(s, 50, 2, 1) for s in range(5)] != [batch_indices(s, 50, 2, 2) for s in range(5)]
+
+
+def test_config_rejects_bad_values(tmp_path):
+    with pytest.raises(InputError, match="label_fraction"):
+        load_config(SegTrainConfig, TINY, ["data.label_fraction=0"])
+    with pytest.raises(InputError, match="optim.step"):
+        load_config(SegTrainConfig, TINY, ["optim.step=3"])
+    cfg = load_config(SegTrainConfig, TINY, ["data.val_sequences=[8, '09']"])
+    assert cfg.data.val_sequences == ["08", "09"]
+
+
+# --------------------------------------------------------------------------------------------- training
+
+
+def _final_weights(out: Path) -> dict[str, torch.Tensor]:
+    return torch.load(out / "model.pt", weights_only=True)["model"]
+
+
+def test_tiny_run_writes_outputs_and_learns(toy_root, tmp_path):
+    out = tmp_path / "run"
+    summary = train(tiny_config(toy_root, out, "optim.steps=12", "eval_every=6"), progress=False)
+    for name in (
+        "config.yaml",
+        "log.jsonl",
+        "learning_curve.png",
+        "reliability.png",
+        "model.pt",
+        "metrics.json",
+    ):
+        assert (out / name).is_file(), name
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == [f"step_{s:07d}.pt" for s in (3, 6, 9, 12)]
+    records = read_jsonl(out / "log.jsonl")
+    train_records = [r for r in records if "loss" in r]
+    assert [r["step"] for r in train_records] == list(range(1, 13))
+    assert all(np.isfinite(r["loss"]) and r["lr"] > 0 for r in train_records)
+    evals = [r for r in records if "val_miou" in r]
+    assert [r["step"] for r in evals] == [6, 12]
+    assert train_records[-1]["loss"] < train_records[0]["loss"]
+    assert summary["num_scans"] == 3 and 0.0 <= summary["miou"] <= 1.0
+    assert set(summary["classes_present"]) == {"car", "road", "building"}
+    ckpt = torch.load(out / "checkpoints" / "step_0000012.pt", weights_only=True)
+    assert ckpt["step"] == 12 and ckpt["ema"] is None and ckpt["config"]["optim"]["steps"] == 12
+    assert {"model", "optimizer", "scheduler", "rng", "metrics"} <= set(ckpt)
+    # a second run into the same folder must not silently mix with the first
+    with pytest.raises(InputError, match="--resume"):
+        train(tiny_config(toy_root, out), progress=False)
+
+
+def test_label_fraction_trains_on_the_split(toy_root, tmp_path):
+    cfg = tiny_config(toy_root, tmp_path / "run", "data.label_fraction=0.5", "optim.steps=1", "eval_every=1")
+    train(cfg, progress=False)
+    assert (toy_root / "splits" / "uniform_50pct_seed0.json").is_file()
+
+
+def test_resume_in_a_fresh_process_is_bit_exact(toy_root, tmp_path):
+    """N = 6 steps with a checkpoint at 3; a new process resumes from step 3; final weights are identical."""
+    full = tmp_path / "full"
+    cfg = tiny_config(toy_root, full, "model.name=spvcnn")  # dropout: the global RNG matters too
+    train(cfg, progress=False)
+
+    half = tmp_path / "half"
+    half_cfg = tiny_config(toy_root, half, "model.name=spvcnn")
+    (half / "checkpoints").mkdir(parents=True)
+    # the killed run: only its checkpoint of step 3 (and the log up to there) survived
+    (half / "checkpoints" / "step_0000003.pt").write_bytes((full / "checkpoints" / "step_0000003.pt").read_bytes())
+    (half / "log.jsonl").write_text((full / "log.jsonl").read_text())
+    code = (
+        "import sys; from segmentation.train import train; from segmentation.config import SegTrainConfig; "
+        "from u4d_aug.config import load_config; "
+        "train(load_config(SegTrainConfig, sys.argv[1], sys.argv[2:]), resume='last', progress=False)"
+    )
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    subprocess.run(
+        [sys.executable, "-c", code, str(TINY), *_overrides(half_cfg)],
+        check=True,
+        cwd=REPO,
+        env=env,
+        timeout=300,
+    )
+    a, b = _final_weights(full), _final_weights(half)
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    steps = [r["step"] for r in read_jsonl(half / "log.jsonl") if "loss" in r]
+    assert steps == list(range(1, 7))  # records after the checkpoint were replaced, not duplicated
+
+
+def _overrides(cfg: SegTrainConfig) -> list[str]:
+    return [f"data.root={cfg.data.root}", f"out_dir={cfg.out_dir}", f"model.name={cfg.model.name}"]
+
+
+def test_cli_functions(toy_root, tmp_path, capsys):
+    parser = argparse.ArgumentParser()
+    add_seg_train_arguments(parser)
+    out = tmp_path / "cli"
+    args = parser.parse_args(
+        [
+            str(TINY),
+            f"data.root={toy_root}",
+            "optim.steps=2",
+            "eval_every=2",
+            "--out",
+            str(out),
+            "--no-progress",
+        ]
+    )
+    assert run_seg_train(args) == 0
+    assert (out / "model.pt").is_file()
+    args = parser.parse_args([str(TINY), f"data.root={toy_root}", "optim.steps=3", "--out", str(out), "--resume"])
+    assert args.resume == "last"
+    with pytest.warns(UserWarning, match="optim.steps"):
+        assert run_seg_train(args) == 0
+    assert torch.load(out / "model.pt", weights_only=True)["step"] == 3
+
+
+def test_global_batch_does_not_depend_on_the_number_of_ranks(toy_root):
+    from segmentation.train import TrainBatches, train_scans
+    from u4d_aug.distributed import DistInfo
+
+    cfg = tiny_config(toy_root, toy_root / "unused", "optim.batch_size=3", "data.max_points=500")
+    scans = train_scans(cfg, DistInfo(0, 1, 0, torch.device("cpu")))
+    single = TrainBatches(scans, cfg, 0, 1)[5]
+    rank0, rank1 = TrainBatches(scans, cfg, 0, 2)[5], TrainBatches(scans, cfg, 1, 2)[5]
+    merged = [rank0["points"][0], rank1["points"][0], rank0["points"][1]]  # slots 0, 1, 2
+    assert all(torch.equal(a, b) for a, b in zip(single["points"], merged))
+    assert all(p.shape == (500, 4) for p in single["points"])

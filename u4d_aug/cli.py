@@ -1,0 +1,209 @@
+"""The `u4d` command: one sub-command per job; the only u4d_aug module that may import `segmentation` (lazily)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from u4d_aug import __version__
+from u4d_aug.errors import InputError
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `u4d` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return 0
+    warnings.simplefilter("default")
+    warnings.formatwarning = lambda message, category, *a, **k: f"warning: {message}\n"
+    try:
+        return int(args.func(args) or 0)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted; finished files are kept and a re-run resumes", file=sys.stderr)
+        return 130
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """All sub-commands, in the order of the data flow (DESIGN.md §3)."""
+    parser = argparse.ArgumentParser(
+        prog="u4d",
+        description="U4D: uncertainty-aware 4D LiDAR scene synthesis as segmentation data augmentation.",
+    )
+    parser.add_argument("--version", action="version", version=f"u4d-aug {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("info", help="summarise a SemanticKITTI-layout root: sequences, frames, points, classes")
+    p.add_argument("root", type=Path)
+    p.add_argument("--json", action="store_true", help="print json instead of a table")
+    p.set_defaults(func=run_info)
+
+    p = sub.add_parser("show", help="render one scan: range image + BEV to PNG, .ply export, projection stats")
+    p.add_argument("scan", type=Path, help="a KITTI .bin or a nuScenes .pcd.bin")
+    p.add_argument("--sensor", default=None, help="hdl64 | hdl32 | sensor yaml (default: from the file type)")
+    p.add_argument("--width", type=int, default=None, help="range-image width (default: the sensor's)")
+    p.add_argument("--row-mode", choices=["beam", "linear"], default="beam")
+    p.add_argument("--png", type=Path, default=None, help="write the picture here")
+    p.add_argument("--ply", type=Path, default=None, help="export the points as .ply (open3d)")
+    p.add_argument("--json", action="store_true", help="print projection statistics as json")
+    p.set_defaults(func=run_show)
+    return parser
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# info
+
+
+def run_info(args: argparse.Namespace) -> int:
+    """`u4d info ROOT`: what a dataset root holds."""
+    from u4d_aug.data.datasets import list_frames, list_sequences
+    from u4d_aug.data.formats import label_path_for, load_kitti_frame
+    from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE, map_semantickitti
+
+    root = args.root
+    sequences = list_sequences(root)
+    per_sequence = []
+    counts = np.zeros(len(SEMANTICKITTI_CLASSES) + 1, dtype=np.int64)
+    num_points = []
+    for seq in sequences:
+        frames = list_frames(root, seq)
+        labeled = 0
+        for frame in frames:
+            scan_path = root / "sequences" / seq / "velodyne" / f"{frame}.bin"
+            label_path = label_path_for(scan_path)
+            has_label = label_path.is_file()
+            loaded = load_kitti_frame(scan_path, label_path if has_label else None)
+            num_points.append(len(loaded.points))
+            if has_label:
+                labeled += 1
+                train_ids = map_semantickitti(loaded.semantic)
+                counts += np.bincount(train_ids, minlength=len(counts))[: len(counts)]
+        per_sequence.append({"sequence": seq, "frames": len(frames), "labeled_frames": labeled})
+    pts = np.asarray(num_points) if num_points else np.zeros(1)
+    classes = {name: int(counts[i]) for i, name in enumerate(SEMANTICKITTI_CLASSES)}
+    classes["ignore"] = int(counts[SEMANTICKITTI_IGNORE])
+    summary = {
+        "root": str(root),
+        "sequences": per_sequence,
+        "frames": int(sum(s["frames"] for s in per_sequence)),
+        "labeled_frames": int(sum(s["labeled_frames"] for s in per_sequence)),
+        "points_per_scan": {"mean": float(pts.mean()), "min": int(pts.min()), "max": int(pts.max())},
+        "class_histogram": classes,
+    }
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    print(f"root: {root}")
+    for s in per_sequence:
+        print(f"  sequence {s['sequence']}: {s['frames']} frames, {s['labeled_frames']} labeled")
+    pps = summary["points_per_scan"]
+    print(f"points/scan: mean {pps['mean']:.0f}, min {pps['min']}, max {pps['max']}")
+    total = max(int(counts.sum()), 1)
+    if counts.sum():
+        print("class histogram (labeled frames, train ids):")
+        for i, name in enumerate([*SEMANTICKITTI_CLASSES, "ignore"]):
+            print(f"  {i:2d} {name:<14s} {counts[i]:>10d}  {100.0 * counts[i] / total:5.1f}%")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# show
+
+
+def _load_any_scan(path: Path) -> tuple[np.ndarray, np.ndarray | None, str]:
+    """A KITTI .bin (with labels beside it when present) or a nuScenes .pcd.bin -> points, train ids, sensor name."""
+    from u4d_aug.data.formats import label_path_for, load_kitti_frame, read_nuscenes_scan
+    from u4d_aug.data.labels import map_semantickitti
+
+    if path.name.endswith(".pcd.bin"):
+        return read_nuscenes_scan(path).points, None, "hdl32"
+    label_path = label_path_for(path)
+    frame = load_kitti_frame(path, label_path if label_path.is_file() else None)
+    labels = map_semantickitti(frame.semantic) if frame.semantic is not None else None
+    return frame.points, labels, "hdl64"
+
+
+def run_show(args: argparse.Namespace) -> int:
+    """`u4d show SCAN`: picture, .ply and projection round-trip statistics of one scan."""
+    import torch
+
+    from u4d_aug.data.sensors import get_sensor
+    from u4d_aug.range_view import project, roundtrip_stats, scatter_to_image
+
+    points, labels, default_sensor = _load_any_scan(args.scan)
+    sensor = get_sensor(args.sensor or default_sensor)
+    width = args.width or sensor.width
+    height = sensor.height
+    stats = roundtrip_stats(torch.from_numpy(points), sensor, height, width, args.row_mode)
+    stats = {
+        "scan": str(args.scan),
+        "sensor": sensor.name,
+        "height": height,
+        "width": width,
+        "row_mode": args.row_mode,
+        **{k: float(v) if k != "points" else int(v) for k, v in stats.items()},
+    }
+    if args.png is not None:
+        from u4d_aug.viz import plot_scan
+
+        proj = project(torch.from_numpy(points), sensor, height, width, args.row_mode)
+        label_image = None
+        if labels is not None:
+            label_image = scatter_to_image(torch.from_numpy(labels), proj, fill=-1).numpy()
+        plot_scan(
+            args.png,
+            points,
+            proj.depth.numpy(),
+            proj.reflectance.numpy(),
+            labels,
+            label_image,
+            title=f"{args.scan.name}  {sensor.name} {height}x{width} ({args.row_mode})",
+        )
+        stats["png"] = str(args.png)
+    if args.ply is not None:
+        _write_ply(args.ply, points, labels)
+        stats["ply"] = str(args.ply)
+    if args.json:
+        print(json.dumps(stats, indent=2))
+    else:
+        for key, value in stats.items():
+            print(f"{key}: {value}")
+    return 0
+
+
+def _write_ply(path: Path, points: np.ndarray, labels: np.ndarray | None) -> None:
+    """Export points (coloured by label, else by intensity) with open3d, atomically."""
+    import os
+    import tempfile
+
+    import open3d as o3d
+
+    from u4d_aug.viz import label_colors
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[:, :3].astype(np.float64)))
+    colors = label_colors(labels) if labels is not None else np.repeat(points[:, 3:4], 3, axis=1)
+    cloud.colors = o3d.utility.Vector3dVector(np.asarray(colors, dtype=np.float64))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".ply", dir=path.parent)
+    os.close(fd)
+    try:
+        if not o3d.io.write_point_cloud(tmp, cloud):
+            raise InputError(f"{path}: open3d could not write the .ply file")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,230 @@
+"""Street lattice of the simulated world and lane-following paths on it (right-hand traffic, as in KITTI).
+
+Streets run along x ("horizontal" lines at y = Y[j]) and along y ("vertical" lines at x = X[i]) with random
+spacings; every crossing is an intersection with rounded curbs. A route is a walk over intersections; its
+path follows a lane at a fixed offset right of the street centre and turns on arcs concentric with the curb.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from u4d_aug.data.sim.config import StreetConfig
+
+# headings: 0 +x, 1 +y, 2 -x, 3 -y  (counter-clockwise)
+DIRECTIONS = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+
+
+@dataclass
+class Line:
+    """One street: centre-line coordinate and cross-section (index 0 = negative side, 1 = positive side)."""
+
+    position: float
+    lane_width: float
+    lanes_per_direction: int
+    parking: tuple[float, float]  # parking strip width per side (0 = none)
+    sidewalk: tuple[float, float]
+    grass: tuple[float, float]  # terrain strip between curb and sidewalk (0 = none)
+    center_line: bool
+    main: bool
+
+    @property
+    def half_road(self) -> float:
+        return self.lane_width * self.lanes_per_direction
+
+    def curb(self, side: int) -> float:
+        """Distance from the centre line to the curb on `side`."""
+        return self.half_road + self.parking[side]
+
+
+@dataclass
+class Network:
+    """Street lattice: vertical lines (x = const, index i) and horizontal lines (y = const, index j)."""
+
+    xs: list[Line]
+    ys: list[Line]
+    corner_radius: float
+    curb_height: float
+
+    def node(self, i: int, j: int) -> np.ndarray:
+        return np.array([self.xs[i].position, self.ys[j].position])
+
+    def line_of(self, i: int, j: int, heading: int) -> Line:
+        """The street a heading travels on at node (i, j)."""
+        return self.ys[j] if heading % 2 == 0 else self.xs[i]
+
+    def inside(self, i: int, j: int) -> bool:
+        return 0 <= i < len(self.xs) and 0 <= j < len(self.ys)
+
+
+def _make_line(rng: np.random.Generator, cfg: StreetConfig, position: float) -> Line:
+    main = bool(rng.random() < cfg.main_street_prob)
+    lane_width = float(rng.uniform(*cfg.lane_width))
+    parking = tuple(
+        float(rng.uniform(*cfg.parking_width)) if rng.random() < cfg.parking_prob else 0.0 for _ in range(2)
+    )
+    sidewalk = tuple(float(rng.uniform(*cfg.sidewalk_width)) for _ in range(2))
+    grass = tuple(
+        float(min(rng.uniform(1.0, 2.0), sw - 1.5)) if rng.random() < cfg.grass_strip_prob else 0.0 for sw in sidewalk
+    )
+    return Line(
+        position=position,
+        lane_width=lane_width,
+        lanes_per_direction=2 if main else 1,
+        parking=parking,  # type: ignore[arg-type]
+        sidewalk=sidewalk,  # type: ignore[arg-type]
+        grass=tuple(max(g, 0.0) for g in grass),  # type: ignore[arg-type]
+        center_line=main or bool(rng.random() < cfg.center_line_prob),
+        main=main,
+    )
+
+
+def _positions(rng: np.random.Generator, cfg: StreetConfig, extent: float) -> list[float]:
+    """Street centre coordinates covering [-extent, extent], one line near 0."""
+    first = float(rng.uniform(-10.0, 10.0))
+    up, down = [first], [first]
+    while up[-1] < extent:
+        up.append(up[-1] + float(rng.uniform(*cfg.block_size)))
+    while down[-1] > -extent:
+        down.append(down[-1] - float(rng.uniform(*cfg.block_size)))
+    return sorted(down[1:]) + up
+
+
+def make_network(rng: np.random.Generator, cfg: StreetConfig, extent: float) -> Network:
+    """Random street lattice covering a square of half-size `extent` metres around the origin."""
+    xs = [_make_line(rng, cfg, p) for p in _positions(rng, cfg, extent)]
+    ys = [_make_line(rng, cfg, p) for p in _positions(rng, cfg, extent)]
+    radius = float(rng.uniform(*cfg.corner_radius))
+    min_sidewalk = min(min(line.sidewalk) for line in xs + ys)
+    return Network(
+        xs,
+        ys,
+        corner_radius=min(radius, 2.5 * min_sidewalk),
+        curb_height=float(rng.uniform(*cfg.curb_height)),
+    )
+
+
+def plan_route(
+    rng: np.random.Generator,
+    net: Network,
+    start: tuple[int, int],
+    heading: int,
+    length: float,
+    turn_prob: float,
+) -> list[tuple[int, int]]:
+    """Walk over intersections from node `start` (entered with `heading`) until the walk covers `length` m;
+    straight on with 1 - turn_prob, otherwise left or right, never a U-turn, never off the lattice."""
+    nodes = [start]
+    total = 0.0
+    i, j = start
+    while total < length:
+        options = [heading, (heading + 1) % 4, (heading + 3) % 4]
+        weights = np.array([1.0 - turn_prob, turn_prob / 2, turn_prob / 2])
+        ok = []
+        for h in options:
+            di, dj = int(DIRECTIONS[h][0]), int(DIRECTIONS[h][1])
+            ok.append(net.inside(i + di, j + dj) and net.inside(i + 2 * di, j + 2 * dj))
+        ok = np.array(ok)
+        if not ok.any():
+            break
+        weights = np.where(ok, weights, 0.0)
+        heading = options[int(rng.choice(3, p=weights / weights.sum()))]
+        di, dj = int(DIRECTIONS[heading][0]), int(DIRECTIONS[heading][1])
+        total += float(np.linalg.norm(net.node(i + di, j + dj) - net.node(i, j)))
+        i, j = i + di, j + dj
+        nodes.append((i, j))
+    return nodes
+
+
+def _heading_between(a: tuple[int, int], b: tuple[int, int]) -> int:
+    di, dj = b[0] - a[0], b[1] - a[1]
+    return {(1, 0): 0, (0, 1): 1, (-1, 0): 2, (0, -1): 3}[(int(np.sign(di)), int(np.sign(dj)))]
+
+
+def _right(heading: int) -> np.ndarray:
+    return DIRECTIONS[(heading + 3) % 4]
+
+
+def _curb_distance(line: Line, heading: int, offset: float, turn_right: bool) -> float:
+    """Distance from a lane at `offset` right of centre to the curb on the turning side."""
+    # right of +x is -y and right of -y is -x: the negative side 0; right of +y / -x is the positive side 1
+    right_side = 0 if heading in (0, 3) else 1
+    if turn_right:
+        return line.curb(right_side) - offset
+    return line.curb(1 - right_side) + offset
+
+
+def lane_path(
+    net: Network, nodes: list[tuple[int, int]], offset_fn, spacing: float = 0.05, start_fraction: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
+    """Dense lane-following path over `nodes`: (K, 2) points `spacing` m apart and (K,) flags 1 on turn arcs.
+
+    `offset_fn(line)` gives the lane centre's distance right of the street centre. The path starts
+    `start_fraction` of the way along the first street segment and ends halfway along the last one.
+    """
+    pieces: list[np.ndarray] = []
+    turning: list[np.ndarray] = []
+    first_heading = _heading_between(nodes[0], nodes[1])
+    line0 = net.line_of(*nodes[0], first_heading)
+    a, b = net.node(*nodes[0]), net.node(*nodes[1])
+    cursor = a + (b - a) * start_fraction + _right(first_heading) * offset_fn(line0)
+    for k in range(1, len(nodes) - 1):
+        h1, h2 = _heading_between(nodes[k - 1], nodes[k]), _heading_between(nodes[k], nodes[k + 1])
+        line1, line2 = net.line_of(*nodes[k], h1), net.line_of(*nodes[k], h2)
+        o1, o2 = offset_fn(line1), offset_fn(line2)
+        node = net.node(*nodes[k])
+        if h1 == h2:
+            continue
+        d1, d2 = DIRECTIONS[h1], DIRECTIONS[h2]
+        # corner C where the incoming and outgoing lane centre lines cross
+        p1, p2 = node + _right(h1) * o1, node + _right(h2) * o2
+        corner = p1 + d1 * np.dot(p2 - p1, d1)
+        turn_right = h2 == (h1 + 3) % 4
+        radius = net.corner_radius + 0.5 * (
+            _curb_distance(line1, h1, o1, turn_right) + _curb_distance(line2, h2, o2, turn_right)
+        )
+        t_in, t_out = corner - d1 * radius, corner + d2 * radius
+        pieces.append(_segment(cursor, t_in, spacing))
+        turning.append(np.zeros(len(pieces[-1])))
+        normal = _right(h1) if turn_right else -_right(h1)
+        center = t_in + normal * radius
+        a0 = np.arctan2(*(t_in - center)[::-1])
+        a1 = np.arctan2(*(t_out - center)[::-1])
+        sweep = (a1 - a0 + np.pi) % (2 * np.pi) - np.pi
+        n = max(2, int(abs(sweep) * radius / spacing))
+        angles = a0 + sweep * np.arange(n) / n
+        pieces.append(center + radius * np.column_stack([np.cos(angles), np.sin(angles)]))
+        turning.append(np.ones(n))
+        cursor = t_out
+    h_last = _heading_between(nodes[-2], nodes[-1])
+    line_last = net.line_of(*nodes[-1], h_last)
+    end = (net.node(*nodes[-2]) + net.node(*nodes[-1])) / 2 + _right(h_last) * offset_fn(line_last)
+    pieces.append(_segment(cursor, end, spacing, include_end=True))
+    turning.append(np.zeros(len(pieces[-1])))
+    return np.concatenate(pieces), np.concatenate(turning)
+
+
+def _segment(p0: np.ndarray, p1: np.ndarray, spacing: float, include_end: bool = False) -> np.ndarray:
+    length = float(np.linalg.norm(p1 - p0))
+    n = max(1, int(np.ceil(length / spacing)))
+    t = np.arange(n + int(include_end)) / n
+    return p0 + np.outer(t, p1 - p0)
+
+
+def arc_length(path: np.ndarray) -> np.ndarray:
+    """(K,) cumulative distance along a (K, 2) polyline."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+
+
+def sample_path(path: np.ndarray, s: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (N, 2) and headings (N,) rad at arc lengths `at` (clipped to the path)."""
+    at = np.clip(at, 0.0, s[-1])
+    x = np.interp(at, s, path[:, 0])
+    y = np.interp(at, s, path[:, 1])
+    ahead = np.clip(at + 0.5, 0.0, s[-1])
+    behind = np.clip(at - 0.5, 0.0, s[-1])
+    dx = np.interp(ahead, s, path[:, 0]) - np.interp(behind, s, path[:, 0])
+    dy = np.interp(ahead, s, path[:, 1]) - np.interp(behind, s, path[:, 1])
+    return np.column_stack([x, y]), np.arctan2(dy, dx)

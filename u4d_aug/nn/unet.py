@@ -1,0 +1,209 @@
+"""RangeUNet: ε-prediction UNet on range images: ring convs, AdaGN, optional mask head (R2DM family)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from u4d_aug.errors import InputError
+from u4d_aug.nn.layers import (
+    AttentionBlock,
+    Downsample,
+    NoiseLevelEmbedding,
+    RayFourierFeatures,
+    ResBlock,
+    RingConv2d,
+    Upsample,
+    group_norm,
+)
+
+
+@dataclass
+class UNetConfig:
+    """Widths and heads of the RangeUNet (R2DM `ModelConfig`; defaults are a cheap CPU size)."""
+
+    base_channels: int = 32
+    channel_multipliers: tuple[int, ...] = (1, 2, 2, 4)
+    num_res_blocks: int | tuple[int, ...] = 2  # one count for all levels, or one per level
+    attention: bool = True  # self-attention at the lowest resolution only
+    attention_heads: int = 4
+    fourier_features: bool = True  # ray-angle Fourier features as extra input (needs the angles at build time)
+    in_channels: int = 2  # x_t: depth, reflectance
+    cond_channels: int = 0  # extra input channels, e.g. x0_u (2) + m_u (1) = 3 for stage 2
+    out_channels: int = 2  # ε̂
+    mask_head: bool = False  # stage 1: extra 1-channel logit output m_p
+    dropout: float = 0.0
+    gn_groups: int = 8
+
+    def __post_init__(self) -> None:
+        if self.base_channels < 1:
+            raise InputError(f"net.base_channels must be >= 1, got {self.base_channels}")
+        if not self.channel_multipliers or min(self.channel_multipliers) < 1:
+            raise InputError(f"net.channel_multipliers must be positive integers, got {self.channel_multipliers}")
+        if isinstance(self.num_res_blocks, int):
+            self.num_res_blocks = (self.num_res_blocks,) * len(self.channel_multipliers)
+        self.num_res_blocks = tuple(self.num_res_blocks)
+        if len(self.num_res_blocks) != len(self.channel_multipliers) or min(self.num_res_blocks) < 1:
+            raise InputError(
+                f"net.num_res_blocks must be >= 1 per level ({len(self.channel_multipliers)} levels), "
+                f"got {self.num_res_blocks}"
+            )
+        if self.in_channels < 1 or self.out_channels < 1 or self.cond_channels < 0:
+            raise InputError("net.in_channels/out_channels must be >= 1 and net.cond_channels >= 0")
+        if not 0.0 <= self.dropout < 1.0:
+            raise InputError(f"net.dropout must be in [0, 1), got {self.dropout}")
+
+    @property
+    def downsampling_factor(self) -> int:
+        """H and W must be multiples of this (2^(levels-1))."""
+        return 2 ** (len(self.channel_multipliers) - 1)
+
+
+class LevelBlock(nn.Module):
+    """One UNet stage entry: a ResBlock, then self-attention when `attention` and the config allow it."""
+
+    def __init__(self, in_channels: int, out_channels: int, embed_channels: int, cfg: UNetConfig, attention: bool):
+        super().__init__()
+        self.res = ResBlock(in_channels, out_channels, embed_channels, cfg.gn_groups, cfg.dropout)
+        self.attn = (
+            AttentionBlock(out_channels, cfg.gn_groups, cfg.attention_heads) if attention and cfg.attention else None
+        )
+
+    def forward(self, x: Tensor, emb: Tensor) -> Tensor:  # (N, C, H, W), (N, E) -> (N, C', H, W)
+        h = self.res(x, emb)
+        return self.attn(h) if self.attn is not None else h
+
+
+class RangeUNet(nn.Module):
+    """ε_θ(x_t, log-SNR, cond) on (B, C, H, W) or (B, L, C, H, W); returns (ε̂, mask logits or None).
+
+    Layout follows DDPM/ADM: per level `num_res_blocks` ResBlocks and a stride-2 ring-conv downsample; every
+    block output is a skip; the decoder has one extra block per level. Attention (if on) sits only at the
+    lowest level, as in R2DM. Output convs are zero-initialised: an untrained net predicts ε̂ = 0, logit 0.
+    """
+
+    def __init__(self, cfg: UNetConfig, elevation: Tensor | None = None, azimuth: Tensor | None = None):
+        super().__init__()
+        self.cfg = cfg
+        widths = [cfg.base_channels * m for m in cfg.channel_multipliers]
+        embed_channels = 4 * cfg.base_channels
+        self.embed = NoiseLevelEmbedding(cfg.base_channels, embed_channels)
+
+        self.stem = RingConv2d(cfg.in_channels + cfg.cond_channels, widths[0], 3)
+        self.ray_features: RayFourierFeatures | None = None
+        if cfg.fourier_features:
+            if elevation is None or azimuth is None:
+                raise InputError(
+                    "net.fourier_features=true needs the ray angles: pass elevation (H,) and azimuth (W,) "
+                    "from u4d_aug.range_view.ray_angles(sensor, H, W, row_mode) or set "
+                    "net.fourier_features=false"
+                )
+            self.ray_features = RayFourierFeatures(elevation, azimuth, widths[0])
+
+        num_levels = len(widths)
+        self.down = nn.ModuleList()
+        skip_widths = [widths[0]]
+        width = widths[0]
+        for level, (out_width, blocks) in enumerate(zip(widths, cfg.num_res_blocks)):
+            lowest = level == num_levels - 1
+            for _ in range(blocks):
+                self.down.append(LevelBlock(width, out_width, embed_channels, cfg, attention=lowest))
+                width = out_width
+                skip_widths.append(width)
+            if not lowest:
+                self.down.append(Downsample(width))
+                skip_widths.append(width)
+
+        self.mid = nn.ModuleList(
+            [
+                LevelBlock(width, width, embed_channels, cfg, attention=True),
+                LevelBlock(width, width, embed_channels, cfg, attention=False),
+            ]
+        )
+
+        self.up = nn.ModuleList()
+        for level in reversed(range(num_levels)):
+            lowest = level == num_levels - 1
+            for _ in range(cfg.num_res_blocks[level] + 1):
+                skip = skip_widths.pop()
+                self.up.append(LevelBlock(width + skip, widths[level], embed_channels, cfg, attention=lowest))
+                width = widths[level]
+            if level > 0:
+                self.up.append(Upsample(width))
+        assert not skip_widths
+
+        self.out_norm = group_norm(width, cfg.gn_groups)
+        self.out_conv = RingConv2d(width, cfg.out_channels, 3)
+        nn.init.zeros_(self.out_conv.weight)
+        nn.init.zeros_(self.out_conv.bias)
+        self.mask_conv: RingConv2d | None = None
+        if cfg.mask_head:
+            self.mask_conv = RingConv2d(width, 1, 3)
+            nn.init.zeros_(self.mask_conv.weight)
+            nn.init.zeros_(self.mask_conv.bias)
+
+    def forward(self, x_t: Tensor, log_snr: Tensor, cond: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
+        """x_t (B, [L,] C_in, H, W), log_snr (B,) or (), cond (B, [L,] C_cond, H, W) -> (ε̂, mask logits)."""
+        sequence = x_t.dim() == 5
+        if x_t.dim() not in (4, 5):
+            raise ValueError(f"RangeUNet: x_t must be (B, C, H, W) or (B, L, C, H, W), got {tuple(x_t.shape)}")
+        batch = x_t.shape[0]
+        log_snr = torch.as_tensor(log_snr, device=x_t.device, dtype=torch.float32).reshape(-1).expand(batch)
+        if sequence:
+            # Frames are independent here: (B, L) is folded into the batch and unfolded at the end. This is
+            # the seam where the MoST issue adds temporal mixing (it will need `frames` inside the blocks).
+            frames = x_t.shape[1]
+            x_t = x_t.flatten(0, 1)
+            cond = cond.flatten(0, 1) if cond is not None else None
+            log_snr = log_snr.repeat_interleave(frames)
+        eps, mask_logits = self._forward_frames(x_t, log_snr, cond)
+        if sequence:
+            eps = eps.unflatten(0, (batch, frames))
+            mask_logits = mask_logits.unflatten(0, (batch, frames)) if mask_logits is not None else None
+        return eps, mask_logits
+
+    def _forward_frames(self, x_t: Tensor, log_snr: Tensor, cond: Tensor | None) -> tuple[Tensor, Tensor | None]:
+        cfg = self.cfg
+        _, channels, height, width = x_t.shape
+        if channels != cfg.in_channels:
+            raise ValueError(f"RangeUNet: expected {cfg.in_channels} x_t channels, got {channels}")
+        factor = cfg.downsampling_factor
+        if height % factor or width % factor:
+            raise InputError(f"range image {height}x{width}: H and W must be multiples of {factor} for this UNet")
+        if cfg.cond_channels:
+            if cond is None or cond.shape[1] != cfg.cond_channels or cond.shape[-2:] != x_t.shape[-2:]:
+                got = None if cond is None else tuple(cond.shape)
+                raise ValueError(f"RangeUNet: expected cond with {cfg.cond_channels} channels like x_t, got {got}")
+            x_t = torch.cat([x_t, cond], dim=1)
+        elif cond is not None:
+            raise ValueError("RangeUNet: got cond but net.cond_channels = 0")
+
+        emb = F.silu(self.embed(log_snr))  # (N, E); every ResBlock applies its own Linear after this SiLU
+        h = self.stem(x_t)  # (N, C0, H, W)
+        if self.ray_features is not None:
+            if self.ray_features.size != (height, width):
+                raise InputError(
+                    f"range image {height}x{width} does not match the {self.ray_features.size} ray-angle "
+                    "grid the net was built with"
+                )
+            h = h + self.ray_features()  # (1, C0, H, W) broadcast over the batch
+
+        skips = [h]
+        for block in self.down:
+            h = block(h, emb) if isinstance(block, LevelBlock) else block(h)
+            skips.append(h)
+        for block in self.mid:
+            h = block(h, emb)
+        for block in self.up:
+            if isinstance(block, LevelBlock):
+                h = block(torch.cat([h, skips.pop()], dim=1), emb)
+            else:
+                h = block(h)
+
+        h = F.silu(self.out_norm(h))
+        eps = self.out_conv(h)  # (N, C_out, H, W)
+        mask_logits = self.mask_conv(h) if self.mask_conv is not None else None  # (N, 1, H, W)
+        return eps, mask_logits
