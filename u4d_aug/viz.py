@@ -68,8 +68,7 @@ def save_figure(fig: plt.Figure, path: str | Path, dpi: int = 110) -> Path:
 def draw_range_image(ax: plt.Axes, image: np.ndarray, title: str, cmap: str = "turbo", vmin=None, vmax=None):
     """One (H, W) channel; NaN pixels (no return) drawn black. Wide images get a squashed aspect to stay readable."""
     height, width = image.shape
-    cm = plt.get_cmap(cmap).copy()
-    cm.set_bad("black")
+    cm = plt.get_cmap(cmap).with_extremes(bad="black")
     handle = ax.imshow(image, cmap=cm, vmin=vmin, vmax=vmax, interpolation="nearest", aspect=max(width / height / 8, 1))
     ax.set_title(title, fontsize=9)
     ax.set_xticks([])
