@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Literal
 
 from segmentation.data import AugmentConfig
+from segmentation.mean_teacher import MeanTeacherConfig
 from segmentation.models import SegModelConfig
 
 Sequences = str | list[str | int] | None  # split name ('train' / 'val' / 'test'), a list of sequences, or all
@@ -21,6 +22,7 @@ class SegDataConfig:
     """Where the scans are and which of them train / validate (SemanticKITTI layout root)."""
 
     root: Path = Path("data/sim")
+    sensor: str = "hdl64"  # u4d_aug.data.sensors.get_sensor name or yaml: LaserMix pitch range in mode "semi"
     train_sequences: Sequences = "train"  # SemanticKITTI split name, a list like ["00", "01"], or null = all
     val_sequences: Sequences = "val"
     # labeled part of the train scans (LaserMix splits, written beside the data under ROOT/splits/)
@@ -74,15 +76,42 @@ class LossConfig:
 
 
 @dataclass
+class BankConfig:
+    """A bank of generated scans (SemanticKITTI layout, labels absent) mixed into the unlabeled stream."""
+
+    path: Path = Path("banks/u4d")
+    ratio: float = 0.5  # share of the unlabeled scans of a step drawn from this bank
+
+
+@dataclass
+class SemiConfig(MeanTeacherConfig):
+    """Mode "semi": mean teacher + LaserMix hyper-parameters and the unlabeled stream's sources.
+
+    Each unlabeled scan comes from bank i with probability banks[i].ratio, otherwise from the unlabeled
+    part of the label split (ratio 1 - sum of the bank ratios; with label_fraction 1 that is the whole train set).
+    """
+
+    banks: list[BankConfig] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        ratios = [bank.ratio for bank in self.banks]
+        if any(r < 0 for r in ratios) or sum(ratios) > 1.0 + 1e-9:
+            raise ValueError(f"semi.banks ratios must be >= 0 and sum to <= 1; got {ratios}")
+        if not 0.0 <= self.ema_decay <= 1.0 or not 0.0 <= self.pseudo_threshold <= 1.0:
+            raise ValueError("semi.ema_decay and semi.pseudo_threshold must be in [0, 1]")
+
+
+@dataclass
 class SegTrainConfig:
     """One training run: data, net, optimiser, loss, augmentation and the loop's bookkeeping."""
 
-    mode: Literal["supervised"] = "supervised"  # issue 5 adds the semi-supervised mean-teacher mode
+    mode: Literal["supervised", "semi"] = "supervised"  # "semi": LaserMix mean teacher (segmentation/semi.py)
     data: SegDataConfig = field(default_factory=SegDataConfig)
     model: SegModelConfig = field(default_factory=SegModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     augment: AugmentConfig = field(default_factory=AugmentConfig)
+    semi: SemiConfig = field(default_factory=SemiConfig)  # used in mode "semi" only
     eval_every: int = 500  # steps; the last step is always evaluated
     checkpoint_every: int = 500  # steps; the last step always writes one
     keep_checkpoints: int = 2  # newest OUT/checkpoints/step_*.pt kept; 0 = keep all

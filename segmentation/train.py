@@ -1,15 +1,16 @@
 """Segmentation training loop (`u4d seg-train CONFIG [key=value ...] [--resume [CKPT]] [--out DIR]`).
 
 Reads top to bottom like nanoGPT's train.py: set-up, data, model, optimiser, then one loop that takes a batch,
-computes the loss with the step function of the configured mode (`supervised_step`; the semi-supervised
-mean-teacher step of issue 5 is its sibling), steps AdamW at the warm-up + cosine learning rate of that step,
-evaluates, logs and checkpoints.
+computes the loss with the step function of the configured mode (`supervised_step`, or its sibling
+`segmentation.semi.semi_step`: LaserMix mean teacher on labeled + unlabeled scans), steps AdamW at the
+warm-up + cosine learning rate of that step, updates the teacher (mode "semi"), evaluates, logs and checkpoints.
 
 Exact resume: the scans of step s, their point subsets and augmentations depend only on (seed, step, slot
 in the batch), and the global torch RNG (dropout) is re-seeded from (seed, step, rank) before every step,
 so a run resumed from the checkpoint of step s ends with the same weights as an uninterrupted one (same
-device, same world size). Checkpoints hold the config, step, model, optimiser, schedule, EMA (None when
-supervised) and RNG states, and are written atomically by rank 0.
+device, same world size). Checkpoints hold the config, step, model, optimiser, schedule, EMA (the teacher in
+mode "semi", None when supervised) and RNG states, and are written atomically by rank 0. In mode "semi" the
+teacher is the model evaluated and saved as model.pt.
 
 Outputs in OUT (cfg.out_dir): config.yaml, log.jsonl (train records every log_every steps, eval records),
 learning_curve.png, reliability.png, checkpoints/step_XXXXXXX.pt, model.pt (final weights + config + metrics),
@@ -37,9 +38,11 @@ from segmentation.config import OptimConfig, SegTrainConfig
 from segmentation.data import augment, load_or_make_split
 from segmentation.evaluate import accumulate, evenly_spaced, summary_of
 from segmentation.losses import segmentation_loss
+from segmentation.mean_teacher import make_teacher, teacher_mode
 from segmentation.models import build_model
 from segmentation.plots import plot_learning_curve, plot_reliability
 from segmentation.predict import load_checkpoint
+from segmentation.semi import UnlabeledStream, load_unlabeled, semi_step, unlabeled_stream, update_teacher
 from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
@@ -48,7 +51,8 @@ from u4d_aug.errors import InputError
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_json, atomic_write_text, read_jsonl
 
 CHECKPOINT_FORMAT = "u4d-seg-checkpoint"
-CURVE_KEYS = ("loss", "loss_ce", "loss_lovasz", "val_miou", "val_ece_per_scan", "val_ece_pooled")
+CURVE_KEYS = ("loss", "loss_ce", "loss_lovasz", "loss_sup", "loss_mix", "loss_mt")  # mode "semi": the last 3
+CURVE_KEYS += ("val_miou", "val_ece_per_scan", "val_ece_pooled")
 # seed domains, so that the streams of epochs, scans and dropout never share a seed
 _EPOCH, _SCAN, _STEP = 1, 2, 3
 
@@ -99,11 +103,20 @@ class TrainBatches(Dataset):
     """Item `step` = this rank's share of the global batch of that step: loaded, subsampled, augmented scans.
 
     Slot j of the global batch goes to rank j % world_size; its randomness is seeded by (seed, step, j), so
-    the global batch does not depend on the number of ranks or DataLoader workers.
+    the global batch does not depend on the number of ranks or DataLoader workers. With an unlabeled stream
+    (mode "semi") the item also holds as many unlabeled scans, slot for slot.
     """
 
-    def __init__(self, scans: ScanDataset, cfg: SegTrainConfig, rank: int, world_size: int) -> None:
+    def __init__(
+        self,
+        scans: ScanDataset,
+        cfg: SegTrainConfig,
+        rank: int,
+        world_size: int,
+        unlabeled: UnlabeledStream | None = None,
+    ) -> None:
         self.scans, self.cfg, self.rank, self.world_size = scans, cfg, rank, world_size
+        self.unlabeled = unlabeled
 
     def __len__(self) -> int:
         return self.cfg.optim.steps
@@ -111,8 +124,9 @@ class TrainBatches(Dataset):
     def __getitem__(self, step: int) -> dict:
         cfg = self.cfg
         indices = batch_indices(step, len(self.scans), cfg.optim.batch_size, cfg.seed)
+        slots = range(self.rank, cfg.optim.batch_size, self.world_size)
         points, labels = [], []
-        for slot in range(self.rank, cfg.optim.batch_size, self.world_size):
+        for slot in slots:
             item = self.scans[indices[slot]]
             generator = torch.Generator().manual_seed(derived_seed(cfg.seed, _SCAN, step, slot))
             scan = torch.from_numpy(item["points"])  # (N, 4)
@@ -122,7 +136,10 @@ class TrainBatches(Dataset):
                 scan, target = scan[keep], target[keep]
             points.append(augment(scan, generator, cfg.augment))
             labels.append(target)
-        return {"step": step, "points": points, "labels": labels}
+        batch = {"step": step, "slots": list(slots), "points": points, "labels": labels}
+        if self.unlabeled is not None:
+            batch["unlabeled"] = load_unlabeled(self.unlabeled, cfg, step, slots)
+        return batch
 
 
 def supervised_step(model: nn.Module, batch: dict, cfg: SegTrainConfig, device: torch.device) -> dict:
@@ -244,10 +261,14 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
     if cfg.data.val_sequences is not None:
         val_scans = ScanDataset(cfg.data.root, cfg.data.val_sequences, labeled_only=True)
         val_scans = val_scans if len(val_scans) else None
+    unlabeled = unlabeled_stream(cfg) if cfg.mode == "semi" else None
 
     # ---- model and optimiser (same initial weights on every rank; DDP also broadcasts rank 0's)
     torch.manual_seed(cfg.seed)
     model = build_model(cfg.model).to(device)
+    # mode "semi": the mean teacher, an EMA of the student; it is the model evaluated and saved
+    teacher = teacher_mode(make_teacher(model), cfg.semi.bn_mode) if cfg.mode == "semi" else None
+    evaluated = teacher if teacher is not None else model
     optimizer = make_optimizer(model, cfg.optim)
     start_step, elapsed_before, last_summary = 0, 0.0, None
     if resume is not None:
@@ -260,6 +281,10 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
         _warn_config_changes(ckpt["config"], config_to_dict(cfg), ckpt_path)
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
+        if teacher is not None:
+            if ckpt.get("ema") is None:
+                raise InputError(f"{ckpt_path}: has no teacher (ema) weights; it was not written in mode 'semi'")
+            teacher.load_state_dict(ckpt["ema"])
         start_step, elapsed_before = int(ckpt["step"]), float(ckpt.get("elapsed", 0.0))
         last_summary = ckpt.get("metrics")
         torch.set_rng_state(ckpt["rng"]["torch"])
@@ -272,7 +297,7 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
     ddp_model = DistributedDataParallel(model) if info.world_size > 1 else model
 
     loader = DataLoader(
-        TrainBatches(scans, cfg, info.rank, info.world_size),
+        TrainBatches(scans, cfg, info.rank, info.world_size, unlabeled),
         batch_size=None,
         sampler=range(start_step, cfg.optim.steps),
         num_workers=cfg.num_workers,
@@ -295,14 +320,18 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
 
         if cfg.mode == "supervised":
             losses = supervised_step(ddp_model, batch, cfg, device)
+        elif cfg.mode == "semi":
+            losses = semi_step(ddp_model, teacher, batch, cfg, device)
         else:
-            raise ValueError(f"mode must be 'supervised'; got {cfg.mode!r}")
+            raise ValueError(f"mode must be 'supervised' or 'semi'; got {cfg.mode!r}")
         optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
         grad_norm = (
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip) if cfg.optim.grad_clip > 0 else None
         )
         optimizer.step()
+        if teacher is not None:
+            update_teacher(teacher, model, cfg.semi)
         done = step + 1
 
         for key, value in losses.items():
@@ -325,8 +354,10 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
                 append_jsonl(log_path, record)
 
         if done % cfg.eval_every == 0 or last:
-            sync_buffers(model)
-            summary, bins = evaluate_val(model, cfg, val_scans, info)
+            sync_buffers(evaluated)
+            summary, bins = evaluate_val(evaluated, cfg, val_scans, info)
+            if teacher is not None:
+                teacher_mode(teacher, cfg.semi.bn_mode)  # evaluation left it in train mode
             if summary is not None:
                 last_summary = summary
                 if info.is_main:
@@ -355,7 +386,7 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
                     "model": model.state_dict(),
                     "optimizer": optimizer.state_dict(),
                     "scheduler": {"name": "warmup_cosine", "step": done, "lr": lr},
-                    "ema": None,  # the mean teacher's weights in the semi-supervised mode
+                    "ema": None if teacher is None else teacher.state_dict(),  # the mean teacher (mode "semi")
                     "rng": {"torch": torch.get_rng_state(), "seed": cfg.seed},
                     "elapsed": elapsed,
                     "metrics": last_summary,
@@ -375,7 +406,7 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
             "format": CHECKPOINT_FORMAT,
             "config": config_to_dict(cfg),
             "step": done,
-            "model": model.state_dict(),
+            "model": evaluated.state_dict(),  # the teacher in mode "semi"
             "metrics": last_summary,
             "class_names": class_names(cfg),
         })  # fmt: skip
@@ -436,7 +467,7 @@ def add_seg_train_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_seg_train(args: argparse.Namespace) -> int:
-    """`u4d seg-train`: supervised training (torchrun for several processes)."""
+    """`u4d seg-train`: supervised or semi-supervised training (torchrun for several processes)."""
     cfg = load_config(SegTrainConfig, args.config, args.overrides)
     if args.out is not None:
         cfg.out_dir = args.out

@@ -89,6 +89,9 @@ DELEGATED = (
     ("seg-train", "train a segmentation net (supervised or semi-supervised), torchrun-ready"),
     ("seg-eval", "mIoU, per-class IoU, ECE (per scan and pooled), reliability diagram of a checkpoint"),
     ("seg-predict", "write per-point class probabilities (float16 .npy) for U4D's uncertainty"),
+    ("train-extractor", "train the FRD (range-view) or FPD (PointNet) feature extractor on labeled scans"),
+    ("evaluate", "generation metrics of a bank vs real scans: FRD, FPD, BEV JSD/MMD (Table 1), TTCE/CTC (Table 2)"),
+    ("experiment", "sup-only / LaserMix / +R2DM bank / +U4D bank comparison: mIoU and ECE over seeds"),
 )
 
 
@@ -106,6 +109,12 @@ def _delegated_module(name: str):
         return importlib.import_module("segmentation.evaluate"), "seg_eval"
     elif name == "seg-predict":
         return importlib.import_module("segmentation.predict"), "seg_predict"
+    elif name == "train-extractor":
+        return importlib.import_module("u4d_aug.metrics.extractors"), "train_extractor"
+    elif name == "evaluate":
+        return importlib.import_module("u4d_aug.metrics.evaluate"), "evaluate"
+    elif name == "experiment":
+        return importlib.import_module("segmentation.experiment"), "experiment"
     raise ValueError(f"unknown command {name!r}; allowed: {', '.join(n for n, _ in DELEGATED)}")
 
 

@@ -1,0 +1,258 @@
+"""The augmentation comparison (`u4d experiment CONFIG [key=value ...]`): arms x backbones x seeds, one budget.
+
+Arms (issue 5): sup-only, MT+LaserMix, MT+LaserMix+R2DM bank, MT+LaserMix+U4D bank. Every run starts from
+the same seg-train preset (`base`, e.g. configs/seg/cpu_semi.yaml: label split, step budget, net size) and
+changes only mode / bank / backbone / seed, so the arms get the same number of steps on the same labeled
+scans (the label split is fixed by data.split_seed; the seed changes initialisation, scan order and mixing).
+Each run trains into OUT/runs/ARM/BACKBONE/seedS: skipped once its metrics.json exists, resumed from its
+last checkpoint when it was interrupted. An arm whose bank is missing is reported "missing" with the reason,
+never with numbers. Writes OUT/results.json, OUT/results.md and OUT/reliability_ARM_BACKBONE.png (bins
+pooled over seeds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from segmentation.config import BankConfig, SegTrainConfig
+from segmentation.metrics import ReliabilityBins
+from segmentation.plots import plot_reliability
+from segmentation.train import train
+from u4d_aug.config import config_to_dict, load_config, save_config
+from u4d_aug.data.datasets import ScanDataset
+from u4d_aug.errors import InputError
+from u4d_aug.io import atomic_write_json, atomic_write_text, read_jsonl
+
+
+@dataclass
+class ArmConfig:
+    """One arm: supervised on the labeled split, or mean teacher + LaserMix with an optional bank."""
+
+    name: str = "sup-only"
+    mode: Literal["supervised", "semi"] = "supervised"
+    bank: Path | None = None  # SemanticKITTI-layout root of generated scans; None = unlabeled split only
+    bank_ratio: float = 0.5  # share of the unlabeled scans drawn from the bank
+
+
+def default_arms() -> list[ArmConfig]:
+    """The four arms of issue 5 (bank paths: where `u4d r2dm-sample` / `u4d generate` write their banks)."""
+    return [
+        ArmConfig("sup-only", "supervised"),
+        ArmConfig("mt-lasermix", "semi"),
+        ArmConfig("mt-lasermix-r2dm", "semi", Path("banks/r2dm")),
+        ArmConfig("mt-lasermix-u4d", "semi", Path("banks/u4d")),
+    ]
+
+
+@dataclass
+class ExperimentConfig:
+    """Arms x backbones x seeds on one seg-train preset; `overrides` apply to every run (key=value)."""
+
+    base: Path = Path("configs/seg/cpu_semi.yaml")
+    overrides: list[str] = field(default_factory=list)
+    arms: list[ArmConfig] = field(default_factory=default_arms)
+    backbones: list[Literal["minkunet", "spvcnn"]] = field(default_factory=lambda: ["minkunet", "spvcnn"])
+    seeds: list[int] = field(default_factory=lambda: [0, 1, 2])
+    out_dir: Path = Path("runs/experiment")
+
+    def __post_init__(self) -> None:
+        names = [arm.name for arm in self.arms]
+        if not names or len(set(names)) != len(names):
+            raise ValueError(f"arms must be a non-empty list with distinct names; got {names}")
+        if not self.backbones or not self.seeds:
+            raise ValueError("backbones and seeds must not be empty")
+
+
+def bank_problem(arm: ArmConfig) -> str | None:
+    """Why an arm's bank cannot be used (missing folder, no scans), or None."""
+    if arm.bank is None:
+        return None
+    if not Path(arm.bank).is_dir():
+        return f"bank {arm.bank} not found (generate it first)"
+    try:
+        count = len(ScanDataset(arm.bank, None))
+    except InputError as exc:
+        return f"bank {arm.bank} unusable: {exc}"
+    return None if count > 0 else f"bank {arm.bank} holds no scan"
+
+
+def run_config(cfg: ExperimentConfig, arm: ArmConfig, backbone: str, seed: int) -> SegTrainConfig:
+    """The seg-train config of one run: the base preset + overrides + this arm / backbone / seed."""
+    out = cfg.out_dir / "runs" / arm.name / backbone / f"seed{seed}"
+    run = load_config(SegTrainConfig, cfg.base, [*cfg.overrides, f"model.name={backbone}", f"seed={seed}"])
+    run.mode = arm.mode
+    run.out_dir = out
+    run.semi.banks = [BankConfig(Path(arm.bank), arm.bank_ratio)] if arm.bank is not None else []
+    return run
+
+
+def run_one(run: SegTrainConfig, progress: bool) -> dict:
+    """Train (or resume, or skip when finished) one run; returns its metrics plus the wall-clock seconds."""
+    out = Path(run.out_dir)
+    metrics_path = out / "metrics.json"
+    if not metrics_path.is_file():
+        resume = "last" if any((out / "checkpoints").glob("step_*.pt")) else None
+        if resume is None:  # interrupted before its first checkpoint: start over
+            (out / "log.jsonl").unlink(missing_ok=True)
+            if (out / "checkpoints").is_dir():
+                shutil.rmtree(out / "checkpoints")  # no step_*.pt in it (at most a partial temp file)
+        train(run, resume=resume, progress=progress)
+    metrics = json.loads(metrics_path.read_text())
+    times = [r["time"] for r in read_jsonl(out / "log.jsonl") if "time" in r]
+    metrics["wall_clock_s"] = max(times) if times else None  # training time incl. resumes, from the log
+    return metrics
+
+
+def mean_std(values: list[float | None]) -> dict:
+    """{"mean", "std" (sample, ddof 1; 0 for one value), "n"} over the non-null values."""
+    kept = [float(v) for v in values if v is not None and math.isfinite(v)]
+    if not kept:
+        return {"mean": None, "std": None, "n": 0}
+    std = float(np.std(kept, ddof=1)) if len(kept) > 1 else 0.0
+    return {"mean": float(np.mean(kept)), "std": std, "n": len(kept)}
+
+
+def bins_from_dict(data: dict) -> ReliabilityBins:
+    """Rebuild pooled reliability bins from `ReliabilityBins.to_dict()` (for pooling over seeds)."""
+    count = np.asarray(data["count"], dtype=np.int64)
+    confidence = np.nan_to_num(np.asarray(data["confidence"], dtype=np.float64))
+    accuracy = np.nan_to_num(np.asarray(data["accuracy"], dtype=np.float64))
+    return ReliabilityBins(count, confidence * count, accuracy * count, int(data["total"]))
+
+
+def run_experiment_config(cfg: ExperimentConfig, progress: bool = True) -> dict:
+    """Every run (skipping finished ones), then results.json, results.md and the reliability PNGs."""
+    out = Path(cfg.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out / "experiment.yaml")
+    results: dict = {"config": config_to_dict(cfg), "arms": []}
+    for arm in cfg.arms:
+        problem = bank_problem(arm)
+        for backbone in cfg.backbones:
+            bank = None if arm.bank is None else str(arm.bank)
+            entry: dict = {"arm": arm.name, "mode": arm.mode, "backbone": backbone, "bank": bank}
+            if problem is not None:
+                entry.update(status="missing", reason=problem)
+                results["arms"].append(entry)
+                print(f"{arm.name} / {backbone}: missing ({problem})", file=sys.stderr)
+                continue
+            runs = []
+            for seed in cfg.seeds:
+                run = run_config(cfg, arm, backbone, seed)
+                print(f"{arm.name} / {backbone} / seed {seed} -> {run.out_dir}", file=sys.stderr)
+                t0 = time.perf_counter()
+                metrics = run_one(run, progress)
+                runs.append({"seed": seed, "out_dir": str(run.out_dir), **metrics})
+                print(f"  done in {time.perf_counter() - t0:.1f} s (mIoU {metrics.get('miou')})", file=sys.stderr)
+            entry.update(status="done", **aggregate(runs))
+            entry["runs"] = [{k: v for k, v in r.items() if k != "bins"} for r in runs]
+            pooled = None
+            for r in runs:
+                if r.get("bins"):
+                    bins = bins_from_dict(r["bins"])
+                    pooled = bins if pooled is None else pooled + bins
+            if pooled is not None:
+                png = out / f"reliability_{arm.name}_{backbone}.png"
+                plot_reliability(pooled, png, title=f"{arm.name} / {backbone} ({len(runs)} seeds)")
+                entry["reliability_png"] = png.name
+            results["arms"].append(entry)
+    atomic_write_json(out / "results.json", results)
+    atomic_write_text(out / "results.md", results_markdown(results))
+    return results
+
+
+def aggregate(runs: list[dict]) -> dict:
+    """mean ± std over seeds of mIoU, both ECEs, wall-clock and per-class IoU."""
+    classes = list(dict.fromkeys(name for r in runs for name in (r.get("iou") or {})))  # first-seen order
+    return {
+        "miou": mean_std([r.get("miou") for r in runs]),
+        "miou_present": mean_std([r.get("miou_present") for r in runs]),  # over classes with GT points
+        "ece_per_scan": mean_std([r.get("ece_per_scan") for r in runs]),
+        "ece_pooled": mean_std([r.get("ece_pooled") for r in runs]),
+        "wall_clock_s": mean_std([r.get("wall_clock_s") for r in runs]),
+        "iou": {name: mean_std([(r.get("iou") or {}).get(name) for r in runs]) for name in classes},
+    }
+
+
+def results_markdown(results: dict) -> str:
+    """The results table (percentages, mean ± std over seeds) and per-class IoU of the finished arms."""
+
+    def pct(stat: dict) -> str:
+        if stat["mean"] is None:
+            return "n/a"
+        return f"{100 * stat['mean']:.2f} ± {100 * stat['std']:.2f}"
+
+    lines = [
+        "# Augmentation comparison",
+        "",
+        "mean ± std over seeds, in %: mIoU over all classes and over the classes with ground-truth points (present);"
+        " ECE per scan = mean of per-scan ECEs, pooled = over all points.",
+        "",
+        "| arm | backbone | status | seeds | mIoU | mIoU present | ECE per scan | ECE pooled | wall-clock per run s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for e in results["arms"]:
+        if e["status"] != "done":
+            lines.append(f"| {e['arm']} | {e['backbone']} | missing: {e['reason']} | 0 | - | - | - | - | - |")
+            continue
+        wall = e["wall_clock_s"]
+        wall_text = "n/a" if wall["mean"] is None else f"{wall['mean']:.1f} ± {wall['std']:.1f}"
+        lines.append(
+            f"| {e['arm']} | {e['backbone']} | done | {e['miou']['n']} | {pct(e['miou'])} | {pct(e['miou_present'])} | "
+            f"{pct(e['ece_per_scan'])} | {pct(e['ece_pooled'])} | {wall_text} |"
+        )
+    done = [e for e in results["arms"] if e["status"] == "done"]
+    if done:
+        classes = list(done[0]["iou"])
+        lines += ["", "## Per-class IoU (%)", "", "| arm | backbone | " + " | ".join(classes) + " |"]
+        lines.append("|---|---|" + "---|" * len(classes))
+        for e in done:
+            cells = [pct(e["iou"][c]) if c in e["iou"] else "n/a" for c in classes]
+            lines.append(f"| {e['arm']} | {e['backbone']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+# ------------------------------------------------------------------------------------------------------- CLI
+
+
+def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of `u4d experiment CONFIG [key=value ...] [--out DIR]`."""
+    parser.add_argument("config", type=Path, help="experiment yaml, e.g. configs/experiment/cpu.yaml")
+    parser.add_argument("overrides", nargs="*", help="key=value overrides, e.g. 'seeds=[0]' 'backbones=[minkunet]'")
+    parser.add_argument("--out", type=Path, default=None, help="output folder (overrides out_dir)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def run_experiment(args: argparse.Namespace) -> int:
+    """`u4d experiment`: every arm x backbone x seed at one budget, then results.json / results.md / PNGs."""
+    cfg = load_config(ExperimentConfig, args.config, args.overrides)
+    if args.out is not None:
+        cfg.out_dir = args.out
+    results = run_experiment_config(cfg, progress=not args.no_progress)
+    print((Path(cfg.out_dir) / "results.md").read_text())
+    return 0 if results["arms"] else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m segmentation.experiment CONFIG ...`: the same as `u4d experiment`."""
+    parser = argparse.ArgumentParser(prog="python -m segmentation.experiment", description=run_experiment.__doc__)
+    add_experiment_arguments(parser)
+    try:
+        return run_experiment(parser.parse_args(argv))
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,152 @@
+"""Semi-supervised LaserMix mean-teacher step and its unlabeled stream (LaserMix `SemiBase3DSegmentor.loss`).
+
+One step takes B labeled scans (GT) and B unlabeled scans: the teacher (EMA of the student) pseudo-labels
+the unlabeled scans (confidence < threshold -> ignore id), LaserMix mixes each (labeled, unlabeled) pair
+into 2 scans, and the student's loss is L = w_sup L_sup + w_mix L_mix + w_mt MSE(softmax s, softmax t) on
+the unlabeled scans. The unlabeled scans come from the unlabeled part of the label split and from banks of
+generated scans (SemanticKITTI layout, labels absent), source drawn per slot with the configured ratios.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from segmentation.config import SegTrainConfig, SemiConfig
+from segmentation.data import augment, load_or_make_split
+from segmentation.lasermix import lasermix
+from segmentation.losses import segmentation_loss
+from segmentation.mean_teacher import consistency_loss, copy_buffers, ema_update, pseudo_labels, total_loss
+from u4d_aug.data.datasets import ScanDataset
+from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
+from u4d_aug.data.sensors import get_sensor
+from u4d_aug.errors import InputError
+
+# seed domains of the semi-supervised streams (train.py uses 1..3)
+_SOURCE, _UNLABELED, _MIX = 4, 5, 6
+
+
+def _seed(*parts: int) -> int:
+    from segmentation.train import derived_seed  # late import: train.py imports this module
+
+    return derived_seed(*parts)
+
+
+class UnlabeledStream:
+    """Unlabeled scans of step s, slot j: source drawn with the ratios, then a uniform scan of that source.
+
+    Sources: [unlabeled part of the split (ratio 1 - sum of bank ratios), bank 0, bank 1, ...]; draws are
+    seeded by (seed, step, slot) only, so they do not depend on ranks, workers or resumption.
+    """
+
+    def __init__(self, sources: list[ScanDataset], ratios: list[float], names: list[str]) -> None:
+        kept = [(s, r, n) for s, r, n in zip(sources, ratios, names) if r > 0]
+        if not kept:
+            raise InputError("semi: the unlabeled stream has no source with a positive ratio")
+        for source, _, name in kept:
+            if len(source) == 0:
+                raise InputError(f"{name}: no scan in this unlabeled source (expected sequences/XX/velodyne/*.bin)")
+        self.sources = [s for s, _, _ in kept]
+        self.names = [n for _, _, n in kept]
+        self.ratios = torch.tensor([r for _, r, _ in kept], dtype=torch.float64)
+
+    def pick(self, seed: int, step: int, slot: int) -> tuple[int, int]:
+        """(source index, scan index) of unlabeled slot `slot` of step `step`."""
+        generator = torch.Generator().manual_seed(_seed(seed, _SOURCE, step, slot))
+        source = int(torch.multinomial(self.ratios, 1, generator=generator))
+        index = int(torch.randint(len(self.sources[source]), (1,), generator=generator))
+        return source, index
+
+    def load(self, seed: int, step: int, slot: int) -> dict:
+        """The picked scan: dict(points (N, 4) float32 numpy, source name, seq, frame); labels dropped."""
+        source, index = self.pick(seed, step, slot)
+        item = self.sources[source][index]
+        return {"points": item["points"], "source": self.names[source], "seq": item["seq"], "frame": item["frame"]}
+
+
+def unlabeled_stream(cfg: SegTrainConfig) -> UnlabeledStream:
+    """Unlabeled split of the train sequences (split file written by train_scans) + the configured banks."""
+    split = ScanDataset(cfg.data.root, cfg.data.train_sequences, labeled_only=False)
+    if cfg.data.label_fraction < 1.0:
+        labeled_frames = ScanDataset(cfg.data.root, cfg.data.train_sequences, labeled_only=True).entries
+        _, unlabeled = load_or_make_split(
+            cfg.data.root, labeled_frames, cfg.data.label_fraction, cfg.data.split_seed, cfg.data.split_mode
+        )
+        # the unlabeled part of the split, plus train scans that have no label file at all
+        chosen, labeled_set = set(unlabeled), set(labeled_frames)
+        split.entries = [entry for entry in split.entries if entry in chosen or entry not in labeled_set]
+    sources, ratios, names = [split], [1.0 - sum(b.ratio for b in cfg.semi.banks)], [f"{cfg.data.root} (split)"]
+    for i, bank in enumerate(cfg.semi.banks):
+        if not bank.path.is_dir():
+            raise InputError(f"semi.banks[{i}].path: {bank.path} not found (expected a SemanticKITTI-layout root)")
+        sources.append(ScanDataset(bank.path, None))
+        ratios.append(bank.ratio)
+        names.append(str(bank.path))
+    return UnlabeledStream(sources, ratios, names)
+
+
+def load_unlabeled(stream: UnlabeledStream, cfg: SegTrainConfig, step: int, slots: range) -> list[torch.Tensor]:
+    """Loaded, subsampled, augmented unlabeled scans of `step` for these slots of the global batch."""
+    out = []
+    for slot in slots:
+        scan = torch.from_numpy(stream.load(cfg.seed, step, slot)["points"])  # (N, 4)
+        generator = torch.Generator().manual_seed(_seed(cfg.seed, _UNLABELED, step, slot))
+        if cfg.data.max_points is not None and scan.shape[0] > cfg.data.max_points:
+            scan = scan[torch.randperm(scan.shape[0], generator=generator)[: cfg.data.max_points]]
+        out.append(augment(scan, generator, cfg.augment))
+    return out
+
+
+def pitch_range(cfg: SegTrainConfig) -> tuple[float, float]:
+    """LaserMix pitch range (down, up) in degrees: semi.pitch_range_deg, else the sensor's linear FOV."""
+    if cfg.semi.pitch_range_deg is not None:
+        return tuple(cfg.semi.pitch_range_deg)
+    sensor = get_sensor(cfg.data.sensor)
+    return (sensor.fov_down_deg, sensor.fov_up_deg)
+
+
+def semi_step(student: nn.Module, teacher: nn.Module, batch: dict, cfg: SegTrainConfig, device: torch.device) -> dict:
+    """Losses of one labeled + unlabeled batch: {"loss", "loss_sup", "loss_mix", "loss_mt", "pseudo_kept"}."""
+    labeled = [p.to(device) for p in batch["points"]]  # B x (N_b, 4)
+    targets = [t.to(device) for t in batch["labels"]]  # B x (N_b,) train ids
+    unlabeled = [p.to(device) for p in batch["unlabeled"]]  # B x (M_b, 4)
+    if len(labeled) != len(unlabeled):
+        raise ValueError(f"semi batch needs as many unlabeled as labeled scans; got {len(unlabeled)} vs {len(labeled)}")
+
+    # teacher: pseudo-labels y_hat (sum M_b,) of the unlabeled scans, ignore id below the threshold
+    with torch.no_grad():
+        teacher_logits = teacher(unlabeled)  # (sum M_b, K)
+    pseudo, _ = pseudo_labels(teacher_logits, cfg.semi.pseudo_threshold, SEMANTICKITTI_IGNORE)
+    pseudo_per_scan = pseudo.split([p.shape[0] for p in unlabeled])
+
+    # LaserMix: 2 mixed scans per (labeled, unlabeled) pair, area count seeded by (seed, step, slot)
+    mixed, mixed_targets = [], []
+    for slot, (p_a, y_a, p_b, y_b) in zip(batch["slots"], zip(labeled, targets, unlabeled, pseudo_per_scan)):
+        generator = torch.Generator().manual_seed(_seed(cfg.seed, _MIX, int(batch["step"]), slot))
+        m1, l1, m2, l2 = lasermix(p_a, y_a, p_b, y_b, cfg.semi.num_areas_choices, pitch_range(cfg), generator=generator)
+        mixed += [m1, m2]
+        mixed_targets += [l1, l2]
+
+    # student: one forward over labeled (B), mixed (2B) and unlabeled (B) scans, logits split back
+    scans = labeled + mixed + unlabeled
+    logits = student(scans)  # (sum of all points, K)
+    counts = [sum(p.shape[0] for p in group) for group in (labeled, mixed, unlabeled)]
+    sup_logits, mix_logits, unl_logits = logits.split(counts)
+    loss_sup = segmentation_loss(sup_logits, torch.cat(targets), cfg.loss, SEMANTICKITTI_IGNORE)["loss"]
+    loss_mix = segmentation_loss(mix_logits, torch.cat(mixed_targets), cfg.loss, SEMANTICKITTI_IGNORE)["loss"]
+    loss_mt = consistency_loss(unl_logits, teacher_logits)
+    return {
+        "loss": total_loss(loss_sup, loss_mix, loss_mt, cfg.semi),
+        "loss_sup": loss_sup,
+        "loss_mix": loss_mix,
+        "loss_mt": loss_mt,
+        "pseudo_kept": (pseudo != SEMANTICKITTI_IGNORE).float().mean(),  # share of confident pseudo-labels
+    }
+
+
+@torch.no_grad()
+def update_teacher(teacher: nn.Module, student: nn.Module, cfg: SemiConfig) -> None:
+    """EMA of the parameters after each optimiser step; BatchNorm buffers copied when bn_mode == copy_student."""
+    ema_update(teacher, student, cfg.ema_decay)
+    if cfg.bn_mode == "copy_student":
+        copy_buffers(teacher, student)

@@ -1,0 +1,102 @@
+"""The augmentation comparison runner: tiny preset, 1 seed, 2 arms + a missing-bank arm, resumable, CLI."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from test_seg_train import write_toy_root
+
+from segmentation.experiment import (
+    ExperimentConfig,
+    add_experiment_arguments,
+    mean_std,
+    run_experiment,
+)
+from u4d_aug.config import load_config
+from u4d_aug.errors import InputError
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = REPO / "configs" / "experiment" / "tiny.yaml"
+TINY_SEMI = REPO / "configs" / "seg" / "tiny_semi.yaml"
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_mean_std_over_seeds():
+    assert mean_std([0.5]) == {"mean": 0.5, "std": 0.0, "n": 1}
+    stat = mean_std([0.2, 0.4, None])
+    assert stat["n"] == 2 and stat["mean"] == pytest.approx(0.3) and stat["std"] == pytest.approx(0.1414213562)
+    assert mean_std([None]) == {"mean": None, "std": None, "n": 0}
+
+
+def test_config_rejects_duplicate_arms():
+    with pytest.raises(InputError, match="distinct"):
+        load_config(ExperimentConfig, TINY, ["arms=[{name: a}, {name: a}]"])
+
+
+def test_tiny_experiment_with_a_missing_bank_is_resumable(tmp_path):
+    root = write_toy_root(tmp_path / "toy")
+    out = tmp_path / "exp"
+    parser = argparse.ArgumentParser()
+    add_experiment_arguments(parser)
+    arms = (
+        "arms=[{name: sup-only, mode: supervised}, {name: mt-lasermix, mode: semi}, "
+        f"{{name: mt-lasermix-u4d, mode: semi, bank: {tmp_path / 'no_bank'}}}]"
+    )
+    argv = [
+        str(TINY),
+        f"base={TINY_SEMI}",
+        f"overrides=[data.root={root}, optim.steps=3, eval_every=3]",
+        arms,
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
+    assert run_experiment(parser.parse_args(argv)) == 0
+
+    results = json.loads((out / "results.json").read_text())
+    by_arm = {e["arm"]: e for e in results["arms"]}
+    assert list(by_arm) == ["sup-only", "mt-lasermix", "mt-lasermix-u4d"]
+    missing = by_arm["mt-lasermix-u4d"]
+    assert missing["status"] == "missing" and "not found" in missing["reason"] and "miou" not in missing
+    assert not (out / "runs" / "mt-lasermix-u4d").exists()  # never trained, never faked
+    for name in ("sup-only", "mt-lasermix"):
+        entry = by_arm[name]
+        assert entry["status"] == "done" and entry["miou"]["n"] == 1 and entry["miou"]["std"] == 0.0
+        assert 0.0 <= entry["miou"]["mean"] <= 1.0
+        assert entry["ece_per_scan"]["mean"] is not None and entry["ece_pooled"]["mean"] is not None
+        assert entry["wall_clock_s"]["mean"] > 0 and "car" in entry["iou"]
+        assert (out / entry["reliability_png"]).is_file()
+        run_dir = out / "runs" / name / "minkunet" / "seed0"
+        assert json.loads((run_dir / "metrics.json").read_text())["step"] == 3
+    semi_ckpt = torch.load(out / "runs" / "mt-lasermix" / "minkunet" / "seed0" / "model.pt", weights_only=True)
+    sup_ckpt = torch.load(out / "runs" / "sup-only" / "minkunet" / "seed0" / "model.pt", weights_only=True)
+    assert semi_ckpt["config"]["mode"] == "semi" and sup_ckpt["config"]["mode"] == "supervised"
+    assert semi_ckpt["config"]["optim"]["steps"] == sup_ckpt["config"]["optim"]["steps"] == 3  # same budget
+    markdown = (out / "results.md").read_text()
+    assert "| mt-lasermix-u4d | minkunet | missing: bank" in markdown and "Per-class IoU" in markdown
+
+    # a second invocation skips the finished runs (their files are not rewritten) and gives the same table
+    stamps = {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("model.pt")}
+    assert run_experiment(parser.parse_args(argv)) == 0
+    assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
+    again = json.loads((out / "results.json").read_text())
+    assert [e.get("miou") for e in again["arms"]] == [e.get("miou") for e in results["arms"]]
+
+    # an interrupted run (checkpoint, no metrics.json) is resumed, not restarted
+    run_dir = out / "runs" / "sup-only" / "minkunet" / "seed0"
+    (run_dir / "metrics.json").unlink()
+    (run_dir / "model.pt").unlink()
+    assert run_experiment(parser.parse_args(argv)) == 0
+    assert json.loads((run_dir / "metrics.json").read_text())["step"] == 3
+    assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == ["step_0000003.pt"]

@@ -1,0 +1,179 @@
+"""FRD/FPD extractors: tiny training run, feature shapes, hashes, refused comparisons, FRD(x, x) = 0."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from u4d_aug.config import load_config
+from u4d_aug.data.formats import write_calib, write_kitti_label, write_kitti_scan, write_poses
+from u4d_aug.errors import InputError
+from u4d_aug.metrics.extractors import (
+    FRD_NUM_SAMPLES,
+    ExtractorConfig,
+    compare_results,
+    extract_features,
+    frd_sample_indices,
+    load_extractor,
+    run_train_extractor,
+    train_extractor,
+)
+from u4d_aug.metrics.frechet import frechet_from_features
+
+TINY_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "extractor" / "tiny.yaml"
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def write_tiny_root(root: Path, num_frames: int = 5, labels: bool = True, poses: bool = True, shift: float = 0.0):
+    """Static synthetic world (ground z=-1.73 m, walls at y=+-10 m) seen from a sensor moving 1 m/frame along x."""
+    rng = np.random.default_rng(0)
+    gx, gy = np.meshgrid(np.arange(-40.0, 40.0, 1.0), np.arange(-40.0, 40.0, 1.0))
+    ground = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, -1.73)], axis=1)
+    wx, wz = np.meshgrid(np.arange(-40.0, 40.0, 0.5), np.arange(-1.5, 3.0, 0.5))
+    walls = np.concatenate(
+        [np.stack([wx.ravel(), np.full(wx.size, side + shift), wz.ravel()], axis=1) for side in (-10.0, 10.0)]
+    )
+    world = np.concatenate([ground, walls])  # (N, 3)
+    raw = np.concatenate([np.full(len(ground), 40), np.full(len(walls), 50)]).astype(np.uint16)  # road, building
+    seq = root / "sequences" / "00"
+    lidar_poses = np.repeat(np.eye(4)[None], num_frames, axis=0)
+    for i in range(num_frames):
+        lidar_poses[i, 0, 3] = float(i)
+        xyz = world - lidar_poses[i, :3, 3]
+        dist = np.linalg.norm(xyz, axis=1)
+        keep = (dist > 2.0) & (dist < 70.0)
+        points = np.concatenate([xyz[keep], rng.uniform(0.0, 1.0, (keep.sum(), 1))], axis=1).astype(np.float32)
+        write_kitti_scan(seq / "velodyne" / f"{i:06d}.bin", points)
+        if labels:
+            write_kitti_label(seq / "labels" / f"{i:06d}.label", raw[keep])
+    if poses:
+        calib = {"P0": np.eye(4)[:3], "Tr": np.eye(4)[:3]}
+        write_calib(seq / "calib.txt", calib)
+        write_poses(seq / "poses.txt", lidar_poses, calib)
+    return root
+
+
+def _tiny_cfg(root: Path, out: Path, seed: int = 0) -> ExtractorConfig:
+    return load_config(ExtractorConfig, TINY_CONFIG, [f"data.root={root}", f"out_dir={out}", f"train.seed={seed}"])
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """Both tiny extractors trained 3 steps on the synthetic root (module-scoped: trained once)."""
+    torch.set_num_threads(1)
+    base = tmp_path_factory.mktemp("extractors")
+    root = write_tiny_root(base / "root")
+    frd_path, frd_hash = train_extractor("frd", _tiny_cfg(root, base / "out"))
+    fpd_path, fpd_hash = train_extractor("fpd", _tiny_cfg(root, base / "out"))
+    return {"root": root, "base": base, "frd": (frd_path, frd_hash), "fpd": (fpd_path, fpd_hash)}
+
+
+def _scans(root: Path) -> list[np.ndarray]:
+    from u4d_aug.data.formats import read_kitti_scan
+
+    return [read_kitti_scan(p) for p in sorted((root / "sequences" / "00" / "velodyne").glob("*.bin"))]
+
+
+def test_training_writes_checkpoint_log_and_hash(trained):
+    path, digest = trained["frd"]
+    assert path.is_file() and len(digest) == 16 and int(digest, 16) >= 0
+    assert (path.parent / "frd_log.jsonl").is_file() and (path.parent / "frd_config.yaml").is_file()
+    extractor = load_extractor(path)
+    assert extractor.hash == digest and extractor.kind == "frd"
+    assert trained["fpd"][1] != digest
+
+
+def test_feature_shapes_are_documented(trained):
+    scans = _scans(trained["root"])
+    frd = load_extractor(trained["frd"][0])
+    feats = extract_features(frd, scans, batch_size=2)
+    assert feats["frd"].shape == (len(scans), FRD_NUM_SAMPLES)
+    assert feats["frd_pooled"].shape == (len(scans), 8)  # tiny base_channels
+    assert frd.feature_dims == {"frd": 4096, "frd_pooled": 8}
+    fpd = load_extractor(trained["fpd"][0])
+    feats_p = extract_features(fpd, scans, batch_size=3)
+    assert feats_p["fpd"].shape == (len(scans), 32 + 16 + 8)  # G + F1 + F2 of the tiny config
+    assert np.isfinite(feats["frd"]).all() and np.isfinite(feats_p["fpd"]).all()
+    # batching does not change features (eval-mode batch norm)
+    again = extract_features(frd, scans[:2], batch_size=1)
+    np.testing.assert_allclose(again["frd"], feats["frd"][:2], rtol=1e-5, atol=1e-6)
+
+
+def test_frd_of_identical_sets_is_zero(trained):
+    feats = extract_features(load_extractor(trained["frd"][0]), _scans(trained["root"]))["frd"]
+    assert abs(frechet_from_features(feats, feats)) < 1e-8 * max(1.0, float(np.sum(feats**2)))
+
+
+def test_same_seed_same_hash_other_seed_other_hash(trained, tmp_path):
+    root = trained["root"]
+    _, again = train_extractor("frd", _tiny_cfg(root, tmp_path / "a"))
+    _, other = train_extractor("frd", _tiny_cfg(root, tmp_path / "b", seed=1))
+    assert again == trained["frd"][1]
+    assert other != again
+
+
+def test_tampered_checkpoint_is_refused(trained, tmp_path):
+    ckpt = torch.load(trained["frd"][0], weights_only=False)
+    ckpt["hash"] = "0" * 16
+    torch.save(ckpt, tmp_path / "bad.pt")
+    with pytest.raises(InputError, match="does not match"):
+        load_extractor(tmp_path / "bad.pt")
+    with pytest.raises(InputError, match="not found"):
+        load_extractor(tmp_path / "missing.pt")
+
+
+def test_compare_results_refuses_different_extractors():
+    a = {"table1": {"frd": {"value": 1.0, "extractor_hash": "a" * 16}, "jsd": {"value": 0.1}}}
+    b = {"table1": {"frd": {"value": 3.0, "extractor_hash": "a" * 16}, "jsd": {"value": 0.2}}}
+    assert compare_results(a, b) == pytest.approx({"frd": 2.0, "jsd": 0.1})
+    c = {"table1": {"frd": {"value": 3.0, "extractor_hash": "b" * 16}}}
+    with pytest.raises(InputError, match="extractor"):
+        compare_results(a, c)
+
+
+def test_sample_indices_follow_python_random_seed_0():
+    import random
+
+    state = random.getstate()
+    expected = random.Random(0).sample(range(10000), 4096)
+    assert frd_sample_indices(10000).tolist() == expected
+    assert random.getstate() == state  # no global state touched
+    with pytest.raises(InputError, match="fewer"):
+        frd_sample_indices(100)
+
+
+def test_cli_function_trains(tmp_path):
+    import argparse
+
+    from u4d_aug.metrics.extractors import add_train_extractor_arguments
+
+    root = write_tiny_root(tmp_path / "root", num_frames=2)
+    parser = argparse.ArgumentParser()
+    add_train_extractor_arguments(parser)
+    args = parser.parse_args(
+        ["fpd", str(TINY_CONFIG), f"data.root={root}", f"out_dir={tmp_path / 'o'}", "train.steps=1"]
+    )
+    assert run_train_extractor(args) == 0
+    assert (tmp_path / "o" / "fpd.pt").is_file()
+    with pytest.raises(InputError, match="unknown config key"):
+        run_train_extractor(parser.parse_args(["frd", str(TINY_CONFIG), "train.nope=1"]))
+
+
+def test_hash_covers_input_geometry(trained):
+    from u4d_aug.metrics.extractors import weights_hash
+
+    ckpt = torch.load(trained["frd"][0], weights_only=False)
+    cfg = _tiny_cfg(trained["root"], trained["base"] / "out")
+    assert weights_hash("frd", cfg, ckpt["state_dict"]) == trained["frd"][1]
+    cfg.data.width = 256
+    assert weights_hash("frd", cfg, ckpt["state_dict"]) != trained["frd"][1]

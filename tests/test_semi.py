@@ -1,0 +1,224 @@
+"""Semi-supervised LaserMix mean-teacher mode: the step, the EMA teacher, pseudo-labels, the unlabeled stream."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from test_seg_train import toy_scan, write_toy_root
+from torch import nn
+
+import segmentation.semi as semi
+from segmentation.config import SegTrainConfig
+from segmentation.mean_teacher import make_teacher, teacher_mode
+from segmentation.models import build_model
+from segmentation.semi import UnlabeledStream, semi_step, unlabeled_stream, update_teacher
+from segmentation.train import TrainBatches, make_optimizer, train, train_scans
+from u4d_aug.config import load_config
+from u4d_aug.data.datasets import ScanDataset
+from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
+from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
+from u4d_aug.distributed import DistInfo
+from u4d_aug.errors import InputError
+from u4d_aug.io import read_jsonl
+
+REPO = Path(__file__).resolve().parents[1]
+TINY_SEMI = REPO / "configs" / "seg" / "tiny_semi.yaml"
+CPU = DistInfo(0, 1, 0, torch.device("cpu"))
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def write_bank(root: Path, frames: int = 2, seed: int = 5) -> Path:
+    """A bank of generated scans: SemanticKITTI layout, velodyne only (no labels)."""
+    rng = np.random.default_rng(seed)
+    for frame in range(frames):
+        points, _ = toy_scan(rng, 1000)
+        write_kitti_scan(root / "sequences" / "00" / "velodyne" / f"{frame:06d}.bin", points)
+    return root
+
+
+@pytest.fixture(scope="module")
+def toy_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_toy_root(tmp_path_factory.mktemp("toy"))
+
+
+@pytest.fixture(scope="module")
+def bank_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_bank(tmp_path_factory.mktemp("bank"))
+
+
+def semi_config(root: Path, out: Path, *overrides: str) -> SegTrainConfig:
+    return load_config(SegTrainConfig, TINY_SEMI, [f"data.root={root}", f"out_dir={out}", *overrides])
+
+
+# ------------------------------------------------------------------------------------------ unlabeled stream
+
+
+def test_bank_stream_reads_unlabeled_scans(toy_root, bank_root, tmp_path):
+    cfg = semi_config(toy_root, tmp_path, f"semi.banks=[{{path: {bank_root}, ratio: 1.0}}]")
+    stream = unlabeled_stream(cfg)
+    assert stream.names == [str(bank_root)]  # the split's ratio is 0: it is not a source
+    for step in range(4):
+        item = stream.load(cfg.seed, step, 0)
+        assert item["source"] == str(bank_root)
+        path = bank_root / "sequences" / item["seq"] / "velodyne" / f"{item['frame']}.bin"
+        assert np.array_equal(item["points"], read_kitti_scan(path))
+    # half bank, half split: both sources are drawn, and each draw depends on (seed, step, slot) only
+    cfg = semi_config(toy_root, tmp_path, f"semi.banks=[{{path: {bank_root}, ratio: 0.5}}]")
+    stream = unlabeled_stream(cfg)
+    picks = [stream.pick(cfg.seed, step, slot) for step in range(20) for slot in range(2)]
+    assert {source for source, _ in picks} == {0, 1}
+    assert picks == [stream.pick(cfg.seed, step, slot) for step in range(20) for slot in range(2)]
+    # the split source holds the unlabeled half of the train scans only
+    labeled = {entry for entry in train_scans(cfg, CPU).entries}
+    assert labeled.isdisjoint(stream.sources[0].entries)
+    assert len(labeled) + len(stream.sources[0].entries) == 3
+
+
+def test_bad_banks_are_reported(toy_root, tmp_path):
+    cfg = semi_config(toy_root, tmp_path, f"semi.banks=[{{path: {tmp_path / 'nope'}, ratio: 0.5}}]")
+    with pytest.raises(InputError, match=r"semi.banks\[0\].path"):
+        unlabeled_stream(cfg)
+    with pytest.raises(InputError, match="ratios"):
+        semi_config(toy_root, tmp_path, "semi.banks=[{path: a, ratio: 0.7}, {path: b, ratio: 0.7}]")
+    with pytest.raises(InputError, match="no source"):
+        UnlabeledStream([ScanDataset(toy_root)], [0.0], ["x"])
+
+
+def test_batches_hold_as_many_unlabeled_scans(toy_root, bank_root, tmp_path):
+    cfg = semi_config(toy_root, tmp_path, f"semi.banks=[{{path: {bank_root}, ratio: 0.5}}]", "data.max_points=400")
+    batch = TrainBatches(train_scans(cfg, CPU), cfg, 0, 1, unlabeled_stream(cfg))[3]
+    assert batch["slots"] == [0, 1] and len(batch["unlabeled"]) == 2
+    assert all(p.shape == (400, 4) for p in batch["points"] + batch["unlabeled"])
+
+
+# ------------------------------------------------------------------------------------------------------ step
+
+
+def test_semi_step_runs_and_the_teacher_follows_by_ema(toy_root, tmp_path):
+    cfg = semi_config(toy_root, tmp_path, "data.max_points=500")
+    torch.manual_seed(0)
+    student = build_model(cfg.model)
+    teacher = teacher_mode(make_teacher(student), cfg.semi.bn_mode)
+    optimizer = make_optimizer(student, cfg.optim)
+    batch = TrainBatches(train_scans(cfg, CPU), cfg, 0, 1, unlabeled_stream(cfg))[0]
+    before = {k: v.clone() for k, v in teacher.named_parameters()}
+
+    losses = semi_step(student, teacher, batch, cfg, torch.device("cpu"))
+    assert {"loss", "loss_sup", "loss_mix", "loss_mt", "pseudo_kept"} <= set(losses)
+    assert all(torch.isfinite(v) for v in losses.values())
+    expected = losses["loss_sup"] + losses["loss_mix"] + cfg.semi.consistency_weight * losses["loss_mt"]
+    assert float(losses["loss"].detach()) == pytest.approx(float(expected.detach()), rel=1e-6)
+    optimizer.zero_grad()
+    losses["loss"].backward()
+    assert all(p.grad is None for p in teacher.parameters())  # the teacher gets no gradient
+    optimizer.step()
+    update_teacher(teacher, student, cfg.semi)
+
+    student_params = dict(student.named_parameters())
+    changed = 0
+    for name, t in teacher.named_parameters():
+        want = cfg.semi.ema_decay * before[name] + (1 - cfg.semi.ema_decay) * student_params[name].detach()
+        torch.testing.assert_close(t, want, rtol=1e-5, atol=1e-7)
+        changed += int(not torch.equal(t, before[name]))
+    assert changed > 0
+
+
+class FixedTeacher(nn.Module):
+    """Teacher stub: confident (p = 0.99) class 0 on points with x > 0, unsure (p ~ 1/K) elsewhere."""
+
+    def forward(self, points: list[torch.Tensor]) -> torch.Tensor:
+        xyz = torch.cat(points)
+        logits = torch.zeros(xyz.shape[0], 19)
+        logits[xyz[:, 0] > 0, 0] = 10.0  # softmax 0.99 for class 0
+        return logits
+
+
+def test_pseudo_labels_below_threshold_are_ignored(toy_root, tmp_path, monkeypatch):
+    cfg = semi_config(toy_root, tmp_path, "data.max_points=300")
+    batch = TrainBatches(train_scans(cfg, CPU), cfg, 0, 1, unlabeled_stream(cfg))[1]
+    seen = []
+    real_lasermix = semi.lasermix
+
+    def spy(points_a, labels_a, points_b, labels_b, *args, **kwargs):
+        seen.append((points_b, labels_b))
+        return real_lasermix(points_a, labels_a, points_b, labels_b, *args, **kwargs)
+
+    monkeypatch.setattr(semi, "lasermix", spy)
+    torch.manual_seed(0)
+    student = build_model(cfg.model)
+    losses = semi_step(student, FixedTeacher(), batch, cfg, torch.device("cpu"))
+    assert len(seen) == 2
+    for points, labels in seen:
+        confident = points[:, 0] > 0
+        assert confident.any() and (~confident).any()
+        assert torch.all(labels[confident] == 0)
+        assert torch.all(labels[~confident] == SEMANTICKITTI_IGNORE)
+    kept = torch.cat([points[:, 0] > 0 for points, _ in seen]).float().mean()
+    assert float(losses["pseudo_kept"]) == pytest.approx(float(kept))
+
+
+# -------------------------------------------------------------------------------------------------- training
+
+
+def test_semi_resume_in_a_fresh_process_is_bit_exact(toy_root, bank_root, tmp_path):
+    """6 semi steps with a checkpoint at 3; a new process resumes from step 3; final teacher identical."""
+    bank = f"semi.banks=[{{path: {bank_root}, ratio: 0.5}}]"
+    full = tmp_path / "full"
+    summary = train(semi_config(toy_root, full, bank), progress=False)
+    assert 0.0 <= summary["miou"] <= 1.0
+    records = read_jsonl(full / "log.jsonl")
+    assert all(np.isfinite(r["loss_mix"]) and np.isfinite(r["loss_mt"]) for r in records if "loss" in r)
+    ckpt = torch.load(full / "checkpoints" / "step_0000006.pt", weights_only=True)
+    final = torch.load(full / "model.pt", weights_only=True)["model"]
+    assert ckpt["ema"] is not None and ckpt["ema"].keys() == final.keys()
+    assert all(torch.equal(ckpt["ema"][k], final[k]) for k in final)  # model.pt holds the teacher
+    assert any(not torch.equal(ckpt["model"][k], final[k]) for k in final)
+
+    half = tmp_path / "half"
+    (half / "checkpoints").mkdir(parents=True)
+    (half / "checkpoints" / "step_0000003.pt").write_bytes((full / "checkpoints" / "step_0000003.pt").read_bytes())
+    (half / "log.jsonl").write_text((full / "log.jsonl").read_text())
+    code = (
+        "import sys; from segmentation.train import train; from segmentation.config import SegTrainConfig; "
+        "from u4d_aug.config import load_config; "
+        "train(load_config(SegTrainConfig, sys.argv[1], sys.argv[2:]), resume='last', progress=False)"
+    )
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    overrides = [f"data.root={toy_root}", f"out_dir={half}", bank]
+    subprocess.run([sys.executable, "-c", code, str(TINY_SEMI), *overrides], check=True, cwd=REPO, env=env, timeout=300)
+    resumed = torch.load(half / "model.pt", weights_only=True)["model"]
+    for key in final:
+        assert torch.equal(final[key], resumed[key]), key
+    steps = [r["step"] for r in read_jsonl(half / "log.jsonl") if "loss" in r]
+    assert steps == list(range(1, 7))
+
+
+@pytest.mark.slow
+def test_two_process_semi_training(toy_root, tmp_path):
+    """torchrun with 2 processes (gloo): one log record per step, the teacher evaluated and saved."""
+    out = tmp_path / "ddp"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--standalone"]
+    cmd += ["-m", "segmentation.train", str(TINY_SEMI), f"data.root={toy_root}", "optim.steps=2", "eval_every=2"]
+    result = subprocess.run(
+        [*cmd, "--out", str(out), "--no-progress"], cwd=REPO, env=env, capture_output=True, text=True, timeout=240
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert [r["step"] for r in read_jsonl(out / "log.jsonl") if "loss" in r] == [1, 2]
+    ckpt = torch.load(out / "checkpoints" / "step_0000002.pt", weights_only=True)
+    final = torch.load(out / "model.pt", weights_only=True)
+    assert final["metrics"]["num_scans"] == 3
+    assert all(torch.equal(ckpt["ema"][k], final["model"][k]) for k in final["model"])
