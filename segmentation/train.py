@@ -46,7 +46,7 @@ from segmentation.semi import UnlabeledStream, load_unlabeled, semi_step, unlabe
 from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
-from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, cleanup, init_distributed
+from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, budget_used, cleanup, init_distributed
 from u4d_aug.errors import InputError
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_json, atomic_write_text, read_jsonl
 
@@ -342,7 +342,7 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
         bar.update(1)
         bar.set_postfix(loss=f"{losses['loss'].item():.3f}", lr=f"{lr:.2e}")
         elapsed = elapsed_before + time.perf_counter() - t0
-        out_of_time = _out_of_time(cfg, elapsed)
+        out_of_time = budget_used(elapsed, cfg.max_minutes)
         last = done == cfg.optim.steps or out_of_time
 
         if done % cfg.log_every == 0 or last:
@@ -413,16 +413,6 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
         atomic_write_json(out_dir / "metrics.json", {"step": done, **(last_summary or {})})
     barrier()
     return last_summary or {}
-
-
-def _out_of_time(cfg: SegTrainConfig, elapsed: float) -> bool:
-    """Wall-clock budget check, decided by rank 0 so that every rank stops at the same step."""
-    if cfg.max_minutes <= 0:
-        return False
-    flag = torch.tensor(float(elapsed > 60.0 * cfg.max_minutes))
-    if torch.distributed.is_available() and torch.distributed.is_initialized():
-        torch.distributed.broadcast(flag, src=0)
-    return bool(flag)
 
 
 def _pct(value: float | None) -> str:

@@ -40,6 +40,15 @@ def test_defaults_yaml_then_overrides(tmp_path):
     assert cfg.widths == [32, 64]
 
 
+def test_float_in_exponent_form_without_dot(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("inner:\n  lr: 1e-4\n")  # yaml 1.1 reads this as the string '1e-4'
+    assert load_config(Outer, path).inner.lr == 1e-4
+    assert load_config(Outer, None, ["inner.lr=5E+2"]).inner.lr == 500.0
+    with pytest.raises(InputError, match="inner.steps"):
+        load_config(Outer, None, ["inner.steps=1e3"])  # ints stay strict
+
+
 def test_unknown_key_is_named_with_valid_keys(tmp_path):
     path = tmp_path / "c.yaml"
     path.write_text("inner:\n  stepz: 5\n")

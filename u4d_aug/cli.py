@@ -89,6 +89,8 @@ DELEGATED = (
     ("seg-train", "train a segmentation net (supervised or semi-supervised), torchrun-ready"),
     ("seg-eval", "mIoU, per-class IoU, ECE (per scan and pooled), reliability diagram of a checkpoint"),
     ("seg-predict", "write per-point class probabilities (float16 .npy) for U4D's uncertainty"),
+    ("train-diffusion", "train a U4D stage (stage1 | stage2) or the R2DM-style baseline, torchrun-ready"),
+    ("generate", "write a bank of generated scans (U4D, baseline or completion of real scans), torchrun-ready"),
     ("train-extractor", "train the FRD (range-view) or FPD (PointNet) feature extractor on labeled scans"),
     ("evaluate", "generation metrics of a bank vs real scans: FRD, FPD, BEV JSD/MMD (Table 1), TTCE/CTC (Table 2)"),
     ("experiment", "sup-only / LaserMix / +R2DM bank / +U4D bank comparison: mIoU and ECE over seeds"),
@@ -109,6 +111,10 @@ def _delegated_module(name: str):
         return importlib.import_module("segmentation.evaluate"), "seg_eval"
     elif name == "seg-predict":
         return importlib.import_module("segmentation.predict"), "seg_predict"
+    elif name == "train-diffusion":
+        return importlib.import_module("u4d_aug.train"), "train_diffusion"
+    elif name == "generate":
+        return importlib.import_module("u4d_aug.generate"), "generate"
     elif name == "train-extractor":
         return importlib.import_module("u4d_aug.metrics.extractors"), "train_extractor"
     elif name == "evaluate":

@@ -9,6 +9,7 @@ config that is saved next to every output and inside every checkpoint.
 from __future__ import annotations
 
 import dataclasses
+import re
 import types
 import typing
 from collections.abc import Iterable, Mapping
@@ -19,6 +20,8 @@ import yaml
 
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_text
+
+_FLOAT_WITHOUT_DOT = re.compile(r"[-+]?\d+[eE][-+]?\d+")
 
 T = TypeVar("T")
 
@@ -191,6 +194,8 @@ def _coerce(value: Any, tp: Any, key: str, source: str) -> Any:
     if tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             return float(value)
+        if isinstance(value, str) and _FLOAT_WITHOUT_DOT.fullmatch(value.strip()):
+            return float(value)  # yaml 1.1 reads '1e-4' (no dot) as a string
         fail()
     if tp is str:
         if isinstance(value, str):

@@ -79,6 +79,16 @@ def shard(items: list, rank: int, world_size: int) -> list:
     return items[rank::world_size]
 
 
+def budget_used(elapsed_seconds: float, max_minutes: float) -> bool:
+    """Wall-clock budget check (max_minutes <= 0: none), decided by rank 0 so every rank stops at the same step."""
+    if max_minutes <= 0:
+        return False
+    flag = torch.tensor(float(elapsed_seconds > 60.0 * max_minutes))
+    if dist.is_available() and dist.is_initialized():
+        dist.broadcast(flag, src=0)
+    return bool(flag)
+
+
 def cleanup() -> None:
     """Leave the process group if one was joined."""
     if dist.is_available() and dist.is_initialized():

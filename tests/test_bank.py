@@ -1,0 +1,135 @@
+"""`u4d generate`: a bank from tiny untrained checkpoints: layout, manifest, resume, seed-per-sample, modes."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from u4d_aug.bank import BankLayout, file_sha256, read_manifest, write_sample
+from u4d_aug.config import load_config
+from u4d_aug.data.datasets import ScanDataset
+from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
+from u4d_aug.ema import EMA
+from u4d_aug.errors import InputError
+from u4d_aug.generate import GenerateConfig, add_generate_arguments, generate_bank, run_generate
+from u4d_aug.io import atomic_save_npy, atomic_torch_save
+from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state
+
+TINY = Path(__file__).resolve().parents[1] / "configs" / "u4d" / "tiny.yaml"
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory) -> dict[str, Path]:
+    """Untrained tiny checkpoints of the three stages (EMA = initial weights)."""
+    root = tmp_path_factory.mktemp("ckpt")
+    paths = {}
+    for stage in ("stage1", "stage2", "baseline"):
+        cfg = load_config(DiffusionTrainConfig, TINY, [f"diffusion.stage={stage}", f"seed={len(paths)}"])
+        net = build_net(cfg)
+        paths[stage] = root / f"{stage}.pt"
+        atomic_torch_save(paths[stage], checkpoint_state(cfg, 0, net, EMA(net)))
+    return paths
+
+
+def gen_config(checkpoints: dict[str, Path], *overrides: str) -> GenerateConfig:
+    base = [f"stage1={checkpoints['stage1']}", f"stage2={checkpoints['stage2']}"]
+    base += [f"baseline={checkpoints['baseline']}", "steps=2", "device=cpu", "seed=100"]
+    return load_config(GenerateConfig, None, [*base, *overrides])
+
+
+def test_u4d_bank_layout_and_manifest(checkpoints, tmp_path):
+    bank = tmp_path / "bank"
+    manifest = generate_bank(gen_config(checkpoints, "num=3"), bank, progress=False)
+    layout = BankLayout(bank)
+    for i in range(3):
+        points = read_kitti_scan(layout.scan_path(i))
+        assert points.shape[1] == 4 and points.dtype == np.float32 and len(points) > 0
+        mask = np.load(layout.mask_path(i))
+        assert mask.shape == (16, 64) and mask.dtype == bool
+        assert not layout.uncertainty_path(i).exists()
+    on_disk = read_manifest(bank)
+    assert on_disk == manifest and on_disk["complete"] is True
+    assert [s["seed"] for s in on_disk["samples"]] == [100, 101, 102]
+    assert on_disk["checkpoints"] == {
+        "stage1": file_sha256(checkpoints["stage1"]),
+        "stage2": file_sha256(checkpoints["stage2"]),
+    }
+    assert len(on_disk["checkpoints"]["stage1"]) == 16 and on_disk["config"]["steps"] == 2
+
+
+def test_rerun_skips_and_samples_do_not_depend_on_the_split(checkpoints, tmp_path):
+    whole, parts = tmp_path / "whole", tmp_path / "parts"
+    generate_bank(gen_config(checkpoints, "num=3", "mode=baseline"), whole, progress=False)
+    generate_bank(gen_config(checkpoints, "num=1", "mode=baseline"), parts, progress=False)
+    layout = BankLayout(parts)
+    first = layout.scan_path(0).stat().st_mtime_ns
+    generate_bank(gen_config(checkpoints, "num=3", "mode=baseline"), parts, progress=False)
+    assert layout.scan_path(0).stat().st_mtime_ns == first  # skipped, not rewritten
+    for i in range(3):
+        assert BankLayout(whole).scan_path(i).read_bytes() == layout.scan_path(i).read_bytes()
+    layout.scan_path(1).unlink()  # an interrupted sample is generated again, identically
+    generate_bank(gen_config(checkpoints, "num=3", "mode=baseline"), parts, progress=False)
+    assert BankLayout(whole).scan_path(1).read_bytes() == layout.scan_path(1).read_bytes()
+    with pytest.raises(InputError, match="different"):
+        generate_bank(gen_config(checkpoints, "num=3", "mode=baseline", "steps=3"), parts, progress=False)
+
+
+def test_completion_mode_keeps_real_uncertainty(checkpoints, tmp_path):
+    root, probs_root = tmp_path / "world", tmp_path / "probs"
+    rng = np.random.default_rng(0)
+    for i in range(2):
+        direction = rng.normal(size=(3000, 3))
+        direction[:, 2] = np.abs(direction[:, 2]) * -0.2
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        xyz = direction * rng.uniform(3, 50, (3000, 1))
+        write_kitti_scan(
+            root / "sequences" / "00" / "velodyne" / f"{i:06d}.bin",
+            np.concatenate([xyz, rng.uniform(0, 1, (3000, 1))], axis=1).astype(np.float32),
+        )
+        probs = rng.dirichlet(np.ones(5), 3000).astype(np.float16)
+        atomic_save_npy(probs_root / "sequences" / "00" / "probs" / f"{i:06d}.npy", probs)
+    cfg = gen_config(checkpoints, "num=3", "mode=complete", f"data_root={root}", f"probs_root={probs_root}")
+    manifest = generate_bank(cfg, tmp_path / "bank", progress=False)
+    layout = BankLayout(tmp_path / "bank")
+    assert [s["source"] for s in manifest["samples"]] == ["00/000000", "00/000001", "00/000000"]
+    mask = np.load(layout.mask_path(0))
+    uncertainty = np.load(layout.uncertainty_path(0))
+    assert mask.any() and uncertainty.dtype == np.float16 and uncertainty.shape == (16, 64)
+    assert np.array_equal(mask, np.load(layout.mask_path(2)))  # same source scan, same P_u
+
+
+def test_cli_entry(checkpoints, tmp_path):
+    config = tmp_path / "gen.yaml"
+    config.write_text(
+        yaml.safe_dump({"baseline": str(checkpoints["baseline"]), "mode": "baseline", "steps": 2, "device": "cpu"})
+    )
+    parser = argparse.ArgumentParser()
+    add_generate_arguments(parser)
+    args = parser.parse_args(
+        [str(config), "--out", str(tmp_path / "bank"), "--num", "2", "--seed", "5", "--no-progress"]
+    )
+    assert run_generate(args) == 0
+    manifest = read_manifest(tmp_path / "bank")
+    assert [s["seed"] for s in manifest["samples"]] == [5, 6] and manifest["mode"] == "baseline"
+    with pytest.raises(InputError, match="stage1"):
+        generate_bank(load_config(GenerateConfig, None, ["mode=u4d", "device=cpu"]), tmp_path / "x", progress=False)
+
+
+def test_empty_sample_gets_a_marker_not_a_bin(tmp_path):
+    layout = BankLayout(tmp_path / "bank")
+    write_sample(layout, 0, np.zeros((0, 4), np.float32), mask=np.zeros((4, 8), bool))
+    write_sample(layout, 1, np.ones((5, 4), np.float32))
+    assert layout.is_done(0) and layout.is_empty(0) and not layout.scan_path(0).exists()
+    assert layout.is_done(1) and not layout.is_empty(1) and read_kitti_scan(layout.scan_path(1)).shape == (5, 4)
+    assert not np.load(layout.mask_path(0)).any()
+    assert ScanDataset(tmp_path / "bank", None).entries == [("00", "000001")]  # readers never meet the empty one

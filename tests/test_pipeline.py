@@ -1,0 +1,111 @@
+"""Inference pipeline: EMA loading, U4D two-stage generation, completion, baseline, unprojection to points."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from u4d_aug.config import load_config
+from u4d_aug.data.sensors import hdl64
+from u4d_aug.ema import EMA
+from u4d_aug.errors import InputError
+from u4d_aug.io import atomic_torch_save
+from u4d_aug.pipeline import complete, generate_baseline, generate_stage1, generate_u4d, load_generator, to_points
+from u4d_aug.range_view import project, to_image
+from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state
+
+TINY = Path(__file__).resolve().parents[1] / "configs" / "u4d" / "tiny.yaml"
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    torch.set_num_threads(1)
+
+
+def save_random_checkpoint(path: Path, stage: str, seed: int = 0) -> Path:
+    """A tiny-config checkpoint whose EMA weights are random (untrained output convs are zero, which would
+    make every sample ignore its input); the raw model weights are zeroed so only EMA loading gives them."""
+    cfg = load_config(DiffusionTrainConfig, TINY, [f"diffusion.stage={stage}"])
+    net = build_net(cfg)
+    generator = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for param in net.parameters():
+            param.add_(torch.randn(param.shape, generator=generator) * 0.2)
+        if net.mask_conv is not None:
+            net.mask_conv.bias.fill_(0.3)  # roughly half of the pixels above sigmoid 0.5
+    ema = EMA(net)
+    with torch.no_grad():
+        for param in net.parameters():
+            param.zero_()
+    atomic_torch_save(path, checkpoint_state(cfg, 0, net, ema))
+    return path
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("ckpt")
+    return {stage: save_random_checkpoint(root / f"{stage}.pt", stage) for stage in ("stage1", "stage2", "baseline")}
+
+
+def test_load_generator_uses_ema_weights(checkpoints):
+    net, cfg = load_generator(checkpoints["stage2"])
+    assert cfg.diffusion.stage == "stage2" and not net.training
+    state = torch.load(checkpoints["stage2"], weights_only=False)
+    for name, param in net.named_parameters():
+        torch.testing.assert_close(param, state["ema"]["params"][name])
+    assert any(float(p.abs().sum()) > 0 for p in net.parameters())
+
+
+def test_same_generator_same_output_and_masking(checkpoints):
+    stage1, stage2 = load_generator(checkpoints["stage1"]), load_generator(checkpoints["stage2"])
+    a = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7))
+    b = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7))
+    c = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(8))
+    for key in ("x0", "x0_u", "m_u_pred"):
+        assert torch.equal(a[key], b[key])
+    assert not torch.equal(a["x0"], c["x0"])
+    assert a["x0"].shape == (2, 2, 16, 64) and a["m_u_pred"].shape == (2, 1, 16, 64)
+    m = a["m_u_pred"].bool().expand_as(a["x0_u"])
+    assert 0 < int(a["m_u_pred"].sum()) < a["m_u_pred"].numel()
+    assert bool((a["x0_u"][~m] == -1).all())
+    baseline = load_generator(checkpoints["baseline"])
+    d = generate_baseline(baseline, 1, 3, torch.Generator().manual_seed(1), sampler="ddpm")
+    e = generate_baseline(baseline, 1, 3, torch.Generator().manual_seed(1), sampler="ddpm")
+    assert torch.equal(d["x0"], e["x0"]) and float(d["x0"].abs().max()) <= 1.0
+
+
+def test_stage2_output_depends_on_its_condition(checkpoints):
+    stage2 = load_generator(checkpoints["stage2"])
+    x0_u = torch.full((1, 2, 16, 64), -1.0)
+    m_u = torch.zeros(1, 1, 16, 64)
+    empty = complete(stage2, x0_u, m_u, 3, torch.Generator().manual_seed(0))["x0"]
+    x0_u[:, :, 4:8, 10:30] = 0.3
+    m_u[:, :, 4:8, 10:30] = 1.0
+    filled = complete(stage2, x0_u, m_u, 3, torch.Generator().manual_seed(0))["x0"]
+    assert float((filled - empty).abs().max()) > 1e-3
+
+
+def test_wrong_stage_or_size_is_an_input_error(checkpoints):
+    stage1, stage2 = load_generator(checkpoints["stage1"]), load_generator(checkpoints["stage2"])
+    with pytest.raises(InputError, match="stage1"):
+        generate_stage1(stage2, 1, 2, torch.Generator())
+    with pytest.raises(InputError, match="16x64"):
+        complete(stage2, torch.zeros(1, 2, 8, 64), torch.zeros(1, 1, 8, 64), 2, torch.Generator())
+    with pytest.raises(InputError):
+        generate_baseline(stage1, 1, 2, torch.Generator())
+
+
+def test_to_points_returns_one_valid_point_per_return_pixel():
+    sensor = hdl64()
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(5000, 3)) * np.array([20.0, 20.0, 1.0]) + np.array([0.0, 0.0, -1.0])
+    points = torch.from_numpy(np.concatenate([xyz, rng.uniform(0, 1, (5000, 1))], axis=1).astype(np.float32))
+    projection = project(points, sensor, 64, 256, "beam")
+    image = to_image(projection, sensor)[None]  # (1, 2, 64, 256)
+    (cloud,) = to_points(image, sensor, "beam")
+    assert cloud.dtype == np.float32 and cloud.shape == (int(projection.mask.sum()), 4)
+    depth = np.linalg.norm(cloud[:, :3], axis=1)
+    assert depth.min() >= sensor.min_range * 0.999 and depth.max() <= sensor.max_range * 1.001

@@ -1,0 +1,410 @@
+"""Training of one diffusion stage: `u4d train-diffusion CONFIG stage=stage1|stage2|baseline [key=value ..]`.
+
+Stage 1 learns x0_u (the projected uncertain region P_u) with a mask head (L_u), stage 2 learns the full scan x0
+given concat(x0_u, m_u) (L_c), the baseline learns x0 unconditionally (R2DM); U4D paper §2, issue 6.
+The loop reads top to bottom (nanoGPT `train.py`): batch -> loss = diffusion(x0, cond, m_u) -> AdamW -> EMA.
+The scans of step s and the noise of step s depend only on (seed, step, rank), so a resumed run draws what an
+uninterrupted one would. Checkpoints hold config, step, model, EMA, optimizer and RNG and are written
+atomically by rank 0; torchrun gives DDP through `init_distributed`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+from tqdm.auto import tqdm
+
+from u4d_aug.config import config_from_dict, config_to_dict, load_config, parse_override, save_config
+from u4d_aug.data.datasets import ScanDataset
+from u4d_aug.data.sensors import Sensor, get_sensor
+from u4d_aug.diffusion import DiffusionConfig, GaussianDiffusion
+from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, budget_used, cleanup, init_distributed
+from u4d_aug.ema import EMA
+from u4d_aug.errors import InputError
+from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_text, read_jsonl
+from u4d_aug.nn.unet import RangeUNet, UNetConfig
+from u4d_aug.range_view import RowMode, project, ray_angles, to_image
+from u4d_aug.uncertainty import Strategy, load_probs, probs_path, uncertain_range_view
+
+CHECKPOINT_KIND = "u4d-diffusion"
+_BATCH, _NOISE = 1, 2  # streams of derived_seed
+
+
+@dataclass
+class UncertaintyConfig:
+    """P_u selection (paper §2.1): k as a point count (int) or a fraction of the scan (float)."""
+
+    k: int | float = 0.1
+    strategy: Strategy = "entropy"
+
+
+@dataclass
+class OptimConfig:
+    """AdamW with linear warm-up (R2DM: lr 1e-4, batch 8, no weight decay, grad-norm clip 1)."""
+
+    lr: float = 1e-4
+    betas: tuple[float, float] = (0.9, 0.99)
+    weight_decay: float = 0.0
+    warmup_steps: int = 100
+    grad_clip: float = 1.0  # max grad norm; 0 = off
+
+
+@dataclass
+class DiffusionTrainConfig:
+    """One stage's training run; `net.mask_head` and `net.cond_channels` follow `diffusion.stage`."""
+
+    data_root: str = ""  # SemanticKITTI layout: ROOT/sequences/XX/velodyne/NNNNNN.bin
+    sequences: list[str] | None = None  # None = all under data_root
+    probs_root: str = ""  # PROBS/sequences/XX/probs/NNNNNN.npy from `u4d seg-predict` (stage1/stage2)
+    sensor: str = "hdl64"  # hdl64 | hdl32 | sensor yaml
+    height: int = 64
+    width: int = 1024
+    row_mode: RowMode = "beam"
+    uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
+    net: UNetConfig = field(default_factory=UNetConfig)
+    diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    ema_decay: float = 0.995
+    ema_warmup_steps: int = 0
+    steps: int = 1000
+    max_minutes: float = 0.0  # wall-clock budget (0 = none): stop with a checkpoint once used, even before `steps`
+    batch_size: int = 8  # per rank
+    log_every: int = 50
+    checkpoint_every: int = 500
+    keep_checkpoints: int = 2  # 0 = keep all
+    sample_every: int = 0  # 0 = no sample PNGs; else a DDIM sample of the EMA net every that many steps
+    sample_steps: int = 32
+    cache_images: bool = True  # keep the projected range images of the training scans in memory
+    seed: int = 0
+    device: str = "auto"
+    out: str = "runs/u4d"
+
+    def __post_init__(self) -> None:
+        self.net.mask_head = self.diffusion.stage == "stage1"
+        self.net.cond_channels = 3 if self.diffusion.stage == "stage2" else 0
+        if self.steps < 1 or self.batch_size < 1:
+            raise InputError(f"steps and batch_size must be >= 1, got {self.steps}, {self.batch_size}")
+        if self.height < 1 or self.width < 1:
+            raise InputError(f"height/width must be >= 1, got {self.height}x{self.width}")
+
+
+def derived_seed(*parts: int) -> int:
+    """A 63-bit seed hashed from non-negative integers (numpy SeedSequence; no global state)."""
+    return int(np.random.SeedSequence(list(parts)).generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+
+def build_net(cfg: DiffusionTrainConfig, device: torch.device | str = "cpu") -> RangeUNet:
+    """RangeUNet of the config (initialised from cfg.seed), with the ray angles of its sensor for Fourier features."""
+    elevation, azimuth = ray_angles(get_sensor(cfg.sensor), cfg.height, cfg.width, cfg.row_mode)
+    with torch.random.fork_rng(devices=[]):  # seeded init without touching the caller's global RNG
+        torch.manual_seed(cfg.seed)
+        net = RangeUNet(cfg.net, elevation.float(), azimuth.float())
+    return net.to(device)
+
+
+class RangeImages:
+    """Item i = dict(x0 (2, H, W), x0_u (2, H, W), m_u (1, H, W)) of scan i; x0_u/m_u need probabilities.
+
+    x0_u and m_u are recomputed per item for strategy 'random' (seeded by `generator`), cached otherwise.
+    """
+
+    def __init__(self, cfg: DiffusionTrainConfig) -> None:
+        if not cfg.data_root:
+            raise InputError("data_root: expected a SemanticKITTI-layout folder of training scans")
+        self.cfg = cfg
+        self.sensor: Sensor = get_sensor(cfg.sensor)
+        self.scans = ScanDataset(cfg.data_root, cfg.sequences)
+        if len(self.scans) == 0:
+            raise InputError(f"{cfg.data_root}: no scans found")
+        self.needs_probs = cfg.diffusion.stage in ("stage1", "stage2") and cfg.uncertainty.strategy != "none"
+        if self.needs_probs and not cfg.probs_root:
+            raise InputError(
+                f"probs_root: stage {cfg.diffusion.stage} needs the probability files of `u4d seg-predict`"
+            )
+        self.cache: dict[int, dict[str, Tensor]] = {}
+
+    def __len__(self) -> int:
+        return len(self.scans)
+
+    def __getitem__(self, index: int, generator: torch.Generator | None = None) -> dict[str, Tensor]:
+        if index in self.cache:
+            return self.cache[index]
+        cfg = self.cfg
+        item = self.scans[index]
+        points = torch.from_numpy(item["points"])
+        x0 = to_image(project(points, self.sensor, cfg.height, cfg.width, cfg.row_mode), self.sensor)
+        out = {"x0": x0}
+        if cfg.diffusion.stage != "baseline":
+            if self.needs_probs:
+                path = probs_path(cfg.probs_root, item["seq"], item["frame"])
+                probs = load_probs(path, points.shape[0])
+            else:
+                probs = np.zeros((points.shape[0], 1), dtype=np.float32)
+            x0_u, m_u, _ = uncertain_range_view(
+                points, probs, self.sensor, cfg.height, cfg.width, cfg.row_mode,
+                cfg.uncertainty.k, cfg.uncertainty.strategy, generator,
+            )  # fmt: skip
+            out.update(x0_u=x0_u, m_u=m_u)
+        if cfg.cache_images and cfg.uncertainty.strategy != "random":
+            self.cache[index] = out
+        return out
+
+
+def batch_indices(step: int, rank: int, num_scans: int, batch_size: int, seed: int) -> list[int]:
+    """This rank's scan indices of `step`: uniform with replacement from a (seed, step, rank) stream."""
+    rng = np.random.default_rng(derived_seed(seed, _BATCH, step, rank))
+    return rng.integers(0, num_scans, batch_size).tolist()
+
+
+def make_batch(images: RangeImages, indices: list[int], generator: torch.Generator, device: torch.device) -> dict:
+    """Stack the items of `indices` into (B, C, H, W) tensors on `device`."""
+    items = [images.__getitem__(i, generator) for i in indices]
+    return {key: torch.stack([item[key] for item in items]).to(device) for key in items[0]}
+
+
+def stage_inputs(stage: str, batch: dict) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """(x0, cond, m_u) of GaussianDiffusion.forward: stage 1 learns x0 := x0_u; stage 2 reads x0_u, m_u."""
+    if stage == "stage1":
+        return batch["x0_u"], None, batch["m_u"]
+    if stage == "stage2":
+        return batch["x0"], batch["x0_u"], batch["m_u"]
+    return batch["x0"], None, None
+
+
+def learning_rate(step: int, cfg: OptimConfig) -> float:
+    """Linear warm-up over warmup_steps, then constant (R2DM)."""
+    return cfg.lr * min(1.0, (step + 1) / max(1, cfg.warmup_steps))
+
+
+def find_checkpoint(out_dir: Path, resume: str | Path) -> Path:
+    """`--resume` without a path -> newest OUT/checkpoints/step_*.pt; with a path -> that file."""
+    if str(resume) != "last":
+        path = Path(resume)
+        if not path.is_file():
+            raise InputError(f"{path}: checkpoint to resume from not found")
+        return path
+    found = sorted((out_dir / "checkpoints").glob("step_*.pt"))
+    if not found:
+        raise InputError(f"{out_dir / 'checkpoints'}: no step_*.pt checkpoint to resume from")
+    return found[-1]
+
+
+def save_checkpoint(path: Path, state: dict, keep: int) -> None:
+    """Write atomically, then delete all but the newest `keep` step_*.pt beside it (0 = keep all)."""
+    atomic_torch_save(path, state)
+    if keep > 0:
+        for old in sorted(path.parent.glob("step_*.pt"))[:-keep]:
+            old.unlink(missing_ok=True)
+
+
+def checkpoint_state(
+    cfg: DiffusionTrainConfig,
+    step: int,
+    net: nn.Module,
+    ema: EMA,
+    optimizer: torch.optim.Optimizer | None = None,
+    elapsed: float = 0.0,
+) -> dict:
+    """Everything a checkpoint holds: kind, resolved config, step, wall-clock seconds, model, EMA, optimizer, RNG."""
+    return {
+        "kind": CHECKPOINT_KIND,
+        "config": config_to_dict(cfg),
+        "step": step,
+        "elapsed": elapsed,
+        "model": net.state_dict(),
+        "ema": ema.state_dict(),
+        "optimizer": optimizer.state_dict() if optimizer is not None else None,
+        "rng": {"torch": torch.get_rng_state(), "seed": cfg.seed},
+    }
+
+
+def config_from_checkpoint(ckpt: dict, source: str) -> DiffusionTrainConfig:
+    """The resolved DiffusionTrainConfig stored in a checkpoint."""
+    if ckpt.get("kind") != CHECKPOINT_KIND:
+        raise InputError(f"{source}: not a u4d train-diffusion checkpoint")
+    return config_from_dict(DiffusionTrainConfig, ckpt["config"], source=source)
+
+
+def _save_sample_png(net: RangeUNet, cfg: DiffusionTrainConfig, images: RangeImages, path: Path) -> None:
+    """A DDIM sample of the EMA net (stage 2: completing the first training scan's x0_u) as a PNG."""
+    import matplotlib.pyplot as plt
+
+    from u4d_aug import pipeline
+    from u4d_aug.viz import draw_range_image, save_figure
+
+    generator = torch.Generator().manual_seed(cfg.seed)
+    device = next(net.parameters()).device
+    if cfg.diffusion.stage == "stage2":
+        first = images[0]
+        x0 = pipeline.complete(
+            (net, cfg), first["x0_u"][None].to(device), first["m_u"][None].to(device), cfg.sample_steps, generator
+        )["x0"]
+    elif cfg.diffusion.stage == "stage1":
+        x0 = pipeline.generate_stage1((net, cfg), 1, cfg.sample_steps, generator)["x0_u"]
+    else:
+        x0 = pipeline.generate_baseline((net, cfg), 1, cfg.sample_steps, generator)["x0"]
+    fig, axes = plt.subplots(2, 1, figsize=(10, 3))
+    draw_range_image(axes[0], x0[0, 0].cpu().numpy(), f"{cfg.diffusion.stage} depth (EMA, DDIM {cfg.sample_steps})")
+    draw_range_image(axes[1], x0[0, 1].cpu().numpy(), "reflectance")
+    save_figure(fig, path)
+
+
+def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress: bool = True) -> dict:
+    """Train one stage; returns the last logged record. Writes OUT/{config.yaml, log.jsonl, checkpoints/}."""
+    info: DistInfo = init_distributed(cfg.device)
+    out_dir = Path(cfg.out)
+    log_path = out_dir / "log.jsonl"
+    if resume is None and (log_path.exists() or (out_dir / "checkpoints").exists()):
+        raise InputError(f"{out_dir}: holds a previous run; pass --resume to continue it or choose another --out")
+    images = RangeImages(cfg)
+    net = build_net(cfg, info.device)
+    diffusion = GaussianDiffusion(net, cfg.diffusion)
+    optimizer = torch.optim.AdamW(
+        net.parameters(), lr=cfg.optim.lr, betas=cfg.optim.betas, weight_decay=cfg.optim.weight_decay
+    )
+    ema = EMA(net, cfg.ema_decay, cfg.ema_warmup_steps)
+    start, elapsed_before = 0, 0.0
+    if resume is not None:
+        ckpt_path = find_checkpoint(out_dir, resume)
+        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        old = config_from_checkpoint(ckpt, str(ckpt_path))
+        if old.diffusion.stage != cfg.diffusion.stage:
+            raise InputError(
+                f"{ckpt_path}: trained stage {old.diffusion.stage}, asked to resume as {cfg.diffusion.stage}"
+            )
+        net.load_state_dict(ckpt["model"])
+        ema.load_state_dict(ckpt["ema"])
+        optimizer.load_state_dict(ckpt["optimizer"])
+        torch.set_rng_state(ckpt["rng"]["torch"])
+        start, elapsed_before = int(ckpt["step"]), float(ckpt.get("elapsed", 0.0))
+        if info.is_main and log_path.exists():
+            kept = [r for r in read_jsonl(log_path) if r.get("step", 0) <= start]
+            atomic_write_text(log_path, "".join(json.dumps(r) + "\n" for r in kept))
+    if info.is_main:
+        save_config(cfg, out_dir / "config.yaml")
+    model: nn.Module = diffusion
+    if info.world_size > 1:
+        model = nn.parallel.DistributedDataParallel(
+            diffusion, device_ids=[info.device.index] if info.device.type == "cuda" else None
+        )
+
+    record: dict = {}
+    window: list[dict[str, float]] = []
+    tic = t0 = time.perf_counter()
+    bar = tqdm(
+        range(start, cfg.steps),
+        initial=start,
+        total=cfg.steps,
+        disable=not (progress and info.is_main),
+        desc=f"train {cfg.diffusion.stage}",
+    )
+    for step in bar:
+        generator = torch.Generator().manual_seed(derived_seed(cfg.seed, _NOISE, step, info.rank))
+        indices = batch_indices(step, info.rank, len(images), cfg.batch_size, cfg.seed)
+        batch = make_batch(images, indices, generator, info.device)
+        x0, cond, m_u = stage_inputs(cfg.diffusion.stage, batch)
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate(step, cfg.optim)
+
+        losses = model(x0, cond, m_u, generator)
+        optimizer.zero_grad(set_to_none=True)
+        losses["loss"].backward()
+        grad_norm = nn.utils.clip_grad_norm_(
+            net.parameters(), cfg.optim.grad_clip if cfg.optim.grad_clip > 0 else float("inf")
+        )
+        optimizer.step()
+        ema.update(net)
+
+        window.append(
+            {k: float(all_reduce_mean(v.detach())) for k, v in losses.items()} | {"grad_norm": float(grad_norm)}
+        )
+        done = step + 1
+        elapsed = elapsed_before + time.perf_counter() - t0
+        stop = budget_used(elapsed, cfg.max_minutes)
+        if done % cfg.log_every == 0 or done == cfg.steps or stop:
+            seconds = time.perf_counter() - tic
+            record = {"step": done, "lr": learning_rate(step, cfg.optim), "time": round(elapsed, 3)}
+            record["sec_per_step"] = seconds / len(window)
+            record |= {k: float(np.mean([w[k] for w in window])) for k in window[0]}
+            if info.is_main:
+                append_jsonl(log_path, record)
+                bar.set_postfix(loss=f"{record['loss']:.4f}")
+            window, tic = [], time.perf_counter()
+        if info.is_main and cfg.sample_every > 0 and done % cfg.sample_every == 0:
+            sampler_net = build_net(cfg, info.device).eval()
+            ema.copy_to(sampler_net)
+            _save_sample_png(sampler_net, cfg, images, out_dir / "samples" / f"step_{done:07d}.png")
+        if done % cfg.checkpoint_every == 0 or done == cfg.steps or stop:
+            if info.is_main:
+                state = checkpoint_state(cfg, done, net, ema, optimizer, elapsed)
+                save_checkpoint(out_dir / "checkpoints" / f"step_{done:07d}.pt", state, cfg.keep_checkpoints)
+            barrier()
+        if stop:
+            if info.is_main:
+                bar.write(f"stopping at step {done}: wall-clock budget of {cfg.max_minutes} min used")
+            break
+    bar.close()
+    return record
+
+
+def split_stage_override(overrides: list[str]) -> list[str]:
+    """`stage=X` is the short form of `diffusion.stage=X`."""
+    out = []
+    for item in overrides:
+        key = item.partition("=")[0].strip()
+        out.append("diffusion." + item.strip() if key == "stage" else item)
+    for item in out:
+        parse_override(item)  # one-line error for a malformed override before any work
+    return out
+
+
+def add_train_diffusion_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of `u4d train-diffusion CONFIG stage=stage1|stage2|baseline [key=value ..] [--resume] [--out]`."""
+    parser.add_argument("config", type=Path, help="yaml preset, e.g. configs/u4d/cpu.yaml")
+    parser.add_argument("overrides", nargs="*", help="key=value overrides; stage=stage1|stage2|baseline first")
+    parser.add_argument(
+        "--resume",
+        nargs="?",
+        const="last",
+        default=None,
+        metavar="CKPT",
+        help="continue a run: from CKPT, or without a value from the newest OUT/checkpoints/step_*.pt",
+    )
+    parser.add_argument("--out", type=Path, default=None, help="output folder (overrides out)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run_train_diffusion(args: argparse.Namespace) -> int:
+    """`u4d train-diffusion`: train stage 1, stage 2 or the baseline (torchrun for several processes)."""
+    cfg = load_config(DiffusionTrainConfig, args.config, split_stage_override(list(args.overrides)))
+    if args.out is not None:
+        cfg = dataclasses.replace(cfg, out=str(args.out))
+    try:
+        train(cfg, resume=args.resume, progress=not args.no_progress)
+    finally:
+        cleanup()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m u4d_aug.train CONFIG ...`: the same as `u4d train-diffusion`, handy under torchrun."""
+    parser = argparse.ArgumentParser(prog="python -m u4d_aug.train", description=run_train_diffusion.__doc__)
+    add_train_diffusion_arguments(parser)
+    try:
+        return run_train_diffusion(parser.parse_args(argv))
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
