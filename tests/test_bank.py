@@ -56,6 +56,8 @@ def test_u4d_bank_layout_and_manifest(checkpoints, tmp_path):
         assert points.shape[1] == 4 and points.dtype == np.float32 and len(points) > 0
         mask = np.load(layout.mask_path(i))
         assert mask.shape == (16, 64) and mask.dtype == bool
+        x0_u = np.load(layout.stage1_path(i))  # stage 1's output: -1 off its predicted mask
+        assert x0_u.shape == (2, 16, 64) and x0_u.dtype == np.float16 and np.all(x0_u[:, ~mask] == -1)
         assert not layout.uncertainty_path(i).exists()
     on_disk = read_manifest(bank)
     assert on_disk == manifest and on_disk["complete"] is True
@@ -105,6 +107,8 @@ def test_completion_mode_keeps_real_uncertainty(checkpoints, tmp_path):
     mask = np.load(layout.mask_path(0))
     uncertainty = np.load(layout.uncertainty_path(0))
     assert mask.any() and uncertainty.dtype == np.float16 and uncertainty.shape == (16, 64)
+    x0_u = np.load(layout.stage1_path(0))  # the real P_u that stage 2 completed
+    assert np.all(x0_u[:, ~mask] == -1) and np.all(x0_u[0, mask] > -1)
     assert np.array_equal(mask, np.load(layout.mask_path(2)))  # same source scan, same P_u
 
 

@@ -133,3 +133,6 @@ def test_bad_inputs(tmp_path):
     with pytest.raises(InputError, match="max-scans"):
         list_scans(root, 0)
     assert len(list_scans(Path(root), 1)) == 1
+    assert [seq for seq, _, _ in list_scans(root, None, ["00"])] == ["00", "00"]
+    with pytest.raises(InputError, match="sequence.*07 not found; present: 00"):
+        list_scans(root, None, ["07"])

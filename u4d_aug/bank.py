@@ -3,6 +3,8 @@
 BANK/sequences/00/velodyne/NNNNNN.bin   (N, 4) float32 points (read back with `read_kitti_scan`)
 BANK/sequences/00/mask/NNNNNN.npy       (H, W) bool: the stage-1 mask m_u (predicted, or real in completion mode)
 BANK/sequences/00/uncertainty/NNNNNN.npy (H, W) float16 entropy image, where the source had probabilities
+BANK/sequences/00/stage1/NNNNNN.npy     (2, H, W) float16 x0_u in [-1, 1]: stage 1's output (u4d) or the real P_u
+                                        that stage 2 completed (complete mode)
 BANK/sequences/00/empty/NNNNNN         marker of a sample with no return at all (it gets no .bin: SemanticKITTI
                                         readers reject empty scans, and consumers should not see one)
 BANK/manifest.json                      config, per-sample seeds, checkpoint sha256[:16], empty samples, completion
@@ -53,6 +55,9 @@ class BankLayout:
     def empty_path(self, index: int) -> Path:
         return self.sequence_dir / "empty" / f"{index:06d}"
 
+    def stage1_path(self, index: int) -> Path:
+        return self.sequence_dir / "stage1" / f"{index:06d}.npy"
+
     def is_empty(self, index: int) -> bool:
         return self.empty_path(index).is_file()
 
@@ -76,12 +81,15 @@ def write_sample(
     points: np.ndarray,
     mask: np.ndarray | None = None,
     uncertainty: np.ndarray | None = None,
+    x0_u: np.ndarray | None = None,
 ) -> None:
     """Write sample `index`: side files first, the scan last (an empty scan as a marker instead of a .bin)."""
     if mask is not None:
         atomic_save_npy(layout.mask_path(index), np.asarray(mask, dtype=bool))
     if uncertainty is not None:
         atomic_save_npy(layout.uncertainty_path(index), np.asarray(uncertainty, dtype=np.float16))
+    if x0_u is not None:
+        atomic_save_npy(layout.stage1_path(index), np.asarray(x0_u, dtype=np.float16))
     if len(points) == 0:
         atomic_write_bytes(layout.empty_path(index), b"0 points\n")
     else:

@@ -117,20 +117,20 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
     todo = [i for i in shard(list(range(cfg.num)), info.rank, info.world_size) if not layout.is_done(i)]
     for i in tqdm(todo, disable=not (progress and info.is_main), desc=f"generate {cfg.mode}"):
         generator = torch.Generator().manual_seed(cfg.seed + i)
-        mask = uncertainty = None
+        mask = uncertainty = x0_u = None
         if cfg.mode == "u4d":
             result = generate_u4d(
                 nets["stage1"], nets["stage2"], 1, cfg.steps, generator, cfg.sampler, cfg.stage1_steps
             )
-            mask = result["m_u_pred"][0, 0].cpu().numpy()
+            mask, x0_u = result["m_u_pred"][0, 0].cpu().numpy(), result["x0_u"][0].cpu().numpy()
         elif cfg.mode == "baseline":
             result = generate_baseline(nets["baseline"], 1, cfg.steps, generator, cfg.sampler)
         else:
             x0_u, m_u, entropy_image = _real_condition(scans, i, main[1], cfg.probs_root, generator)
             result = complete(nets["stage2"], x0_u[None], m_u[None], cfg.steps, generator, cfg.sampler)
-            mask, uncertainty = m_u[0].numpy(), entropy_image.numpy()
+            mask, uncertainty, x0_u = m_u[0].numpy(), entropy_image.numpy(), x0_u.numpy()
         (points,) = to_points(result["x0"], sensor, main[1].row_mode)
-        write_sample(layout, i, points, mask, uncertainty)
+        write_sample(layout, i, points, mask, uncertainty, x0_u)
 
     barrier()
     if info.is_main:

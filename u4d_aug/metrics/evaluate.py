@@ -39,12 +39,18 @@ def parse_metrics(text: str) -> tuple[str, ...]:
     return names
 
 
-def list_scans(root: str | Path, max_scans: int | None = None) -> list[tuple[str, str, Path]]:
-    """(seq, frame, path) of the first `max_scans` scans of a SemanticKITTI-layout root, sorted by seq, frame."""
+def list_scans(
+    root: str | Path, max_scans: int | None = None, sequences: list[str] | None = None
+) -> list[tuple[str, str, Path]]:
+    """(seq, frame, path) of the first `max_scans` scans of `sequences` (None = all) of a SemanticKITTI root."""
     root = Path(root)
+    present = list_sequences(root)
+    missing = [s for s in sequences or [] if s not in present]
+    if missing:
+        raise InputError(f"{root}: sequence(s) {', '.join(missing)} not found; present: {', '.join(present)}")
     entries = [
         (seq, frame, root / "sequences" / seq / "velodyne" / f"{frame}.bin")
-        for seq in list_sequences(root)
+        for seq in (sequences or present)
         for frame in list_frames(root, seq)
     ]
     if not entries:
@@ -149,14 +155,16 @@ def evaluate(
     max_scans: int | None = None,
     extractor_frd: str | Path | None = None,
     extractor_fpd: str | Path | None = None,
+    real_sequences: list[str] | None = None,
 ) -> dict[str, Any]:
     """Table 1 (bank vs real) and Table 2 (temporal, bank and real) as one json-ready result."""
     bank, real = Path(bank), Path(real)
-    bank_entries, real_entries = list_scans(bank, max_scans), list_scans(real, max_scans)
+    bank_entries, real_entries = list_scans(bank, max_scans), list_scans(real, max_scans, real_sequences)
     result: dict[str, Any] = {
         "bank": str(bank),
         "real": str(real),
         "counts": {"bank": len(bank_entries), "real": len(real_entries)},
+        "real_sequences": sorted({seq for seq, _, _ in real_entries}),
         "config": {
             "metrics": list(metrics),
             "max_scans": max_scans,
@@ -276,6 +284,7 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--md", action="store_true", help="write OUT/evaluation.md")
     parser.add_argument("--out", type=Path, default=Path("runs/evaluate"), help="folder for --json/--md")
     parser.add_argument("--max-scans", type=int, default=None, help="first N scans of each root (sorted)")
+    parser.add_argument("--real-sequences", nargs="+", default=None, help="only these sequences of --real (held out)")
     parser.add_argument("--extractor-frd", type=Path, default=None, help="FRD extractor checkpoint (frd.pt)")
     parser.add_argument("--extractor-fpd", type=Path, default=None, help="FPD extractor checkpoint (fpd.pt)")
 
@@ -289,6 +298,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         args.max_scans,
         args.extractor_frd,
         args.extractor_fpd,
+        args.real_sequences,
     )
     text = to_markdown(result)
     print(text)
