@@ -14,8 +14,11 @@ from u4d_aug.config import load_config
 from u4d_aug.data.formats import read_calib, read_kitti_label, read_kitti_scan, read_poses, read_times
 from u4d_aug.data.labels import SEMANTICKITTI_RAW_NAMES, map_semantickitti
 from u4d_aug.data.sensors import hdl64
+from u4d_aug.data.sim import objects
 from u4d_aug.data.sim.config import SimConfig
-from u4d_aug.data.sim.geometry import RAW
+from u4d_aug.data.sim.geometry import RAW, MeshBuilder, strip
+from u4d_aug.data.sim.streets import Bend, Warp, make_network
+from u4d_aug.data.sim.world import _add_mesh
 from u4d_aug.data.sim.writer import (
     add_simulate_arguments,
     build_sequence,
@@ -174,6 +177,74 @@ def test_cli_arguments(tmp_path: Path, capsys) -> None:
     assert "wrote 1 frames" in capsys.readouterr().out
     with pytest.raises(InputError, match="unknown config key"):
         load_config(SimConfig, None, ["lidar.nope=1"])
+
+
+def test_streets_bend_within_limits() -> None:
+    cfg = _tiny("street.straight_prob=0")
+    warp = make_network(np.random.default_rng(3), cfg.street, 400.0).warp
+    s = np.linspace(-400.0, 400.0, 8001)
+    for bend in (warp.bend_x, warp.bend_y):
+        slope = bend.slope(s)
+        np.testing.assert_allclose(np.gradient(bend(s), s), slope, atol=1e-3)
+        assert np.ptp(np.degrees(np.arctan(slope))) > 10.0  # the streets genuinely change direction
+        assert np.abs(slope).max() <= cfg.street.bend_max_slope + 1e-9
+        curvature = np.abs(np.gradient(slope, s)) / (1.0 + slope**2) ** 1.5
+        assert curvature.max() <= 1.0 / cfg.street.bend_min_radius + 1e-4
+    straight = make_network(np.random.default_rng(3), _tiny("street.straight_prob=1").street, 400.0).warp
+    xy = np.random.default_rng(0).uniform(-300, 300, (100, 2))
+    np.testing.assert_array_equal(straight.points(xy), xy)
+
+
+def test_warp_bends_surfaces_and_carries_objects_rigidly() -> None:
+    warp = Warp(Bend(np.array([10.0]), np.array([2 * np.pi / 200]), np.array([0.0])), Bend(*np.zeros((3, 0))))
+    mb = MeshBuilder(warp)
+    mb.axis = 0  # objects belong to the x-street
+    xs = np.linspace(0.0, 100.0, 51)
+    band = strip(np.column_stack([xs, np.full(51, 5.0)]), np.column_stack([xs, np.full(51, 8.0)]), 0.1)
+    mb.add(band, "sidewalk", "paving", 0.3)
+    car = objects.place(objects.car(np.random.default_rng(0), "car", 5), 0.0, (25.0, 3.0, 0.0))
+    _add_mesh(mb, car)
+    mesh = mb.build()
+    n = len(band[0])
+    # surfaces follow the bent street point by point
+    np.testing.assert_allclose(mesh.vertices[:n, :2], warp.points(band[0][:, :2]), atol=1e-4)
+    # the car keeps its shape and turns with the street: heading atan(df/dx) at its centre, 12.5 deg
+    moved = mesh.vertices[n:].astype(np.float64)
+    original = car.vertices.astype(np.float64)
+    np.testing.assert_allclose(moved[:, 2], original[:, 2], atol=1e-5)
+    pairs = np.random.default_rng(1).integers(0, len(original), (200, 2))
+    dist = np.linalg.norm(moved[pairs[:, 0]] - moved[pairs[:, 1]], axis=1)
+    np.testing.assert_allclose(dist, np.linalg.norm(original[pairs[:, 0]] - original[pairs[:, 1]], axis=1), atol=1e-4)
+    axis = np.linalg.svd(moved[:, :2] - moved[:, :2].mean(axis=0), full_matrices=False)[2][0]
+    heading = np.degrees(np.arctan2(axis[1], axis[0])) % 180.0
+    expected = np.degrees(np.arctan(10.0 * 2 * np.pi / 200 * np.cos(2 * np.pi * 25.0 / 200)))
+    assert abs(heading - expected) < 0.5, (heading, expected)
+
+
+def test_ego_and_agents_drive_the_bent_streets() -> None:
+    seq = build_sequence(4, 0, 30, hdl64(), _tiny("street.straight_prob=0"))
+    warp = seq.world.network.warp
+    np.testing.assert_allclose(seq.ego.route_xy, warp.points(seq.ego.route_lattice))
+    lattice_heading = np.arctan2(*np.diff(seq.ego.route_lattice, axis=0).T[::-1])
+    world_heading = np.arctan2(*np.diff(seq.ego.route_xy, axis=0).T[::-1])
+    assert np.abs(np.angle(np.exp(1j * (world_heading - lattice_heading)))).max() > np.radians(3.0)
+    step = np.linalg.norm(np.diff(seq.ego.xy, axis=0), axis=1) * 10.0
+    assert np.all((step > 4.5) & (step < 12.5)), step  # speeds hold on the curves
+    # the ego stays on its lane: the ground just ahead of and behind the sensor is carriageway in every frame
+    for frame in (0, 29):
+        scan = render_frame(seq, frame)
+        x, y, z = scan.points[:, :3].T
+        lane = (np.abs(y) < 1.0) & (np.abs(x) > 4.0) & (np.abs(x) < 8.0) & (z < -1.6)
+        assert lane.sum() > 100
+        assert np.isin(scan.semantic[lane], [RAW["road"], RAW["lane-marking"]]).mean() > 0.95
+    vehicles = [a for a in seq.agents if a.kind != "person"]
+    assert vehicles
+    for agent in vehicles:  # heading follows the path tangent, also on the curves
+        motion = np.diff(agent.xy, axis=0)
+        moving = np.linalg.norm(motion, axis=1) > 0.2
+        direction = np.arctan2(motion[moving, 1], motion[moving, 0])
+        mid = np.angle(np.exp(1j * agent.yaw[1:]) + np.exp(1j * agent.yaw[:-1]))[moving]
+        assert np.abs(np.angle(np.exp(1j * (direction - mid)))).max() < np.radians(8.0)
 
 
 @pytest.mark.slow

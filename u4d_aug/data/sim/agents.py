@@ -2,8 +2,9 @@
 
 The ego drives a lane of the street lattice at 5-12 m/s (10 Hz), slowing for turns. Cars, vans, trucks,
 motorcyclists and bicyclists follow their own lane routes; pedestrians walk the sidewalk loops of blocks with
-swinging legs. Agents that would overlap the ego or an earlier agent in any frame are rejected, so occlusion
-is all that couples them. Every agent keeps one instance id for the whole sequence.
+swinging legs. Lane paths are planned on the straight lattice and bent by the network's warp before the speed
+profile, so speeds hold along the curved streets. Agents that would overlap the ego or an earlier agent in
+any frame are rejected, so occlusion is all that couples them. Every agent keeps one instance id for the whole sequence.
 """
 
 from __future__ import annotations
@@ -40,7 +41,8 @@ class EgoMotion:
     poses: np.ndarray
     xy: np.ndarray  # (F, 2)
     yaw: np.ndarray  # (F,)
-    route_xy: np.ndarray  # (K, 2) dense lane path (for building the world around it)
+    route_xy: np.ndarray  # (K, 2) dense lane path, world coordinates
+    route_lattice: np.ndarray  # (K, 2) the same path on the straight lattice (for building the world around it)
 
 
 def _rightmost_lane(line: Line) -> float:
@@ -96,7 +98,8 @@ def ego_motion(rng: np.random.Generator, net: Network, cfg: SimConfig, frames: i
     heading = int(rng.integers(4))
     length = frames * ac.ego_speed[1] * dt + 150.0
     nodes = plan_route(rng, net, (i0, j0), heading, length, ac.ego_turn_prob)
-    path, turning = lane_path(net, nodes, _EgoLane(ac.ego_center_bias), start_fraction=float(rng.uniform(0.2, 0.6)))
+    lattice, turning = lane_path(net, nodes, _EgoLane(ac.ego_center_bias), start_fraction=float(rng.uniform(0.2, 0.6)))
+    path = net.warp.points(lattice)
     s = arc_length(path)
     at = speed_profile(rng, s, turning, frames, dt, ac.ego_speed, ac.ego_turn_speed, ac.ego_accel)
     xy, yaw = sample_path(path, s, at)
@@ -113,7 +116,7 @@ def ego_motion(rng: np.random.Generator, net: Network, cfg: SimConfig, frames: i
     cp, sp, cr, sr = np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
     tilt = np.eye(4)
     tilt[:3, :3] = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) @ np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    return EgoMotion(poses @ tilt, xy, yaw, path)
+    return EgoMotion(poses @ tilt, xy, yaw, path, lattice)
 
 
 def _overlap(xy_a, yaw_a, ext_a, xy_b, yaw_b, ext_b, margin: float) -> bool:
@@ -183,7 +186,8 @@ def make_agents(rng: np.random.Generator, world: World, ego: EgoMotion, cfg: Sim
             if len(nodes) < 3:
                 continue
             offset = _bike_lane if kind == "bicyclist" else _rightmost_lane
-            path, turning = lane_path(net, nodes, offset, start_fraction=float(rng.uniform(0.0, 1.0)))
+            lattice, turning = lane_path(net, nodes, offset, start_fraction=float(rng.uniform(0.0, 1.0)))
+            path = net.warp.points(lattice)
             s = arc_length(path)
             at = speed_profile(rng, s, turning, frames, dt, speed, min(speed[0], 4.0), 2.0)
             xy, yaw = sample_path(path, s, at)
@@ -220,7 +224,7 @@ def _nodes_near(net: Network, xy: np.ndarray, radius: float) -> list[tuple[int, 
     out = []
     for i in range(1, len(net.xs) - 2):
         for j in range(1, len(net.ys) - 2):
-            if np.min(np.linalg.norm(pts - net.node(i, j), axis=1)) < radius:
+            if np.min(np.linalg.norm(pts - net.warp.points(net.node(i, j)), axis=1)) < radius:
                 out.append((i, j))
     return out or [(len(net.xs) // 2, len(net.ys) // 2)]
 

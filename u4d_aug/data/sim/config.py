@@ -15,17 +15,25 @@ class StreetConfig:
 
     block_size: tuple[float, float] = (60.0, 120.0)  # spacing of parallel streets
     lane_width: tuple[float, float] = (3.4, 4.0)
-    main_street_prob: float = 0.25  # two lanes per direction, centre line, more traffic
+    main_street_prob: float = 0.15  # two lanes per direction, centre line, more traffic
     parking_prob: float = 0.3  # a street side has a parking strip with parked vehicles
-    parking_label_prob: float = 0.5  # the strip is marked (raw 44 parking) rather than plain road
+    parking_label_prob: float = 0.75  # the strip is marked (raw 44 parking) rather than plain road
     parking_width: tuple[float, float] = (2.0, 2.5)
-    sidewalk_width: tuple[float, float] = (3.0, 5.0)
-    grass_strip_prob: float = 0.1  # a terrain strip with street trees between curb and sidewalk
+    # narrow residential sidewalks: real seq 00 has hedges 6-7 m and facades 9-12 m from the sensor
+    sidewalk_width: tuple[float, float] = (2.5, 4.5)
+    grass_strip_prob: float = 0.05  # a terrain strip with street trees between curb and sidewalk
     curb_height: tuple[float, float] = (0.10, 0.16)
     corner_radius: tuple[float, float] = (3.0, 8.0)
     center_line_prob: float = 0.5  # residential streets with a dashed centre line
     crosswalk_prob: float = 0.3  # zebra stripes at a street end
-    median_prob: float = 0.5  # raised traffic island (raw 49 other-ground) in a main street segment
+    median_prob: float = 0.3  # raised traffic island (raw 49 other-ground) in a main street segment
+    # bending streets: the lattice plane is sheared so that x-streets swing sideways by a smooth offset of x
+    # (y-streets likewise); two sines per street family, amplitudes capped by slope and curve radius
+    bend_amplitude: tuple[float, float] = (8.0, 22.0)  # m, per sine
+    bend_wavelength: tuple[float, float] = (160.0, 420.0)  # m
+    straight_prob: float = 0.2  # a street family stays straight
+    bend_max_slope: float = 0.36  # max |d offset / ds|: heading swing about +-20 deg
+    bend_min_radius: float = 70.0  # m, smallest centre-line curve radius
 
 
 @dataclass
@@ -35,17 +43,21 @@ class LotConfig:
     frontage: tuple[float, float] = (12.0, 28.0)  # lot width along the street
     depth: tuple[float, float] = (22.0, 34.0)
     # lot kinds: house (detached, front yard), row (facade at the sidewalk), garden, parking lot, commercial
-    kind_weights: tuple[float, float, float, float, float] = (0.45, 0.12, 0.25, 0.08, 0.10)
+    kind_weights: tuple[float, float, float, float, float] = (0.55, 0.12, 0.15, 0.08, 0.10)
     floor_height: tuple[float, float] = (2.8, 3.4)
     house_floors: tuple[int, int] = (2, 4)
     row_floors: tuple[int, int] = (3, 6)
-    setback: tuple[float, float] = (2.0, 8.0)  # house distance from the sidewalk
+    setback: tuple[float, float] = (1.5, 5.0)  # house distance from the sidewalk
+    row_setback: tuple[float, float] = (1.0, 3.0)  # row-house facade distance from the sidewalk
     front_fence_prob: float = 0.9  # fence, wall or hedge at the front of a house lot
-    yard_trees: tuple[int, int] = (1, 4)
+    hedge_prob: float = 0.8  # that front boundary is a hedge (gardens: always)
+    yard_trees: tuple[int, int] = (2, 5)  # tall canopies behind the houses hide the far field
     yard_bushes: tuple[int, int] = (4, 10)
+    courtyard_tree_area: float = 120.0  # m^2 of back courtyard per tree
     shrub_bed_prob: float = 0.6  # a row of shrubs along the front of a house yard (real seq 00: 22 % vegetation)
-    other_ground_prob: float = 0.15  # gravel/paved yard (raw 49) instead of grass
-    ground_cover_prob: float = 0.4  # yard under low shrubs (vegetation) instead of lawn (terrain)
+    other_ground_prob: float = 0.05  # gravel/paved yard (raw 49) instead of grass (real seq 00: none)
+    # yard under low shrubs (vegetation) instead of lawn (terrain); real seq 00: 22 % vegetation, 2 % terrain
+    ground_cover_prob: float = 0.75
 
 
 @dataclass
@@ -53,11 +65,11 @@ class StreetObjectConfig:
     """Street furniture and parked vehicles (spacings in metres along a street side)."""
 
     tree_spacing: tuple[float, float] = (6.0, 12.0)
-    street_tree_prob: float = 0.5  # a street side has a tree row
+    street_tree_prob: float = 0.65  # a street side has a tree row
     pole_spacing: tuple[float, float] = (22.0, 35.0)
     sign_prob: float = 0.7  # traffic sign near a street end
     object_prob: float = 0.5  # trash bin / bollards / box (raw 99 other-object) per 20 m
-    parked_occupancy: tuple[float, float] = (0.25, 0.6)
+    parked_occupancy: tuple[float, float] = (0.2, 0.5)
     # parked vehicle kinds along parking strips: car, truck, other-vehicle (van), motorcycle
     parked_weights: tuple[float, float, float, float] = (0.87, 0.03, 0.04, 0.06)
     bicycle_prob: float = 0.5  # parked bicycles near a building front, per lot
@@ -68,8 +80,8 @@ class AgentConfig:
     """Moving agents per 100 m of ego route, their speeds (m/s) and the ego motion."""
 
     cars_per_100m: float = 2.0
-    trucks_per_100m: float = 0.3
-    vans_per_100m: float = 0.2
+    trucks_per_100m: float = 0.15
+    vans_per_100m: float = 0.15
     pedestrians_per_100m: float = 3.0
     bicyclists_per_100m: float = 1.0
     motorcyclists_per_100m: float = 0.6
@@ -83,7 +95,7 @@ class AgentConfig:
     ego_accel: float = 1.5  # m/s^2
     ego_turn_prob: float = 0.4  # turn left/right at an intersection instead of going straight
     ego_lateral_jitter: float = 0.15  # m, slow wander within the lane
-    ego_center_bias: float = 0.6  # on one-lane-per-direction streets, drive this share closer to the centre
+    ego_center_bias: float = 0.4  # on one-lane-per-direction streets, drive this share closer to the centre
 
 
 @dataclass

@@ -7,6 +7,7 @@ the real SemanticKITTI seq-00 frames 0-2 at 5-20 m (../shared/data/real/SOURCES.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -105,14 +106,67 @@ class TriangleMesh:
         return len(self.triangles)
 
 
-class MeshBuilder:
-    """Collects labelled parts and concatenates them once (`build`)."""
+# labels of compact objects that a bending street carries rigidly (see streets.Warp), when under RIGID_EXTENT
+RIGID_LABELS = frozenset(
+    RAW[name]
+    for name in (
+        "car",
+        "bicycle",
+        "motorcycle",
+        "truck",
+        "other-vehicle",
+        "person",
+        "bicyclist",
+        "motorcyclist",
+        "other-structure",
+        "vegetation",
+        "trunk",
+        "pole",
+        "traffic-sign",
+        "other-object",
+    )
+)
+RIGID_EXTENT = 12.0  # m, larger parts (ground cover, long walls) follow the warp point by point
 
-    def __init__(self) -> None:
+
+class MeshBuilder:
+    """Collects labelled parts and concatenates them once (`build`).
+
+    With a `warp` (streets.Warp) `build` maps every part: surfaces point by point, compact objects (RIGID_LABELS,
+    or everything added inside `with builder.rigid(anchor)`) rigidly, turned along the street `axis` they were
+    added under.
+    """
+
+    def __init__(self, warp=None) -> None:
         self._vertices: list[np.ndarray] = []
         self._triangles: list[np.ndarray] = []
         self._per_triangle: list[tuple[int, int, int, np.ndarray]] = []
         self._count = 0
+        self.warp = warp
+        self.axis: int | None = None  # street the parts being added belong to: 0 x-street, 1 y-street
+        self._anchor: np.ndarray | None = None
+        self._placement: list[tuple[np.ndarray, int]] = []  # per part: rigid anchor (NaN: none), street axis
+
+    @contextmanager
+    def rigid(self, anchor):
+        """Parts added inside move rigidly with the (x, y) anchor (buildings, whole vehicles, trees)."""
+        outer = self._anchor
+        if outer is None:
+            self._anchor = np.asarray(anchor, dtype=np.float64)[:2]
+        try:
+            yield self
+        finally:
+            self._anchor = outer
+
+    def _anchor_of(self, vertices: np.ndarray, raw: int) -> np.ndarray:
+        """(2,) point the part moves rigidly with, NaN when it follows the warp point by point."""
+        if self._anchor is not None:
+            return self._anchor
+        if raw in RIGID_LABELS:
+            low, high = vertices[:, :2].min(axis=0), vertices[:, :2].max(axis=0)
+            if np.all(high - low <= RIGID_EXTENT):
+                return (low + high) / 2
+        return np.full(2, np.nan)
 
     def add(
         self,
@@ -128,7 +182,10 @@ class MeshBuilder:
             return
         raw = RAW[label] if isinstance(label, str) else int(label)
         refl = np.broadcast_to(np.asarray(reflectivity, dtype=np.float32), (len(triangles),))
-        self._vertices.append(np.asarray(vertices, dtype=np.float64))
+        vertices = np.asarray(vertices, dtype=np.float64)
+        self._vertices.append(vertices)
+        if self.warp is not None:
+            self._placement.append((self._anchor_of(vertices, raw), -1 if self.axis is None else self.axis))
         self._triangles.append(np.asarray(triangles, dtype=np.int64) + self._count)
         self._per_triangle.append((raw, instance, MAT[material], refl))
         self._count += len(vertices)
@@ -138,8 +195,14 @@ class MeshBuilder:
         if not self._triangles:
             return empty_mesh()
         sizes = [len(t) for t in self._triangles]
+        vertices = np.concatenate(self._vertices)
+        if self.warp is not None:  # all parts at once: much faster than part by part
+            counts = [len(v) for v in self._vertices]
+            anchor = np.repeat(np.stack([p[0] for p in self._placement]), counts, axis=0)
+            axis = np.repeat(np.array([p[1] for p in self._placement], dtype=np.int8), counts)
+            vertices = self.warp.place(vertices, anchor, axis)
         return TriangleMesh(
-            vertices=np.concatenate(self._vertices).astype(np.float32),
+            vertices=vertices.astype(np.float32),
             triangles=np.concatenate(self._triangles).astype(np.uint32),
             semantic=np.repeat([p[0] for p in self._per_triangle], sizes).astype(np.uint16),
             instance=np.repeat([p[1] for p in self._per_triangle], sizes).astype(np.uint16),
@@ -237,6 +300,41 @@ def box(size, center=(0.0, 0.0, 0.0), bottom: bool = True):
 def quad(p0, p1, p2, p3):
     """Planar quad p0-p1-p2-p3 (counter-clockwise seen from the front) as two triangles."""
     return np.array([p0, p1, p2, p3], dtype=np.float64), np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def densify(points_xy: np.ndarray, step: float, closed: bool = False) -> np.ndarray:
+    """Polyline with extra points so that no edge is longer than `step` (keeps the original points)."""
+    pts = np.asarray(points_xy, dtype=np.float64)
+    ends = np.concatenate([pts[1:], pts[:1]]) if closed else pts[1:]
+    out = []
+    for a, b in zip(pts, ends):
+        n = max(1, int(np.ceil(np.linalg.norm(b - a) / step)))
+        out.append(a + np.outer(np.arange(n) / n, b - a))
+    if not closed:
+        out.append(pts[-1:])
+    return np.concatenate(out)
+
+
+def strip(outer: np.ndarray, inner: np.ndarray, z: float):
+    """Horizontal band at height z between two matching (K, 2) polylines (quad per consecutive pair)."""
+    k = len(outer)
+    vertices = np.concatenate([np.column_stack([outer, np.full(k, z)]), np.column_stack([inner, np.full(k, z)])])
+    i = np.arange(k - 1)
+    triangles = np.concatenate([np.column_stack([i, i + 1, i + k + 1]), np.column_stack([i, i + k + 1, i + k])])
+    return vertices, triangles
+
+
+def flat_grid(x0: float, x1: float, y0: float, y1: float, z: float, cell: float = 4.0):
+    """Horizontal rectangle at height z in ~cell-sized quads (so a warp can bend its edges)."""
+    return grid_surface(x0, x1, y0, y1, cell, _Level(z))
+
+
+@dataclass
+class _Level:
+    z: float
+
+    def __call__(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.full_like(x, self.z)
 
 
 def polygon_fan(points_xy: np.ndarray, z: float):

@@ -241,15 +241,16 @@ def tree(
     trunk_top = trunk_h + lift + 0.8
     t = cylinder(radius, ground_z, ground_z + trunk_top, segments=8, center=(x, y))
     t[0][:, :2] += np.outer((t[0][:, 2] - ground_z) / trunk_top, tilt)
-    mb.add(t, "trunk", "bark", sample_reflectivity(rng, "bark", len(t[1])))
-    leaves_refl = sample_reflectivity(rng, "leaves")[0]
-    for vertices, triangles in blobs:
-        mb.add(
-            (vertices + [0.0, 0.0, lift], triangles),
-            "vegetation",
-            "leaves",
-            leaves_refl * (1 + 0.08 * rng.standard_normal(len(triangles))),
-        )
+    with mb.rigid((x, y)):
+        mb.add(t, "trunk", "bark", sample_reflectivity(rng, "bark", len(t[1])))
+        leaves_refl = sample_reflectivity(rng, "leaves")[0]
+        for vertices, triangles in blobs:
+            mb.add(
+                (vertices + [0.0, 0.0, lift], triangles),
+                "vegetation",
+                "leaves",
+                leaves_refl * (1 + 0.08 * rng.standard_normal(len(triangles))),
+            )
 
 
 def bush(mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float, size: float = 1.0) -> None:
@@ -283,14 +284,20 @@ def fence(mb: MeshBuilder, rng: np.random.Generator, p0, p1, ground_z: float) ->
     kind = rng.choice(["slats", "bars", "wall"], p=[0.4, 0.25, 0.35])
     height = rng.uniform(0.9, 1.6) if kind != "wall" else rng.uniform(0.5, 1.3)
     parts = []
+    pieces = np.linspace(0.0, length, max(1, int(np.ceil(length / 2.5))) + 1)  # <= 2.5 m: bends with a warp
     if kind == "wall":
-        parts.append(box([length, rng.uniform(0.15, 0.3), height], [length / 2, 0, height / 2]))
+        thickness = rng.uniform(0.15, 0.3)
+        parts += [box([b - a, thickness, height], [(a + b) / 2, 0, height / 2]) for a, b in zip(pieces, pieces[1:])]
         material = "curb"
     else:
         width, gap = (0.09, rng.uniform(0.03, 0.08)) if kind == "slats" else (0.03, rng.uniform(0.09, 0.14))
         xs = np.arange(width / 2, length, width + gap)
         parts += [box([width, 0.025, height], [x, 0, height / 2], bottom=False) for x in xs]
-        parts += [box([length, 0.04, 0.06], [length / 2, 0.03, z]) for z in (0.2, height - 0.15)]
+        parts += [
+            box([b - a, 0.04, 0.06], [(a + b) / 2, 0.03, z])
+            for z in (0.2, height - 0.15)
+            for a, b in zip(pieces, pieces[1:])
+        ]
         material = "fence" if kind == "slats" else "metal"
     part = transform(merge(*parts), yaw, (p0[0], p0[1], ground_z))
     mb.add(part, "fence", material, sample_reflectivity(rng, material, len(part[1])))
@@ -310,6 +317,11 @@ def street_light(mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float,
 
 def traffic_sign(mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float, face_yaw: float) -> None:
     """Traffic sign: thin pole (pole) and one or two retro-reflective plates (traffic-sign)."""
+    with mb.rigid(xy):
+        _traffic_sign(mb, rng, xy, ground_z, face_yaw)
+
+
+def _traffic_sign(mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float, face_yaw: float) -> None:
     height = rng.uniform(2.2, 3.0)
     p = cylinder(0.04, ground_z, ground_z + height, 6, center=xy)
     mb.add(p, "pole", "metal", sample_reflectivity(rng, "metal", len(p[1])))
@@ -358,7 +370,8 @@ def building(
     relief: bool = True,
 ) -> None:
     """Box building on an axis-aligned footprint (x0, y0, x1, y1); the street side (0:-y 1:+x 2:+y 3:-x)
-    gets recessed windows and balconies, the roof is flat or gabled."""
+    gets recessed windows and balconies, the roof is flat or gabled. A warped builder shears it with its lot (a
+    bending street gives skewed footprints whose side walls stay parallel to the cross streets)."""
     x0, y0, x1, y1 = footprint
     height = floors * floor_height + rng.uniform(0.3, 1.0)
     facade = sample_reflectivity(rng, "facade")[0]

@@ -3,6 +3,13 @@
 Streets run along x ("horizontal" lines at y = Y[j]) and along y ("vertical" lines at x = X[i]) with random
 spacings; every crossing is an intersection with rounded curbs. A route is a walk over intersections; its
 path follows a lane at a fixed offset right of the street centre and turns on arcs concentric with the curb.
+
+Streets bend: the world is laid out on the straight lattice ("lattice coordinates") and then mapped by a
+smooth shear `Warp`, (x, y) -> (x + f_y(y), y + f_x(x)), so every x-street swings sideways by f_x (a sum of
+two sines, curve radius >= `bend_min_radius`) and every y-street by f_y; intersections become slightly skewed.
+Lanes, curbs, sidewalks, ground and buildings follow the map point by point (a shear: cross-sections narrow by
+cos(heading), <= 6 % at the slope cap); compact objects (vehicles, trees, poles, signs) are moved rigidly and
+turned to the local direction of their street, so they keep their shape.
 """
 
 from __future__ import annotations
@@ -40,13 +47,96 @@ class Line:
 
 
 @dataclass
+class Bend:
+    """Lateral offset of one street family, f(s) = sum_k a_k sin(w_k s + p_k) in metres, s along the street."""
+
+    amplitude: np.ndarray  # (K,) m
+    freq: np.ndarray  # (K,) rad/m
+    phase: np.ndarray  # (K,) rad
+
+    def __call__(self, s: np.ndarray) -> np.ndarray:
+        s = np.asarray(s, dtype=np.float64)
+        out = np.zeros_like(s)
+        for a, w, p in zip(self.amplitude, self.freq, self.phase):
+            out += a * np.sin(w * s + p)
+        return out
+
+    def slope(self, s: np.ndarray) -> np.ndarray:
+        """df/ds."""
+        s = np.asarray(s, dtype=np.float64)
+        out = np.zeros_like(s)
+        for a, w, p in zip(self.amplitude, self.freq, self.phase):
+            out += a * w * np.cos(w * s + p)
+        return out
+
+
+@dataclass
+class Warp:
+    """Shear of the lattice plane that bends the streets: (x, y) -> (x + bend_y(y), y + bend_x(x))."""
+
+    bend_x: Bend  # offset of x-streets (in y) as a function of x
+    bend_y: Bend  # offset of y-streets (in x) as a function of y
+
+    def points(self, xy: np.ndarray) -> np.ndarray:
+        """(..., 2) lattice coordinates -> world coordinates."""
+        xy = np.asarray(xy, dtype=np.float64)
+        out = xy.copy()
+        out[..., 0] += self.bend_y(xy[..., 1])
+        out[..., 1] += self.bend_x(xy[..., 0])
+        return out
+
+    def turn(self, xy: np.ndarray, axis: int | None) -> np.ndarray:
+        """Rotation (rad) that keeps an object aligned with its street: axis 0 x-street, 1 y-street, None mean."""
+        xy = np.asarray(xy, dtype=np.float64)
+        along_x = np.arctan(self.bend_x.slope(xy[..., 0]))  # direction of a mapped x-line
+        along_y = -np.arctan(self.bend_y.slope(xy[..., 1]))  # a mapped y-line, measured from +y
+        if axis == 0:
+            return along_x
+        if axis == 1:
+            return along_y
+        return 0.5 * (along_x + along_y)
+
+    def place(self, vertices: np.ndarray, anchor: np.ndarray, axis: np.ndarray) -> np.ndarray:
+        """Map (V, 3) vertices: where the (V, 2) anchor is NaN point by point, elsewhere rigidly, moved with the
+        anchor and turned along the street of the (V,) axis (0 x-street, 1 y-street, -1 mean)."""
+        out = np.array(vertices, dtype=np.float64)
+        free = np.isnan(anchor[:, 0])
+        out[free, :2] = self.points(out[free, :2])
+        rigid = ~free
+        a, ax = anchor[rigid], axis[rigid]
+        angle = np.where(ax == 0, self.turn(a, 0), np.where(ax == 1, self.turn(a, 1), self.turn(a, None)))
+        moved = self.points(a)
+        c, s = np.cos(angle), np.sin(angle)
+        dx, dy = out[rigid, 0] - a[:, 0], out[rigid, 1] - a[:, 1]
+        out[rigid, 0] = moved[:, 0] + c * dx - s * dy
+        out[rigid, 1] = moved[:, 1] + s * dx + c * dy
+        return out
+
+
+def _make_bend(rng: np.random.Generator, cfg: StreetConfig) -> Bend:
+    """Two sines with random wavelengths and phases, scaled down to the slope and curve-radius limits."""
+    straight = rng.random() < cfg.straight_prob
+    amplitude = rng.uniform(*cfg.bend_amplitude, 2) * rng.choice([-1.0, 1.0], 2)
+    freq = 2.0 * np.pi / rng.uniform(*cfg.bend_wavelength, 2)
+    phase = rng.uniform(0.0, 2.0 * np.pi, 2)
+    slope = float(np.sum(np.abs(amplitude) * freq))
+    curvature = float(np.sum(np.abs(amplitude) * freq**2))
+    scale = min(1.0, cfg.bend_max_slope / slope, 1.0 / (cfg.bend_min_radius * curvature))
+    if straight:
+        scale = 0.0
+    return Bend(amplitude * scale, freq, phase)
+
+
+@dataclass
 class Network:
-    """Street lattice: vertical lines (x = const, index i) and horizontal lines (y = const, index j)."""
+    """Street lattice: vertical lines (x = const, index i) and horizontal lines (y = const, index j), and the
+    warp that bends it into the world."""
 
     xs: list[Line]
     ys: list[Line]
     corner_radius: float
     curb_height: float
+    warp: Warp
 
     def node(self, i: int, j: int) -> np.ndarray:
         return np.array([self.xs[i].position, self.ys[j].position])
@@ -93,17 +183,14 @@ def _positions(rng: np.random.Generator, cfg: StreetConfig, extent: float) -> li
 
 
 def make_network(rng: np.random.Generator, cfg: StreetConfig, extent: float) -> Network:
-    """Random street lattice covering a square of half-size `extent` metres around the origin."""
+    """Random street lattice covering a square of half-size `extent` metres around the origin, and its bends."""
     xs = [_make_line(rng, cfg, p) for p in _positions(rng, cfg, extent)]
     ys = [_make_line(rng, cfg, p) for p in _positions(rng, cfg, extent)]
     radius = float(rng.uniform(*cfg.corner_radius))
     min_sidewalk = min(min(line.sidewalk) for line in xs + ys)
-    return Network(
-        xs,
-        ys,
-        corner_radius=min(radius, 2.5 * min_sidewalk),
-        curb_height=float(rng.uniform(*cfg.curb_height)),
-    )
+    curb_height = float(rng.uniform(*cfg.curb_height))
+    warp = Warp(_make_bend(rng, cfg), _make_bend(rng, cfg))
+    return Network(xs, ys, corner_radius=min(radius, 2.5 * min_sidewalk), curb_height=curb_height, warp=warp)
 
 
 def plan_route(
@@ -186,6 +273,8 @@ def lane_path(
             _curb_distance(line1, h1, o1, turn_right) + _curb_distance(line2, h2, o2, turn_right)
         )
         t_in, t_out = corner - d1 * radius, corner + d2 * radius
+        if not pieces and np.dot(t_in - cursor, d1) < spacing:  # the start lies inside the first turn
+            cursor = t_in - d1 * spacing
         pieces.append(_segment(cursor, t_in, spacing))
         turning.append(np.zeros(len(pieces[-1])))
         normal = _right(h1) if turn_right else -_right(h1)

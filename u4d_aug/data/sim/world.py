@@ -3,6 +3,8 @@
 Everything within `view_radius` of the ego route is built into one labelled triangle mesh (numpy only); the
 ray caster adds it to an open3d RaycastingScene once per sequence. Layout follows a KITTI residential street:
 carriageway, parking strips, curb, sidewalk (sometimes with a grass strip and street trees), then lots.
+Blocks are laid out on the straight lattice and bent into the world by the network's warp as parts are added
+(streets.Warp): long surfaces are tessellated finely enough (<= 2-4 m) to follow the curves.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from u4d_aug.data.sim import objects
 from u4d_aug.data.sim.config import SimConfig
@@ -19,11 +22,14 @@ from u4d_aug.data.sim.geometry import (
     TriangleMesh,
     box,
     concat_meshes,
+    densify,
+    flat_grid,
     grid_surface,
     merge,
     polygon_fan,
     quad,
     sample_reflectivity,
+    strip,
     transform,
     wall_strip,
 )
@@ -33,6 +39,7 @@ from u4d_aug.data.sim.streets import Network
 _SIDE_U = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
 _SIDE_N = np.array([[0.0, 1.0], [-1.0, 0.0], [0.0, -1.0], [1.0, 0.0]])
 MARK_Z, PARK_Z = 0.004, 0.002  # overlays sit a few mm above the carriageway (no coplanar hits)
+STEP = 2.0  # m, longest edge of outlines that the warp bends (curbs, sidewalk edges, markings)
 
 
 @dataclass
@@ -40,9 +47,9 @@ class Block:
     """One city block: curb rectangle, inner (lot) rectangle and the pedestrians' walking loop."""
 
     index: tuple[int, int]
-    curb: tuple[float, float, float, float]  # x0, y0, x1, y1 at the curb line
-    inner: tuple[float, float, float, float]
-    walk_loop: np.ndarray  # (K, 2) closed polyline on the sidewalk, counter-clockwise
+    curb: tuple[float, float, float, float]  # x0, y0, x1, y1 at the curb line, lattice coordinates
+    inner: tuple[float, float, float, float]  # lot rectangle, lattice coordinates
+    walk_loop: np.ndarray  # (K, 2) closed polyline on the sidewalk, counter-clockwise, world coordinates
 
 
 @dataclass
@@ -125,35 +132,36 @@ def _rounded_corners(curb, radius: float, inset: float = 0.0, n: int = 8) -> lis
 
 
 def included_blocks(net: Network, route_xy: np.ndarray, radius: float) -> list[tuple[int, int]]:
-    """Blocks whose area comes within `radius` of the route."""
-    pts = route_xy[:: max(1, len(route_xy) // 2000)]
+    """Blocks whose (warped) area comes within `radius` of the route (K, 2, world coordinates)."""
+    tree = cKDTree(route_xy[:: max(1, len(route_xy) // 2000)])
     out = []
     for i in range(len(net.xs) - 1):
         for j in range(len(net.ys) - 1):
             x0, x1 = net.xs[i].position, net.xs[i + 1].position
             y0, y1 = net.ys[j].position, net.ys[j + 1].position
-            dx = np.maximum(np.maximum(x0 - pts[:, 0], pts[:, 0] - x1), 0.0)
-            dy = np.maximum(np.maximum(y0 - pts[:, 1], pts[:, 1] - y1), 0.0)
-            if np.min(np.hypot(dx, dy)) < radius:
+            outline = densify(np.array([(x0, y0), (x1, y0), (x1, y1), (x0, y1)]), 5.0, closed=True)
+            if np.min(tree.query(net.warp.points(outline))[0]) < radius:
                 out.append((i, j))
     return out
 
 
 def build_world(rng: np.random.Generator, cfg: SimConfig, net: Network, route_xy: np.ndarray) -> World:
-    """Build the static mesh around `route_xy` (K, 2); deterministic given rng."""
+    """Build the static mesh around the ego route `route_xy` (K, 2, world coordinates); deterministic given rng."""
     ids = _Ids()
     height_fn = _terrain_height(rng)
     parts: list[TriangleMesh] = []
     blocks: list[Block] = []
     chosen = included_blocks(net, route_xy, cfg.view_radius)
     for i, j in chosen:
-        mb = MeshBuilder()
+        mb = MeshBuilder(net.warp)
         blocks.append(_block(mb, rng, cfg, net, i, j, ids, height_fn))
         parts.append(mb.build())
-    mb = MeshBuilder()
+    mb = MeshBuilder(net.warp)
     segments = _segments_of(chosen)
     for seg in segments:
+        mb.axis = 0 if seg[0] == "h" else 1
         _segment_markings(mb, rng, cfg, net, seg)
+    mb.axis = None
     xs = [b.curb[0] for b in blocks] + [b.curb[2] for b in blocks]
     ys = [b.curb[1] for b in blocks] + [b.curb[3] for b in blocks]
     _road_plane(mb, rng, (min(xs) - 40, min(ys) - 40, max(xs) + 40, max(ys) + 40))
@@ -181,33 +189,32 @@ def _block(mb, rng, cfg: SimConfig, net: Network, i: int, j: int, ids: _Ids, hei
     curb, inner, sw = block_rects(net, i, j)
     radius = net.corner_radius
     arcs = _rounded_corners(curb, radius)
-    outline = np.concatenate(arcs)
-    mb.add(wall_strip(outline, 0.0, h, closed=True), "sidewalk", "curb", sample_reflectivity(rng, "curb", 1))
     ix0, iy0, ix1, iy1 = inner
     q = [np.array(p) for p in ((ix0, iy0), (ix1, iy0), (ix1, iy1), (ix0, iy1))]
-    ring = []
-    for k in range(4):
-        arc = arcs[k]
-        for m in range(len(arc) - 1):
-            ring.append(_tri(q[k], arc[m], arc[m + 1], h))
-        nxt = arcs[(k + 1) % 4]
-        ring.append(_tri(arc[-1], nxt[0], q[(k + 1) % 4], h))
-        ring.append(_tri(arc[-1], q[(k + 1) % 4], q[k], h))
+    outline, ring = [], []
+    for k in range(4):  # corner arc fanned to the inner corner, then the side as a band to the next corner
+        arc, nxt = arcs[k], arcs[(k + 1) % 4]
+        ring.append(polygon_fan(np.concatenate([q[k][None], arc]), h))
+        n = max(1, int(np.ceil(np.linalg.norm(nxt[0] - arc[-1]) / STEP)))
+        t = np.linspace(0.0, 1.0, n + 1)[:, None]
+        ring.append(strip(arc[-1] + t * (nxt[0] - arc[-1]), q[k] + t * (q[(k + 1) % 4] - q[k]), h))
+        outline += [arc, arc[-1] + t[1:-1] * (nxt[0] - arc[-1])]
+    mb.add(
+        wall_strip(np.concatenate(outline), 0.0, h, closed=True), "sidewalk", "curb", sample_reflectivity(rng, "curb")
+    )
     paving = merge(*ring)
     mb.add(paving, "sidewalk", "paving", sample_reflectivity(rng, "paving", len(paving[1])))
-    base = polygon_fan(np.array(q), h - 0.01)
-    mb.add(base, "terrain", "grass", sample_reflectivity(rng, "grass", 2))
+    base = flat_grid(ix0, ix1, iy0, iy1, h - 0.01, 8.0)
+    mb.add(base, "terrain", "grass", sample_reflectivity(rng, "grass", len(base[1])))
     for side, (line, line_side) in enumerate(block_sides(net, i, j)):
+        mb.axis = side % 2
         _side_strip(mb, rng, cfg, net, curb, side, line, line_side, ids, height_fn)
     _lots(mb, rng, cfg, inner, h, ids, height_fn)
+    mb.axis = None
     ins = [line.grass[s] + 0.6 * (line.sidewalk[s] - line.grass[s]) for line, s in block_sides(net, i, j)]
     walk_rect = (curb[0] + ins[3], curb[1] + ins[0], curb[2] - ins[1], curb[3] - ins[2])
     loop = np.concatenate(_rounded_corners(walk_rect, max(radius - float(np.mean(ins)), 0.5)))
-    return Block((i, j), curb, inner, loop)
-
-
-def _tri(a, b, c, z):
-    return np.array([[a[0], a[1], z], [b[0], b[1], z], [c[0], c[1], z]]), np.array([[0, 1, 2]])
+    return Block((i, j), curb, inner, net.warp.points(densify(loop, STEP, closed=True)))
 
 
 def _side_strip(mb, rng, cfg: SimConfig, net: Network, curb, side, line, line_side, ids, height_fn) -> None:
@@ -281,13 +288,9 @@ def _side_strip(mb, rng, cfg: SimConfig, net: Network, curb, side, line, line_si
     park = line.parking[line_side]
     if park > 0:
         if rng.random() < cfg.street.parking_label_prob:
-            a, b = at(t0, 0.0), at(t1, -park)
-            mb.add(
-                quad(*[(p[0], p[1], PARK_Z) for p in (a, at(t1, 0.0), b, at(t0, -park))]),
-                "parking",
-                "parking",
-                sample_reflectivity(rng, "parking", 2),
-            )
+            ts = np.linspace(t0, t1, max(2, int(np.ceil((t1 - t0) / STEP)) + 1))
+            band = strip(np.array([at(t, 0.0) for t in ts]), np.array([at(t, -park) for t in ts]), PARK_Z)
+            mb.add(band, "parking", "parking", sample_reflectivity(rng, "parking", len(band[1])))
         _parked_vehicles(mb, rng, cfg, lambda t, o: at(t, o), u, t0, t1, park, ids)
 
 
@@ -318,7 +321,13 @@ def _parked_vehicles(mb, rng, cfg: SimConfig, at, u, t0, t1, park, ids: _Ids) ->
 
 
 def _add_mesh(mb: MeshBuilder, mesh: TriangleMesh) -> None:
-    """Add a ready TriangleMesh to a builder part by part (keeps per-triangle attributes)."""
+    """Add a ready TriangleMesh (one object, moved rigidly by a warp) part by part, keeping its attributes."""
+    low, high = mesh.vertices[:, :2].min(axis=0), mesh.vertices[:, :2].max(axis=0)
+    with mb.rigid((low + high) / 2):
+        _add_parts(mb, mesh)
+
+
+def _add_parts(mb: MeshBuilder, mesh: TriangleMesh) -> None:
     for key in np.unique(np.stack([mesh.semantic, mesh.instance, mesh.material]), axis=1).T:
         sel = (mesh.semantic == key[0]) & (mesh.instance == key[1]) & (mesh.material == key[2])
         used, inverse = np.unique(mesh.triangles[sel], return_inverse=True)
@@ -345,10 +354,13 @@ def _segment_markings(mb, rng, cfg: SimConfig, net: Network, seg) -> None:
         return
     c = line.position
 
-    def rect(s0, s1, o0, o1, z=MARK_Z):
-        pts = [(s0, o0), (s1, o0), (s1, o1), (s0, o1)]
-        p = [(s, c + o, z) if kind == "h" else (c + o, s, z) for s, o in pts]
-        return quad(*p)
+    def rect(s0, s1, o0, o1, z=MARK_Z):  # in pieces of <= STEP along the street, so that they bend with it
+        edges = np.linspace(s0, s1, max(1, int(np.ceil(abs(s1 - s0) / STEP))) + 1)
+        pieces = []
+        for a0, a1 in zip(edges[:-1], edges[1:]):
+            pts = [(a0, o0), (a1, o0), (a1, o1), (a0, o1)]
+            pieces.append(quad(*[(s, c + o, z) if kind == "h" else (c + o, s, z) for s, o in pts]))
+        return merge(*pieces)
 
     stripes = []
     median = line.main and rng.random() < cfg.street.median_prob and b - a > 30.0
@@ -359,7 +371,7 @@ def _segment_markings(mb, rng, cfg: SimConfig, net: Network, seg) -> None:
         top = rect(m0, m1, -width / 2, width / 2, h)
         corners = [(m0, -width / 2), (m1, -width / 2), (m1, width / 2), (m0, width / 2)]
         ring = np.array([(s, c + o) if kind == "h" else (c + o, s) for s, o in corners])
-        island = merge(top, wall_strip(ring, 0.0, h, closed=True))
+        island = merge(top, wall_strip(densify(ring, STEP, closed=True), 0.0, h, closed=True))
         mb.add(island, "other-ground", "curb", sample_reflectivity(rng, "curb", len(island[1])))
         for s in np.arange(m0 + 4.0, m1 - 2.0, rng.uniform(7.0, 12.0)):
             xy = (s, c) if kind == "h" else (c, s)
@@ -420,6 +432,7 @@ def _lots(mb, rng, cfg: SimConfig, inner, h, ids: _Ids, height_fn) -> None:
         (3, (ix0, iy1 - depth), iy1 - iy0 - 2 * depth),
     ]
     for side, origin, length in strips:
+        mb.axis = side % 2
         frame = _LotFrame(origin, _SIDE_U[side], _SIDE_N[side])
         u = 0.0
         while length - u > 3.0:
@@ -428,11 +441,12 @@ def _lots(mb, rng, cfg: SimConfig, inner, h, ids: _Ids, height_fn) -> None:
                 width = length - u
             _lot(mb, rng, cfg, frame, u, u + width, depth, h, ids, height_fn, urban, side)
             u += width
+    mb.axis = None
     if ix1 - ix0 > 2 * depth + 2 and iy1 - iy0 > 2 * depth + 2:
         cx0, cy0, cx1, cy1 = ix0 + depth, iy0 + depth, ix1 - depth, iy1 - depth
         v, t = grid_surface(cx0, cx1, cy0, cy1, 6.0, lambda x, y: h + 0.05 + height_fn(x, y))
         mb.add((v, t), "terrain", "grass", sample_reflectivity(rng, "grass", len(t)))
-        for _ in range(int((cx1 - cx0) * (cy1 - cy0) / 120)):
+        for _ in range(int((cx1 - cx0) * (cy1 - cy0) / cfg.lots.courtyard_tree_area)):
             objects.tree(mb, rng, (rng.uniform(cx0, cx1), rng.uniform(cy0, cy1)), h)
 
 
@@ -450,11 +464,11 @@ def _lot(mb, rng, cfg: SimConfig, frame: _LotFrame, u0, u1, depth, h, ids, heigh
         if tessellate:
             v, t = grid_surface(x0, x1, y0, y1, 2.0, lambda x, y: h + 0.05 + height_fn(x, y))
         else:
-            v, t = polygon_fan(np.array([(x0, y0), (x1, y0), (x1, y1), (x0, y1)]), h + 0.005)
+            v, t = flat_grid(x0, x1, y0, y1, h + 0.005)
         mb.add((v, t), label, material, sample_reflectivity(rng, material, len(t)))
 
     if kind == "row":
-        setback = rng.uniform(0.0, 1.5)
+        setback = rng.uniform(*lc.row_setback)
         if setback > 0.2:
             ground("sidewalk", "paving", 0.0, setback)
         bdepth = min(rng.uniform(10.0, 16.0), depth - setback - 0.5)
@@ -493,7 +507,7 @@ def _lot(mb, rng, cfg: SimConfig, frame: _LotFrame, u0, u1, depth, h, ids, heigh
             objects.tree(mb, rng, frame.xy(rng.uniform(u0 + 1, u1 - 1), rng.uniform(2, depth - 1)), h)
         for _ in range(int(width * depth / 15)):
             objects.bush(mb, rng, frame.xy(rng.uniform(u0 + 1, u1 - 1), rng.uniform(1, depth - 1)), h)
-        _front_boundary(mb, rng, frame, u0, u1, h, 1.0)
+        _front_boundary(mb, rng, frame, u0, u1, h, 1.0, lc.hedge_prob)
         return
     commercial = kind == "commercial"
     setback = rng.uniform(*lc.setback) * (1.5 if commercial else 1.0)
@@ -534,21 +548,21 @@ def _lot(mb, rng, cfg: SimConfig, frame: _LotFrame, u0, u1, depth, h, ids, heigh
                 rng.uniform(0.8, 1.8),
             )
     if rng.random() < lc.front_fence_prob:
-        _front_boundary(mb, rng, frame, u0, u1, h, 0.0)
+        _front_boundary(mb, rng, frame, u0, u1, h, 0.0, lc.hedge_prob)
     if yard > 2.0 and rng.random() < lc.shrub_bed_prob:  # planted bed behind the fence line
         depth_bed = rng.uniform(1.2, min(3.0, yard))
         for uu in np.arange(u0 + 0.8, u1 - 0.8, rng.uniform(1.0, 1.6)):
             objects.bush(mb, rng, frame.xy(uu, rng.uniform(0.8, depth_bed)), h, rng.uniform(0.6, 1.2))
 
 
-def _front_boundary(mb, rng, frame: _LotFrame, u0, u1, h, hedge_bias) -> None:
+def _front_boundary(mb, rng, frame: _LotFrame, u0, u1, h, hedge_bias, hedge_prob) -> None:
     """Fence, wall or hedge along the lot front with an entrance gap."""
     gate = rng.uniform(u0 + 1.0, max(u0 + 1.5, u1 - 3.0))
     for a, b in ((u0 + 0.2, gate), (gate + 1.5, u1 - 0.2)):
         if b - a < 0.8:
             continue
         p0, p1 = frame.xy(a, 0.3), frame.xy(b, 0.3)
-        if rng.random() < 0.7 + 0.3 * hedge_bias:
+        if rng.random() < hedge_prob + (1.0 - hedge_prob) * hedge_bias:
             objects.hedge(mb, rng, p0, p1, h)
         else:
             objects.fence(mb, rng, p0, p1, h)

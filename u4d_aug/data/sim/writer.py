@@ -2,9 +2,10 @@
 
 sequences/XX/{velodyne,labels}/NNNNNN.{bin,label}, poses.txt (cam0 frame, SemanticKITTI convention,
 relative to frame 0), calib.txt (KITTI odometry seq-00 calibration), times.txt (0.1 s) and manifest.json
-(seed + resolved config). Sequence k uses np.random.default_rng([seed, k, 0]) for its world and
-[seed, k, 1, frame] per frame, so files do not depend on --workers, and a re-run skips frames whose files
-exist (writes are atomic).
+(seed + resolved config). Sequence k draws its streets and ego route from np.random.default_rng([seed, k, 0, 0]),
+the static world from [seed, k, 0, 1], the agents from [seed, k, 0, 2] and the ray pattern from [seed, k, 0, 3]
+(so a change to, say, vegetation settings keeps the street layout), and frame f from [seed, k, 1, f]; files do
+not depend on --workers, and a re-run skips frames whose files exist (writes are atomic).
 """
 
 from __future__ import annotations
@@ -76,13 +77,13 @@ class SequenceSim:
 
 def build_sequence(seed: int, index: int, frames: int, sensor: Sensor, cfg: SimConfig, nthreads: int = 0):
     """World, ego motion, agents and the static ray-casting scene of sequence `index` (deterministic)."""
-    rng = np.random.default_rng([seed, index, 0])
+    streets, statics, movers, sensing = (np.random.default_rng([seed, index, 0, k]) for k in range(4))
     extent = frames * cfg.agents.ego_speed[1] / cfg.frame_rate + cfg.view_radius + 250.0
-    net = make_network(rng, cfg.street, extent)
-    ego = ego_motion(rng, net, cfg, frames)
-    world = build_world(rng, cfg, net, ego.route_xy)
-    agents = make_agents(rng, world, ego, cfg)
-    pattern = ray_pattern(sensor, cfg.lidar, rng)
+    net = make_network(streets, cfg.street, extent)
+    ego = ego_motion(streets, net, cfg, frames)
+    world = build_world(statics, cfg, net, ego.route_xy)
+    agents = make_agents(movers, world, ego, cfg)
+    pattern = ray_pattern(sensor, cfg.lidar, sensing)
     lidar = LidarSimulator(world.mesh, sensor, cfg.lidar, pattern, nthreads=nthreads)
     return SequenceSim(seed, index, frames, world, ego, agents, lidar, cfg)
 
