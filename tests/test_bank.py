@@ -137,3 +137,123 @@ def test_empty_sample_gets_a_marker_not_a_bin(tmp_path):
     assert layout.is_done(1) and not layout.is_empty(1) and read_kitti_scan(layout.scan_path(1)).shape == (5, 4)
     assert not np.load(layout.mask_path(0)).any()
     assert ScanDataset(tmp_path / "bank", None).entries == [("00", "000001")]  # readers never meet the empty one
+
+
+# ------------------------------------------------------------------------------------------- sequence banks
+
+TINY_MOST = TINY.with_name("tiny_most.yaml")
+
+
+@pytest.fixture(scope="module")
+def sequence_checkpoints(tmp_path_factory) -> dict[str, Path]:
+    """Untrained tiny 2-frame MoST checkpoints (configs/u4d/tiny_most.yaml) of the three stages."""
+    root = tmp_path_factory.mktemp("ckpt_most")
+    paths = {}
+    for stage in ("stage1", "stage2", "baseline"):
+        cfg = load_config(DiffusionTrainConfig, TINY_MOST, [f"diffusion.stage={stage}", f"seed={len(paths)}"])
+        net = build_net(cfg)
+        paths[stage] = root / f"{stage}.pt"
+        atomic_torch_save(paths[stage], checkpoint_state(cfg, 0, net, EMA(net)))
+    return paths
+
+
+def write_posed_world(root: Path, probs_root: Path, num_scans: int = 3) -> np.ndarray:
+    """Scans of one sequence driving along x (2 m per frame) with poses.txt, calib.txt; returns the LiDAR poses."""
+    from u4d_aug.data.formats import write_calib, write_poses
+
+    rng = np.random.default_rng(1)
+    poses = np.tile(np.eye(4), (num_scans, 1, 1))
+    poses[:, 0, 3] = 5.0 + 2.0 * np.arange(num_scans)
+    tr = np.array([[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, -0.1], [1.0, 0.0, 0.0, -0.3]])  # KITTI-like Tr
+    folder = root / "sequences" / "00"
+    for i in range(num_scans):
+        direction = rng.normal(size=(3000, 3))
+        direction[:, 2] = np.abs(direction[:, 2]) * -0.2
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        xyz = direction * rng.uniform(3, 50, (3000, 1))
+        points = np.concatenate([xyz, rng.uniform(0, 1, (3000, 1))], axis=1).astype(np.float32)
+        write_kitti_scan(folder / "velodyne" / f"{i:06d}.bin", points)
+        atomic_save_npy(probs_root / "sequences" / "00" / "probs" / f"{i:06d}.npy", rng.dirichlet(np.ones(5), 3000))
+    write_calib(folder / "calib.txt", {"P0": np.eye(4)[:3], "Tr": tr})
+    write_poses(folder / "poses.txt", poses, calib={"Tr": tr})
+    return poses
+
+
+def test_layout_of_single_frame_and_sequence_banks(tmp_path):
+    single, seq = BankLayout(tmp_path), BankLayout(tmp_path, frames=3)
+    assert single.scan_path(7) == tmp_path / "sequences" / "00" / "velodyne" / "000007.bin"
+    assert seq.scan_path(7, 2) == tmp_path / "sequences" / "07" / "velodyne" / "000002.bin"
+    assert seq.stage1_path(12, 0) == tmp_path / "sequences" / "12" / "stage1" / "000000.npy"
+    assert seq.poses_path(3) == tmp_path / "sequences" / "03" / "poses.txt"
+    with pytest.raises(ValueError, match="frame"):
+        single.scan_path(0, 1)
+    for frame in range(2):
+        write_sample(seq, 0, np.ones((5, 4), np.float32), frame=frame)
+    assert not seq.is_done(0)  # frame 2 is missing
+    write_sample(seq, 0, np.zeros((0, 4), np.float32), frame=2)
+    assert seq.is_done(0) and seq.is_empty(0, 2) and not seq.is_empty(0, 0)
+
+
+def test_u4d_sequence_bank_one_sequence_per_sample(sequence_checkpoints, tmp_path):
+    bank = tmp_path / "bank"
+    manifest = generate_bank(gen_config(sequence_checkpoints, "num=2"), bank, progress=False)
+    assert manifest["frames"] == 2 and manifest["complete"] and manifest["empty"] == []
+    assert [s["sequence"] for s in manifest["samples"]] == ["00", "01"]
+    assert manifest["samples"][1]["files"] == ["sequences/01/velodyne/000000.bin", "sequences/01/velodyne/000001.bin"]
+    layout = BankLayout(bank, frames=2)
+    for i in range(2):
+        for frame in range(2):
+            assert len(read_kitti_scan(layout.scan_path(i, frame))) > 0
+            mask, x0_u = np.load(layout.mask_path(i, frame)), np.load(layout.stage1_path(i, frame))
+            assert mask.shape == (16, 64) and x0_u.shape == (2, 16, 64) and np.all(x0_u[:, ~mask] == -1)
+        assert not layout.poses_path(i).exists()  # generated frames have no poses
+    assert ScanDataset(bank).entries == [("00", "000000"), ("00", "000001"), ("01", "000000"), ("01", "000001")]
+    assert layout.scan_path(0, 0).read_bytes() != layout.scan_path(0, 1).read_bytes()
+
+    again = tmp_path / "again"  # a re-run regenerates an interrupted sample identically
+    generate_bank(gen_config(sequence_checkpoints, "num=2"), again, progress=False)
+    BankLayout(again, 2).scan_path(1, 1).unlink()
+    generate_bank(gen_config(sequence_checkpoints, "num=2"), again, progress=False)
+    assert BankLayout(again, 2).scan_path(1, 1).read_bytes() == layout.scan_path(1, 1).read_bytes()
+
+    baseline = generate_bank(gen_config(sequence_checkpoints, "num=1", "mode=baseline"), tmp_path / "b", progress=False)
+    assert baseline["frames"] == 2 and BankLayout(tmp_path / "b", 2).is_done(0)
+
+
+def test_completion_sequence_bank_keeps_real_poses_for_temporal_metrics(sequence_checkpoints, tmp_path):
+    from u4d_aug.data.formats import read_calib, read_poses
+    from u4d_aug.metrics.evaluate import evaluate
+
+    root, probs_root = tmp_path / "world", tmp_path / "probs"
+    poses = write_posed_world(root, probs_root)
+    cfg = gen_config(sequence_checkpoints, "num=3", "mode=complete", f"data_root={root}", f"probs_root={probs_root}")
+    bank = tmp_path / "bank"
+    manifest = generate_bank(cfg, bank, progress=False)
+    assert [s["source"] for s in manifest["samples"]] == [
+        ["00/000000", "00/000001"], ["00/000001", "00/000002"], ["00/000000", "00/000001"]
+    ]  # fmt: skip
+    layout = BankLayout(bank, frames=2)
+    for i, start in enumerate([0, 1, 0]):
+        folder = layout.sequence_dir(i)
+        np.testing.assert_allclose(read_calib(folder / "calib.txt")["Tr"], np.eye(4)[:3])
+        relative = np.linalg.inv(poses[start]) @ poses[start : start + 2]
+        np.testing.assert_allclose(read_poses(folder / "poses.txt", read_calib(folder / "calib.txt")), relative)
+        assert np.load(layout.mask_path(i, 1)).any() and np.load(layout.uncertainty_path(i, 1)).shape == (16, 64)
+    assert np.array_equal(np.load(layout.mask_path(0, 1)), np.load(layout.mask_path(2, 1)))  # same source
+    table = evaluate(bank, bank, metrics=("ctc",))["table2"]["bank"]
+    assert table["sequences"] == ["00", "01", "02"] and table["ctc_pairs"]["1"] == 3
+    assert table["ctc"]["1"] is not None and table["ctc"]["1"] > 0
+
+
+def test_frames_override_any_length_and_no_mixing_of_layouts(checkpoints, sequence_checkpoints, tmp_path):
+    """The temporal convs slide along L: a 2-frame generator makes 3-frame sequences, a single-frame one too."""
+    longer = generate_bank(gen_config(sequence_checkpoints, "num=1", "frames=3"), tmp_path / "l3", progress=False)
+    assert longer["frames"] == 3 and BankLayout(tmp_path / "l3", 3).is_done(0)
+    independent = generate_bank(
+        gen_config(checkpoints, "num=1", "mode=baseline", "frames=2"), tmp_path / "ind", progress=False
+    )
+    assert independent["frames"] == 2 and BankLayout(tmp_path / "ind", 2).is_done(0)
+    with pytest.raises(InputError, match="2-frame"):
+        generate_bank(gen_config(checkpoints, "num=1", "mode=baseline"), tmp_path / "ind", progress=False)
+    with pytest.raises(InputError, match="frames"):
+        gen_config(checkpoints, "frames=0")

@@ -34,7 +34,7 @@ def oracle(x0: torch.Tensor):
     return denoise
 
 
-def random_net() -> RangeUNet:
+def random_net(most: bool = False) -> RangeUNet:
     cfg = UNetConfig(
         base_channels=8,
         channel_multipliers=(1, 2),
@@ -43,6 +43,7 @@ def random_net() -> RangeUNet:
         fourier_features=False,
         gn_groups=4,
         mask_head=True,
+        most=most,
     )
     net = RangeUNet(cfg)
     generator = torch.Generator().manual_seed(0)

@@ -162,3 +162,59 @@ def test_stage2_overfits_one_scan(tmp_path):
     error = float((trained[0] - item["x0"]).abs().mean())
     error_untrained = float((untrained[0] - item["x0"]).abs().mean())
     assert error < 0.5 * error_untrained, (error, error_untrained)
+
+
+TINY_MOST = TINY.with_name("tiny_most.yaml")
+
+
+def tiny_most_config(world: tuple[Path, Path], out: Path, stage: str, *extra: str) -> DiffusionTrainConfig:
+    overrides = [f"data_root={world[0]}", f"probs_root={world[1]}", f"out={out}", f"diffusion.stage={stage}", *extra]
+    return load_config(DiffusionTrainConfig, TINY_MOST, overrides)
+
+
+def test_frames_items_are_windows_of_one_sequence(tiny_world, tmp_path):
+    from u4d_aug.train import RangeImages
+
+    images = RangeImages(tiny_most_config(tiny_world, tmp_path / "x", "stage2"))
+    assert len(images) == 2  # 3 scans -> windows (0, 1), (1, 2)
+    assert images.window(1) == ("00", ["000001", "000002"])
+    item = images[1]
+    assert item["x0"].shape == (2, 2, 16, 64) and item["x0_u"].shape == (2, 2, 16, 64)
+    assert item["m_u"].shape == (2, 1, 16, 64)
+    single = RangeImages(tiny_config(tiny_world, tmp_path / "y", "stage2"))
+    assert torch.equal(item["x0"][0], single[1]["x0"]) and torch.equal(item["m_u"][1], single[2]["m_u"])
+    strided = RangeImages(tiny_most_config(tiny_world, tmp_path / "z", "baseline", "frame_stride=2"))
+    assert len(strided) == 1 and strided.window(0) == ("00", ["000000", "000002"])
+    with pytest.raises(InputError, match="window"):
+        RangeImages(tiny_most_config(tiny_world, tmp_path / "w", "baseline", "frames=4"))
+    with pytest.raises(InputError, match="frames"):
+        tiny_most_config(tiny_world, tmp_path / "v", "baseline", "frames=0")
+
+
+def test_frames_training_logs_gates_and_resumes_exactly(tiny_world, tmp_path):
+    full = tiny_most_config(tiny_world, tmp_path / "full", "stage2", "sample_every=4")
+    record = train(full, progress=False)
+    assert record["step"] == 4 and np.isfinite(record["loss"]) and record["most_cv"] >= 0
+    assert record["most_blocks"] == ["enc0", "enc1", "mid", "dec1", "dec0"]
+    alpha_s, alpha_t = np.array(record["most_alpha_s"]), np.array(record["most_alpha_t"])
+    assert alpha_s.shape == (5,) and np.all((alpha_s > 0) & (alpha_s < 1))
+    np.testing.assert_allclose(alpha_s + alpha_t, 1.0, atol=2e-4)  # rounded to 4 decimals
+    assert (tmp_path / "full" / "samples" / "step_0000004.png").is_file()
+    assert (tmp_path / "full" / "samples" / "gates_0000004.png").is_file()
+    ckpt = torch.load(tmp_path / "full" / "checkpoints" / "step_0000004.pt", weights_only=False)
+    assert ckpt["config"]["frames"] == 2 and ckpt["config"]["net"]["most"] is True
+    assert any(name.startswith("most_") for name in ckpt["model"])
+
+    train(tiny_most_config(tiny_world, tmp_path / "part", "stage2", "steps=2"), progress=False)
+    resumed = train(tiny_most_config(tiny_world, tmp_path / "part", "stage2"), resume="last", progress=False)
+    assert resumed["step"] == 4 and resumed["loss"] == record["loss"]
+    assert resumed["most_alpha_t"] == record["most_alpha_t"]
+    b = torch.load(tmp_path / "part" / "checkpoints" / "step_0000004.pt", weights_only=False)
+    for name, value in ckpt["model"].items():
+        torch.testing.assert_close(b["model"][name], value)
+
+
+def test_frames_without_most_train_frames_independently(tiny_world, tmp_path):
+    cfg = tiny_most_config(tiny_world, tmp_path / "plain", "baseline", "net.most=false", "steps=2")
+    record = train(cfg, progress=False)
+    assert record["step"] == 2 and "most_cv" not in record and "most_alpha_s" not in record

@@ -153,3 +153,22 @@ def test_config_loads_from_overrides_and_round_trips():
     cfg = load_config(UNetConfig, overrides=["num_res_blocks=3", "channel_multipliers=[1, 2]", "mask_head=true"])
     assert cfg.num_res_blocks == (3, 3) and cfg.mask_head
     assert config_from_dict(UNetConfig, config_to_dict(cfg)) == cfg
+
+
+def test_golden_output_without_most_and_no_most_modules():
+    """Numbers recorded before the MoST blocks were added: a net with most=False computes what it did then."""
+    torch.manual_seed(0)
+    cfg = tiny(mask_head=True, cond_channels=3, fourier_features=True, num_res_blocks=2)
+    net = RangeUNet(cfg, *angles())
+    generator = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(torch.randn(p.shape, generator=generator) * 0.2)
+        x_t = torch.randn(2, 3, 2, H, W, generator=generator)
+        cond = torch.randn(2, 3, 3, H, W, generator=generator)
+        eps, logits = net.train()(x_t, torch.tensor([-1.0, 2.0]), cond)
+    assert float(eps.double().abs().mean()) == pytest.approx(0.7960736616779513, rel=1e-5)
+    assert float(eps[0, 1, 0, 3, 5]) == pytest.approx(-0.3852289319038391, rel=1e-4)
+    assert float(logits.double().mean()) == pytest.approx(-1.1508832460950014, rel=1e-5)
+    assert net.most_names == [] and net.gate_weights().shape == (0, 2) and float(net.most_aux_loss()) == 0.0
+    assert not any("most" in name for name in net.state_dict())

@@ -9,6 +9,12 @@ BANK/sequences/00/empty/NNNNNN         marker of a sample with no return at all 
                                         readers reject empty scans, and consumers should not see one)
 BANK/manifest.json                      config, per-sample seeds, checkpoint sha256[:16], empty samples, completion
 The .npy side files are written before the .bin (or marker), so its presence means the sample is complete.
+
+Sequence banks (generators trained on L > 1 frames) hold one sequence per sample: sample i is
+BANK/sequences/NN/ (NN = i as %02d) with the same side folders and frames 000000 .. L-1 in velodyne/, so any
+SemanticKITTI reader sees L consecutive scans. Completion-mode sequences also get poses.txt (the real frames'
+poses relative to the first) and calib.txt with an identity Tr, which TTCE/CTC (`u4d evaluate`) read; generated
+sequences have no poses. Poses are written before the frames, and a sample is complete when all L frames are.
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from u4d_aug.data.formats import write_kitti_scan
+from u4d_aug.data.formats import write_calib, write_kitti_scan, write_poses
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_save_npy, atomic_write_bytes, atomic_write_json
 
@@ -29,41 +35,64 @@ BANK_SEQUENCE = "00"
 MANIFEST = "manifest.json"
 
 
+def sequence_name(index: int) -> str:
+    """Sequence folder of sample `index` of a sequence bank ('00', '01', ..., '99', '100', ...)."""
+    return f"{index:02d}"
+
+
 @dataclass(frozen=True)
 class BankLayout:
-    """Paths of sample i of a bank rooted at `root`."""
+    """Paths of frame f of sample i of a bank rooted at `root`: scan i of sequence 00 when frames = 1, frame f
+    of sequence `sequence_name(i)` when frames = L > 1."""
 
     root: Path
+    frames: int = 1
 
-    @property
-    def sequence_dir(self) -> Path:
-        return Path(self.root) / "sequences" / BANK_SEQUENCE
+    def __post_init__(self) -> None:
+        if self.frames < 1:
+            raise ValueError(f"BankLayout: frames must be >= 1, got {self.frames}")
+
+    def sequence_dir(self, index: int = 0) -> Path:
+        name = BANK_SEQUENCE if self.frames == 1 else sequence_name(index)
+        return Path(self.root) / "sequences" / name
 
     @property
     def manifest_path(self) -> Path:
         return Path(self.root) / MANIFEST
 
-    def scan_path(self, index: int) -> Path:
-        return self.sequence_dir / "velodyne" / f"{index:06d}.bin"
+    def _file(self, folder: str, index: int, frame: int, suffix: str) -> Path:
+        if not 0 <= frame < self.frames:
+            raise ValueError(f"BankLayout: frame {frame} outside 0..{self.frames - 1}")
+        number = index if self.frames == 1 else frame
+        return self.sequence_dir(index) / folder / f"{number:06d}{suffix}"
 
-    def mask_path(self, index: int) -> Path:
-        return self.sequence_dir / "mask" / f"{index:06d}.npy"
+    def scan_path(self, index: int, frame: int = 0) -> Path:
+        return self._file("velodyne", index, frame, ".bin")
 
-    def uncertainty_path(self, index: int) -> Path:
-        return self.sequence_dir / "uncertainty" / f"{index:06d}.npy"
+    def mask_path(self, index: int, frame: int = 0) -> Path:
+        return self._file("mask", index, frame, ".npy")
 
-    def empty_path(self, index: int) -> Path:
-        return self.sequence_dir / "empty" / f"{index:06d}"
+    def uncertainty_path(self, index: int, frame: int = 0) -> Path:
+        return self._file("uncertainty", index, frame, ".npy")
 
-    def stage1_path(self, index: int) -> Path:
-        return self.sequence_dir / "stage1" / f"{index:06d}.npy"
+    def empty_path(self, index: int, frame: int = 0) -> Path:
+        return self._file("empty", index, frame, "")
 
-    def is_empty(self, index: int) -> bool:
-        return self.empty_path(index).is_file()
+    def stage1_path(self, index: int, frame: int = 0) -> Path:
+        return self._file("stage1", index, frame, ".npy")
+
+    def poses_path(self, index: int) -> Path:
+        return self.sequence_dir(index) / "poses.txt"
+
+    def calib_path(self, index: int) -> Path:
+        return self.sequence_dir(index) / "calib.txt"
+
+    def is_empty(self, index: int, frame: int = 0) -> bool:
+        return self.empty_path(index, frame).is_file()
 
     def is_done(self, index: int) -> bool:
-        """The .bin (or the empty marker) is written last: its presence means every file of the sample is there."""
-        return self.scan_path(index).is_file() or self.is_empty(index)
+        """Each frame's .bin (or empty marker) is written last: all present means every file of the sample is."""
+        return all(self.scan_path(index, f).is_file() or self.is_empty(index, f) for f in range(self.frames))
 
 
 def file_sha256(path: str | Path, length: int = 16) -> str:
@@ -82,18 +111,29 @@ def write_sample(
     mask: np.ndarray | None = None,
     uncertainty: np.ndarray | None = None,
     x0_u: np.ndarray | None = None,
+    frame: int = 0,
 ) -> None:
-    """Write sample `index`: side files first, the scan last (an empty scan as a marker instead of a .bin)."""
+    """Write frame `frame` of sample `index`: side files first, the scan last (an empty scan as a marker)."""
     if mask is not None:
-        atomic_save_npy(layout.mask_path(index), np.asarray(mask, dtype=bool))
+        atomic_save_npy(layout.mask_path(index, frame), np.asarray(mask, dtype=bool))
     if uncertainty is not None:
-        atomic_save_npy(layout.uncertainty_path(index), np.asarray(uncertainty, dtype=np.float16))
+        atomic_save_npy(layout.uncertainty_path(index, frame), np.asarray(uncertainty, dtype=np.float16))
     if x0_u is not None:
-        atomic_save_npy(layout.stage1_path(index), np.asarray(x0_u, dtype=np.float16))
+        atomic_save_npy(layout.stage1_path(index, frame), np.asarray(x0_u, dtype=np.float16))
     if len(points) == 0:
-        atomic_write_bytes(layout.empty_path(index), b"0 points\n")
+        atomic_write_bytes(layout.empty_path(index, frame), b"0 points\n")
     else:
-        write_kitti_scan(layout.scan_path(index), np.asarray(points, dtype=np.float32))
+        write_kitti_scan(layout.scan_path(index, frame), np.asarray(points, dtype=np.float32))
+
+
+def write_sequence_poses(layout: BankLayout, index: int, poses: np.ndarray) -> None:
+    """calib.txt (identity Tr and P0-P3 = [I | 0]) and poses.txt of the (L, 4, 4) LiDAR poses of sample `index`."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if layout.frames == 1 or poses.shape != (layout.frames, 4, 4):
+        raise ValueError(f"write_sequence_poses: expected ({layout.frames}, 4, 4) poses of a sequence bank")
+    identity = np.eye(4)[:3]  # (3, 4)
+    write_calib(layout.calib_path(index), {key: identity for key in ("P0", "P1", "P2", "P3", "Tr")})
+    write_poses(layout.poses_path(index), poses)  # with Tr = I the LiDAR poses are the cam0 poses
 
 
 def read_manifest(root: str | Path) -> dict[str, Any] | None:

@@ -56,6 +56,7 @@ class DiffusionConfig:
     min_snr_gamma: float | None = 5.0  # None turns Min-SNR weighting off
     mask_weight: float = 1.0  # λ of L_u = ε-MSE + λ · BCE(m_u, m_p) (stage 1 only)
     mask_pos_weight: float = 1.0  # BCE weight of positive (uncertain) pixels; m_u is sparse
+    most_cv_weight: float = 0.01  # weight of Σ CV² of the MoST gate importances (nets with net.most only)
 
     def __post_init__(self) -> None:
         if self.stage not in ("stage1", "stage2", "baseline"):
@@ -64,6 +65,8 @@ class DiffusionConfig:
             raise InputError(f"diffusion.min_snr_gamma must be > 0 or null, got {self.min_snr_gamma}")
         if self.mask_weight < 0 or self.mask_pos_weight <= 0:
             raise InputError("diffusion.mask_weight must be >= 0 and diffusion.mask_pos_weight > 0")
+        if self.most_cv_weight < 0:
+            raise InputError(f"diffusion.most_cv_weight must be >= 0, got {self.most_cv_weight}")
 
 
 def stage_cond(x0_u: Tensor, m_u: Tensor) -> Tensor:
@@ -79,6 +82,7 @@ class GaussianDiffusion(nn.Module):
         self.net = net
         self.cfg = cfg
         net_cfg = getattr(net, "cfg", None)
+        self.most = bool(getattr(net_cfg, "most", False))  # the net has MoST blocks: gate noise and the CV term
         if net_cfg is not None:  # catch a net built for another stage before the first step, not at step 1
             want_mask = cfg.stage == "stage1"
             want_cond = 3 if cfg.stage == "stage2" else 0
@@ -102,8 +106,9 @@ class GaussianDiffusion(nn.Module):
         stage1: x0 is x0_u, m_u (B, [L,] 1, H, W) is the BCE target; the net sees only x_t.
         stage2: x0 is the full scan, cond is x0_u and m_u its mask; the net sees concat(x_t, x0_u, m_u).
         baseline: x0 is the full scan, no condition.
-        Returns {"loss": total (with grad), "eps_mse": weighted ε term, "mask_bce": BCE (stage 1)}.
-        t and ε are drawn from `generator` (torch's default generator if None).
+        Returns {"loss": total (with grad), "eps_mse": weighted ε term, "mask_bce": BCE (stage 1),
+        "most_cv": Σ CV² of the MoST gate importances (nets with MoST; weighted by most_cv_weight in "loss")}.
+        t, ε and the MoST gate noise are drawn from `generator` (torch's default generator if None).
         """
         stage = self.cfg.stage
         net_cond = None
@@ -127,7 +132,10 @@ class GaussianDiffusion(nn.Module):
         alpha, sigma = alpha_sigma(lam.view(batch, *([1] * (x0.dim() - 1))))
         x_t = alpha * x0 + sigma * eps
 
-        eps_pred, mask_logits = self.net(x_t, lam, net_cond)
+        if self.most:
+            eps_pred, mask_logits = self.net(x_t, lam, net_cond, generator=generator)
+        else:
+            eps_pred, mask_logits = self.net(x_t, lam, net_cond)
         mse = (eps_pred.float() - eps.float()).square().flatten(1).mean(dim=1)  # (B,)
         eps_loss = (min_snr_weight(lam, self.cfg.min_snr_gamma) * mse).mean()
         losses = {"eps_mse": eps_loss}
@@ -141,6 +149,10 @@ class GaussianDiffusion(nn.Module):
             )
             losses["mask_bce"] = bce
             loss = loss + self.cfg.mask_weight * bce
+        if self.most:
+            cv = self.net.most_aux_loss()  # Shazeer et al. (2017) importance loss, summed over the MoST blocks
+            losses["most_cv"] = cv
+            loss = loss + self.cfg.most_cv_weight * cv
         losses = {k: v.detach() for k, v in losses.items()}
         losses["loss"] = loss
         return losses

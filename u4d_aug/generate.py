@@ -2,7 +2,9 @@
 
 Writes a bank of generated scans (layout in `u4d_aug.bank`). Sample i is drawn with its own generator seeded
 seed + i, so a bank does not depend on the number of torchrun ranks that share the work (rank r takes samples
-r, r + world, ...); finished samples are skipped on a re-run.
+r, r + world, ...); finished samples are skipped on a re-run. A generator trained on L > 1 frames writes each
+sample as an L-frame sequence (one bank sequence per sample); in completion mode sample i then completes the
+x0_u of window i of L real frames and keeps those frames' relative poses.
 """
 
 from __future__ import annotations
@@ -17,9 +19,18 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from u4d_aug.bank import BankLayout, check_compatible, file_sha256, read_manifest, write_manifest, write_sample
+from u4d_aug.bank import (
+    BankLayout,
+    check_compatible,
+    file_sha256,
+    read_manifest,
+    sequence_name,
+    write_manifest,
+    write_sample,
+    write_sequence_poses,
+)
 from u4d_aug.config import config_to_dict, load_config
-from u4d_aug.data.datasets import ScanDataset
+from u4d_aug.data.datasets import ScanDataset, SequenceDataset
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.distributed import barrier, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError
@@ -43,8 +54,10 @@ class GenerateConfig:
     stage1_steps: int | None = None  # None = steps; the uncertain region allows fewer
     num: int = 64
     seed: int = 0  # sample i uses seed + i
+    frames: int | None = None  # L frames per sample; None = the L the generator was trained with (1: scans)
     device: str = "auto"
-    # completion mode: x0_u, m_u from these real scans (sample i completes scan i mod count) and their probs
+    # completion mode: x0_u, m_u from these real scans (sample i completes scan i mod count, or for sequence
+    # generators window i mod count of L frames, frame_stride apart as in training, with poses) and their probs
     data_root: str = ""
     sequences: list[str] | None = None
     probs_root: str = ""
@@ -52,6 +65,8 @@ class GenerateConfig:
     def __post_init__(self) -> None:
         if self.num < 0 or self.steps < 1 or (self.stage1_steps is not None and self.stage1_steps < 1):
             raise InputError(f"num must be >= 0 and steps >= 1, got num={self.num}, steps={self.steps}")
+        if self.frames is not None and self.frames < 1:
+            raise InputError(f"frames must be >= 1 or null (the generator's own), got {self.frames}")
 
 
 def _checkpoint_paths(cfg: GenerateConfig) -> dict[str, Path]:
@@ -76,7 +91,6 @@ def _checkpoint_paths(cfg: GenerateConfig) -> dict[str, Path]:
 def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -> dict:
     """Generate samples 0..num-1 not yet in the bank (this rank's share); rank 0 writes the manifest."""
     info = init_distributed(cfg.device)
-    layout = BankLayout(Path(out))
     paths = _checkpoint_paths(cfg)
     hashes = {name: file_sha256(path) for name, path in paths.items()}
     config = config_to_dict(cfg)
@@ -84,16 +98,30 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
                 "sampling": {k: config[k] for k in ("sampler", "steps", "stage1_steps")}}  # fmt: skip
     if cfg.mode == "complete":
         identity["source"] = {k: config[k] for k in ("data_root", "sequences", "probs_root")}
-    check_compatible(layout.root, identity)
+    check_compatible(Path(out), identity)
     nets = {name: load_generator(path, info.device) for name, path in paths.items()}
     main = nets["stage2"] if "stage2" in nets else nets["baseline"]
     sensor = get_sensor(main[1].sensor)
+    frames = cfg.frames or main[1].frames  # L: 1 = single scans in sequence 00, > 1 = one sequence per sample
+    layout = BankLayout(Path(out), frames)
+    old = read_manifest(layout.root)
+    if old is not None and old.get("frames", 1) != frames:
+        raise InputError(
+            f"{layout.manifest_path}: bank holds {old.get('frames', 1)}-frame samples, asked for {frames}; "
+            "choose another --out or delete the bank"
+        )
 
-    scans = None
+    scans: ScanDataset | SequenceDataset | None = None
     if cfg.mode == "complete":
         if not cfg.data_root:
             raise InputError("data_root: completion mode needs real scans to take x0_u from")
-        scans = ScanDataset(cfg.data_root, cfg.sequences)
+        if frames == 1:
+            scans = ScanDataset(cfg.data_root, cfg.sequences)
+        else:
+            try:
+                scans = SequenceDataset(cfg.data_root, frames, cfg.sequences, main[1].frame_stride, with_poses=True)
+            except InputError as exc:
+                raise InputError(f"completion mode writes the real frames' poses with each sequence: {exc}") from None
         if len(scans) == 0:
             raise InputError(f"{cfg.data_root}: no scans found")
 
@@ -105,10 +133,10 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
         "height": main[1].height,
         "width": main[1].width,
         "row_mode": main[1].row_mode,
-        "samples": [_sample_entry(cfg, i, scans) for i in range(cfg.num)],
+        "frames": frames,
+        "samples": [_sample_entry(cfg, i, scans, frames) for i in range(cfg.num)],
         "complete": False,
     }
-    old = read_manifest(layout.root)
     if old is not None and len(old.get("samples", [])) > cfg.num:
         manifest["samples"] = old["samples"]  # a re-run asking for fewer samples keeps the larger listing
     if info.is_main:
@@ -117,41 +145,71 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
     todo = [i for i in shard(list(range(cfg.num)), info.rank, info.world_size) if not layout.is_done(i)]
     for i in tqdm(todo, disable=not (progress and info.is_main), desc=f"generate {cfg.mode}"):
         generator = torch.Generator().manual_seed(cfg.seed + i)
-        mask = uncertainty = x0_u = None
+        masks = uncertainty = x0_u = None  # per frame: (L, H, W), (L, H, W), (L, 2, H, W)
         if cfg.mode == "u4d":
             result = generate_u4d(
-                nets["stage1"], nets["stage2"], 1, cfg.steps, generator, cfg.sampler, cfg.stage1_steps
+                nets["stage1"], nets["stage2"], 1, cfg.steps, generator, cfg.sampler, cfg.stage1_steps, frames
             )
-            mask, x0_u = result["m_u_pred"][0, 0].cpu().numpy(), result["x0_u"][0].cpu().numpy()
+            masks, x0_u = _per_frame(result["m_u_pred"])[:, 0], _per_frame(result["x0_u"])
         elif cfg.mode == "baseline":
-            result = generate_baseline(nets["baseline"], 1, cfg.steps, generator, cfg.sampler)
+            result = generate_baseline(nets["baseline"], 1, cfg.steps, generator, cfg.sampler, frames)
         else:
-            x0_u, m_u, entropy_image = _real_condition(scans, i, main[1], cfg.probs_root, generator)
-            result = complete(nets["stage2"], x0_u[None], m_u[None], cfg.steps, generator, cfg.sampler)
-            mask, uncertainty, x0_u = m_u[0].numpy(), entropy_image.numpy(), x0_u.numpy()
-        (points,) = to_points(result["x0"], sensor, main[1].row_mode)
-        write_sample(layout, i, points, mask, uncertainty, x0_u)
+            item = scans[i % len(scans)]
+            if frames == 1:
+                item = {"points": [item["points"]], "seq": item["seq"], "frames": [item["frame"]], "poses": None}
+            conditions = [
+                _real_condition(points, item["seq"], frame, main[1], cfg.probs_root, generator)
+                for points, frame in zip(item["points"], item["frames"])
+            ]
+            x0_u, m_u, entropy_image = (torch.stack(parts) for parts in zip(*conditions))  # (L, C, H, W), (L, H, W)
+            if frames > 1:
+                x0_u, m_u = x0_u[None], m_u[None]  # one L-frame sequence
+                write_sequence_poses(layout, i, item["poses"])
+            result = complete(nets["stage2"], x0_u, m_u, cfg.steps, generator, cfg.sampler)
+            masks, uncertainty, x0_u = _per_frame(m_u)[:, 0], entropy_image.numpy(), _per_frame(x0_u)
+        clouds = to_points(result["x0"], sensor, main[1].row_mode)  # L point clouds, frames in order
+        for frame, points in enumerate(clouds):
+            side = [None if part is None else part[frame] for part in (masks, uncertainty, x0_u)]
+            write_sample(layout, i, points, *side, frame=frame)
 
     barrier()
     if info.is_main:
         manifest["complete"] = all(layout.is_done(i) for i in range(cfg.num))
-        manifest["empty"] = [i for i in range(cfg.num) if layout.is_empty(i)]
+        if frames == 1:
+            manifest["empty"] = [i for i in range(cfg.num) if layout.is_empty(i)]
+        else:  # [sample, frame] pairs
+            manifest["empty"] = [[i, f] for i in range(cfg.num) for f in range(frames) if layout.is_empty(i, f)]
         write_manifest(layout.root, manifest)
     return manifest
 
 
-def _sample_entry(cfg: GenerateConfig, index: int, scans: ScanDataset | None) -> dict:
-    entry: dict = {"index": index, "seed": cfg.seed + index, "file": f"sequences/00/velodyne/{index:06d}.bin"}
-    if scans is not None:
+def _per_frame(images: torch.Tensor) -> np.ndarray:
+    """Images of one sample, (1, [L,] C, H, W) or (L, C, H, W) -> (L, C, H, W) numpy."""
+    return images.detach().cpu().reshape(-1, *images.shape[-3:]).numpy()
+
+
+def _sample_entry(cfg: GenerateConfig, index: int, scans: ScanDataset | SequenceDataset | None, frames: int) -> dict:
+    entry: dict = {"index": index, "seed": cfg.seed + index}
+    if frames == 1:
+        entry["file"] = f"sequences/00/velodyne/{index:06d}.bin"
+    else:
+        entry["sequence"] = sequence_name(index)
+        entry["files"] = [f"sequences/{sequence_name(index)}/velodyne/{f:06d}.bin" for f in range(frames)]
+    if isinstance(scans, ScanDataset):
         seq, frame = scans.entries[index % len(scans)]
         entry["source"] = f"{seq}/{frame}"
+    elif isinstance(scans, SequenceDataset):
+        seq, start = scans.windows[index % len(scans)]
+        names = scans.frames[seq][start : start + frames * scans.stride : scans.stride]
+        entry["source"] = [f"{seq}/{name}" for name in names]
     return entry
 
 
-def _real_condition(scans: ScanDataset, index: int, train_cfg: DiffusionTrainConfig, probs_root: str, generator):
-    """x0_u (2, H, W), m_u (1, H, W), entropy image (H, W) of real scan index mod count, as stage 2 was trained."""
-    item = scans[index % len(scans)]
-    points = torch.from_numpy(item["points"])
+def _real_condition(
+    points: np.ndarray, seq: str, frame: str, train_cfg: DiffusionTrainConfig, probs_root: str, generator
+):
+    """x0_u (2, H, W), m_u (1, H, W), entropy image (H, W) of one real scan, as stage 2 was trained."""
+    points = torch.from_numpy(points)
     strategy = train_cfg.uncertainty.strategy
     if strategy == "none":
         probs = np.zeros((points.shape[0], 1), dtype=np.float32)
@@ -159,7 +217,7 @@ def _real_condition(scans: ScanDataset, index: int, train_cfg: DiffusionTrainCon
         root = probs_root or train_cfg.probs_root
         if not root:
             raise InputError("probs_root: completion mode needs the probability files of the real scans")
-        probs = load_probs(probs_path(root, item["seq"], item["frame"]), points.shape[0])
+        probs = load_probs(probs_path(root, seq, frame), points.shape[0])
     sensor = get_sensor(train_cfg.sensor)
     return uncertain_range_view(
         points, probs, sensor, train_cfg.height, train_cfg.width, train_cfg.row_mode,

@@ -3,6 +3,9 @@
 U4D (paper §2): x0_u ~ stage 1 with its mask head deciding which pixels are returns, then x0 ~ stage 2 given
 concat(x0_u, m_u). Completion mode takes x0_u, m_u from real scans (so the frames keep those scans' poses).
 The baseline is R2DM's single unconditional stage. Nets are loaded with their EMA weights.
+A net trained with `frames` = L > 1 generates L-frame sequences at once: tensors (n, L, C, H, W) instead of
+(n, C, H, W) (its MoST blocks, if any, mix the frames). `frames=` asks for another length: the temporal convs
+slide along L, so any L works, and a single-frame net then makes L independent frames.
 """
 
 from __future__ import annotations
@@ -48,12 +51,22 @@ def _check_stage(loaded: Loaded, stage: str, role: str) -> None:
         raise InputError(f"{role}: expected a {stage} checkpoint, got {loaded[1].diffusion.stage}")
 
 
+def _batch_shape(n: int, frames: int) -> tuple[int, ...]:
+    """(n,) for single scans, (n, L) for L-frame sequences."""
+    return (n,) if frames == 1 else (n, frames)
+
+
 def _sample(
-    loaded: Loaded, n: int, steps: int, generator: torch.Generator, cond: Tensor | None, sampler: Sampler
+    loaded: Loaded,
+    batch_shape: tuple[int, ...],
+    steps: int,
+    generator: torch.Generator,
+    cond: Tensor | None,
+    sampler: Sampler,
 ) -> Sample:
     net, cfg = loaded
     device = next(net.parameters()).device
-    shape = (n, cfg.net.in_channels, cfg.height, cfg.width)
+    shape = (*batch_shape, cfg.net.in_channels, cfg.height, cfg.width)
     if sampler == "ddim":
         return ddim_sample(net, shape, steps, generator, cond=cond, device=device)
     if sampler == "ddpm":
@@ -62,12 +75,20 @@ def _sample(
 
 
 def generate_stage1(
-    stage1: Loaded, n: int, steps: int, generator: torch.Generator, sampler: Sampler = "ddim"
+    stage1: Loaded,
+    n: int,
+    steps: int,
+    generator: torch.Generator,
+    sampler: Sampler = "ddim",
+    frames: int | None = None,
 ) -> dict[str, Tensor]:
-    """x0_u (n, 2, H, W) from stage 1: pixels whose mask logit gives sigmoid > 0.5 are returns, others −1."""
+    """x0_u (n, [L,] 2, H, W) from stage 1: pixels whose mask logit gives sigmoid > 0.5 are returns, others −1.
+
+    `frames` = L (None: the L stage 1 was trained with; a single-frame net makes L independent frames).
+    """
     _check_stage(stage1, "stage1", "stage 1")
-    sample = _sample(stage1, n, steps, generator, None, sampler)
-    m_u = (torch.sigmoid(sample.extra) > 0.5).float()  # (n, 1, H, W) predicted m_p of the last step
+    sample = _sample(stage1, _batch_shape(n, frames or stage1[1].frames), steps, generator, None, sampler)
+    m_u = (torch.sigmoid(sample.extra) > 0.5).float()  # (n, [L,] 1, H, W) predicted m_p of the last step
     x0_u = torch.where(m_u.bool(), sample.x0, torch.full_like(sample.x0, -1.0))
     return {"x0_u": x0_u, "m_u_pred": m_u}
 
@@ -80,17 +101,21 @@ def complete(
     generator: torch.Generator,
     sampler: Sampler = "ddim",
 ) -> dict[str, Tensor]:
-    """Stage 2: x0 (B, 2, H, W) ~ p(x0 | x0_u (B, 2, H, W), m_u (B, 1, H, W)), e.g. x0_u from real scans."""
+    """Stage 2: x0 (B, [L,] 2, H, W) ~ p(x0 | x0_u (B, [L,] 2, H, W), m_u (B, [L,] 1, H, W)), e.g. from real scans."""
     _check_stage(stage2, "stage2", "stage 2")
     net, cfg = stage2
-    if x0_u.shape[-2:] != (cfg.height, cfg.width) or m_u.shape[-3:] != (1, cfg.height, cfg.width):
+    if (
+        x0_u.dim() not in (4, 5)
+        or x0_u.shape[-3:] != (2, cfg.height, cfg.width)
+        or m_u.shape != (*x0_u.shape[:-3], 1, cfg.height, cfg.width)
+    ):
         raise InputError(
-            f"stage 2 was trained on {cfg.height}x{cfg.width} images; "
-            f"got x0_u {tuple(x0_u.shape)}, m_u {tuple(m_u.shape)}"
+            f"stage 2 was trained on {cfg.height}x{cfg.width} images: expected x0_u (B, [L,] 2, H, W) and m_u "
+            f"(B, [L,] 1, H, W), got x0_u {tuple(x0_u.shape)}, m_u {tuple(m_u.shape)}"
         )
     device = next(net.parameters()).device
-    cond = stage_cond(x0_u.to(device), m_u.to(device))  # (B, 3, H, W)
-    sample = _sample(stage2, x0_u.shape[0], steps, generator, cond, sampler)
+    cond = stage_cond(x0_u.to(device), m_u.to(device))  # (B, [L,] 3, H, W)
+    sample = _sample(stage2, tuple(x0_u.shape[:-3]), steps, generator, cond, sampler)
     return {"x0": sample.x0, "x0_u": x0_u, "m_u": m_u}
 
 
@@ -102,25 +127,36 @@ def generate_u4d(
     generator: torch.Generator,
     sampler: Sampler = "ddim",
     stage1_steps: int | None = None,
+    frames: int | None = None,
 ) -> dict[str, Tensor]:
-    """Hard-to-easy: x0_u ~ stage 1 (mask from its head), then x0 ~ stage 2 given it -> dict(x0, x0_u, m_u_pred)."""
+    """Hard-to-easy: x0_u ~ stage 1 (mask from its head), then x0 ~ stage 2 given it -> dict(x0, x0_u, m_u_pred).
+
+    Sequences have `frames` = L frames (None: stage 2's training L); stage 1 makes the same L frames.
+    """
     if (stage1[1].height, stage1[1].width) != (stage2[1].height, stage2[1].width):
         raise InputError("stage 1 and stage 2 checkpoints were trained on different image sizes")
-    first = generate_stage1(stage1, n, stage1_steps or steps, generator, sampler)
+    frames = frames or stage2[1].frames
+    first = generate_stage1(stage1, n, stage1_steps or steps, generator, sampler, frames=frames)
     second = complete(stage2, first["x0_u"], first["m_u_pred"], steps, generator, sampler)
     return {"x0": second["x0"], "x0_u": first["x0_u"], "m_u_pred": first["m_u_pred"]}
 
 
 def generate_baseline(
-    net: Loaded, n: int, steps: int, generator: torch.Generator, sampler: Sampler = "ddim"
+    net: Loaded,
+    n: int,
+    steps: int,
+    generator: torch.Generator,
+    sampler: Sampler = "ddim",
+    frames: int | None = None,
 ) -> dict[str, Tensor]:
-    """R2DM-style unconditional x0 (n, 2, H, W)."""
+    """R2DM-style unconditional x0 (n, [L,] 2, H, W) (L = `frames`, None: the frames the net was trained with)."""
     _check_stage(net, "baseline", "baseline")
-    return {"x0": _sample(net, n, steps, generator, None, sampler).x0}
+    return {"x0": _sample(net, _batch_shape(n, frames or net[1].frames), steps, generator, None, sampler).x0}
 
 
 def to_points(x0: Tensor, sensor: Sensor | str, row_mode: RowMode = "beam") -> list[np.ndarray]:
-    """Range images (B, 2, H, W) -> B point clouds (M, 4) float32 [x, y, z, reflectance] of the valid pixels."""
+    """Range images (B, [L,] 2, H, W) -> B·L point clouds (M, 4) float32 [x, y, z, reflectance], frames in order."""
     sensor = get_sensor(sensor) if not isinstance(sensor, Sensor) else sensor
-    points, valid = unproject(x0.detach().float().cpu(), sensor, row_mode)  # (B, H, W, 4), (B, H, W)
+    images = x0.detach().float().cpu().reshape(-1, *x0.shape[-3:])  # (B·L, 2, H, W)
+    points, valid = unproject(images, sensor, row_mode)  # (B·L, H, W, 4), (B·L, H, W)
     return [p[v].numpy().astype(np.float32) for p, v in zip(points, valid)]

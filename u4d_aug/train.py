@@ -3,6 +3,8 @@
 Stage 1 learns x0_u (the projected uncertain region P_u) with a mask head (L_u), stage 2 learns the full scan x0
 given concat(x0_u, m_u) (L_c), the baseline learns x0 unconditionally (R2DM); U4D paper §2, issue 6.
 The loop reads top to bottom (nanoGPT `train.py`): batch -> loss = diffusion(x0, cond, m_u) -> AdamW -> EMA.
+With `frames` = L > 1 a batch item is L consecutive scans (`frame_stride` apart) of one sequence, tensors
+(B, L, C, H, W), and a net with MoST blocks mixes the frames; their mean gates are logged and plotted.
 The scans of step s and the noise of step s depend only on (seed, step, rank), so a resumed run draws what an
 uninterrupted one would. Checkpoints hold config, step, model, EMA, optimizer and RNG and are written
 atomically by rank 0; torchrun gives DDP through `init_distributed`.
@@ -24,7 +26,8 @@ from torch import Tensor, nn
 from tqdm.auto import tqdm
 
 from u4d_aug.config import config_from_dict, config_to_dict, load_config, parse_override, save_config
-from u4d_aug.data.datasets import ScanDataset
+from u4d_aug.data.datasets import ScanDataset, SequenceDataset, scan_path
+from u4d_aug.data.formats import load_kitti_frame
 from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.diffusion import DiffusionConfig, GaussianDiffusion
 from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, budget_used, cleanup, init_distributed
@@ -69,6 +72,8 @@ class DiffusionTrainConfig:
     height: int = 64
     width: int = 1024
     row_mode: RowMode = "beam"
+    frames: int = 1  # L: scans per item; > 1 trains on L-frame windows of one sequence, (B, L, C, H, W)
+    frame_stride: int = 1  # frames between the scans of a window
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
     net: UNetConfig = field(default_factory=UNetConfig)
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
@@ -95,6 +100,8 @@ class DiffusionTrainConfig:
             raise InputError(f"steps and batch_size must be >= 1, got {self.steps}, {self.batch_size}")
         if self.height < 1 or self.width < 1:
             raise InputError(f"height/width must be >= 1, got {self.height}x{self.width}")
+        if self.frames < 1 or self.frame_stride < 1:
+            raise InputError(f"frames and frame_stride must be >= 1, got {self.frames}, {self.frame_stride}")
 
 
 def derived_seed(*parts: int) -> int:
@@ -114,7 +121,9 @@ def build_net(cfg: DiffusionTrainConfig, device: torch.device | str = "cpu") -> 
 class RangeImages:
     """Item i = dict(x0 (2, H, W), x0_u (2, H, W), m_u (1, H, W)) of scan i; x0_u/m_u need probabilities.
 
-    x0_u and m_u are recomputed per item for strategy 'random' (seeded by `generator`), cached otherwise.
+    With cfg.frames = L > 1, item i stacks the L scans of window i of a `SequenceDataset` (one sequence,
+    frame_stride apart): x0 (L, 2, H, W), x0_u (L, 2, H, W), m_u (L, 1, H, W); poses are not needed.
+    x0_u and m_u are recomputed per scan for strategy 'random' (seeded by `generator`), cached otherwise.
     """
 
     def __init__(self, cfg: DiffusionTrainConfig) -> None:
@@ -125,27 +134,46 @@ class RangeImages:
         self.scans = ScanDataset(cfg.data_root, cfg.sequences)
         if len(self.scans) == 0:
             raise InputError(f"{cfg.data_root}: no scans found")
+        self.windows: SequenceDataset | None = None
+        if cfg.frames > 1:
+            self.windows = SequenceDataset(cfg.data_root, cfg.frames, cfg.sequences, cfg.frame_stride, with_poses=False)
         self.needs_probs = cfg.diffusion.stage in ("stage1", "stage2") and cfg.uncertainty.strategy != "none"
         if self.needs_probs and not cfg.probs_root:
             raise InputError(
                 f"probs_root: stage {cfg.diffusion.stage} needs the probability files of `u4d seg-predict`"
             )
-        self.cache: dict[int, dict[str, Tensor]] = {}
+        self.cache: dict[tuple[str, str], dict[str, Tensor]] = {}
 
     def __len__(self) -> int:
-        return len(self.scans)
+        return len(self.windows) if self.windows is not None else len(self.scans)
+
+    def window(self, index: int) -> tuple[str, list[str]]:
+        """(sequence, frame names) of item `index`: one scan, or the L scans of a window."""
+        if self.windows is None:
+            seq, frame = self.scans.entries[index]
+            return seq, [frame]
+        seq, start = self.windows.windows[index]
+        stop = start + self.cfg.frames * self.cfg.frame_stride
+        return seq, self.windows.frames[seq][start : stop : self.cfg.frame_stride]
 
     def __getitem__(self, index: int, generator: torch.Generator | None = None) -> dict[str, Tensor]:
-        if index in self.cache:
-            return self.cache[index]
+        seq, frames = self.window(index)
+        if self.windows is None:
+            return self.scan_images(seq, frames[0], generator)
+        items = [self.scan_images(seq, frame, generator) for frame in frames]
+        return {key: torch.stack([item[key] for item in items]) for key in items[0]}  # (L, C, H, W) each
+
+    def scan_images(self, seq: str, frame: str, generator: torch.Generator | None = None) -> dict[str, Tensor]:
+        """x0 (2, H, W) and, for stages 1 and 2, x0_u (2, H, W), m_u (1, H, W) of one scan (cached)."""
+        if (seq, frame) in self.cache:
+            return self.cache[(seq, frame)]
         cfg = self.cfg
-        item = self.scans[index]
-        points = torch.from_numpy(item["points"])
+        points = torch.from_numpy(load_kitti_frame(scan_path(cfg.data_root, seq, frame)).points)
         x0 = to_image(project(points, self.sensor, cfg.height, cfg.width, cfg.row_mode), self.sensor)
         out = {"x0": x0}
         if cfg.diffusion.stage != "baseline":
             if self.needs_probs:
-                path = probs_path(cfg.probs_root, item["seq"], item["frame"])
+                path = probs_path(cfg.probs_root, seq, frame)
                 probs = load_probs(path, points.shape[0])
             else:
                 probs = np.zeros((points.shape[0], 1), dtype=np.float32)
@@ -155,7 +183,7 @@ class RangeImages:
             )  # fmt: skip
             out.update(x0_u=x0_u, m_u=m_u)
         if cfg.cache_images and cfg.uncertainty.strategy != "random":
-            self.cache[index] = out
+            self.cache[(seq, frame)] = out
         return out
 
 
@@ -166,7 +194,7 @@ def batch_indices(step: int, rank: int, num_scans: int, batch_size: int, seed: i
 
 
 def make_batch(images: RangeImages, indices: list[int], generator: torch.Generator, device: torch.device) -> dict:
-    """Stack the items of `indices` into (B, C, H, W) tensors on `device`."""
+    """Stack the items of `indices` into (B, [L,] C, H, W) tensors on `device`."""
     items = [images.__getitem__(i, generator) for i in indices]
     return {key: torch.stack([item[key] for item in items]).to(device) for key in items[0]}
 
@@ -235,7 +263,7 @@ def config_from_checkpoint(ckpt: dict, source: str) -> DiffusionTrainConfig:
 
 
 def _save_sample_png(net: RangeUNet, cfg: DiffusionTrainConfig, images: RangeImages, path: Path) -> None:
-    """A DDIM sample of the EMA net (stage 2: completing the first training scan's x0_u) as a PNG."""
+    """A DDIM sample of the EMA net (stage 2: completing the first training item's x0_u) as a PNG, L depth rows."""
     import matplotlib.pyplot as plt
 
     from u4d_aug import pipeline
@@ -252,10 +280,23 @@ def _save_sample_png(net: RangeUNet, cfg: DiffusionTrainConfig, images: RangeIma
         x0 = pipeline.generate_stage1((net, cfg), 1, cfg.sample_steps, generator)["x0_u"]
     else:
         x0 = pipeline.generate_baseline((net, cfg), 1, cfg.sample_steps, generator)["x0"]
-    fig, axes = plt.subplots(2, 1, figsize=(10, 3))
-    draw_range_image(axes[0], x0[0, 0].cpu().numpy(), f"{cfg.diffusion.stage} depth (EMA, DDIM {cfg.sample_steps})")
-    draw_range_image(axes[1], x0[0, 1].cpu().numpy(), "reflectance")
+    frames = (x0[0] if x0.dim() == 5 else x0[:1]).cpu().numpy()  # (L, 2, H, W)
+    fig, axes = plt.subplots(len(frames) + 1, 1, figsize=(10, 1.5 * (len(frames) + 1)))
+    for index, frame in enumerate(frames):
+        which = f", frame {index}" if len(frames) > 1 else ""
+        title = f"{cfg.diffusion.stage} depth (EMA, DDIM {cfg.sample_steps}{which})"
+        draw_range_image(axes[index], frame[0], title)
+    draw_range_image(axes[-1], frames[0, 1], "reflectance" + (", frame 0" if len(frames) > 1 else ""))
     save_figure(fig, path)
+
+
+def _save_gate_png(net: RangeUNet, gates: list[np.ndarray], step: int, path: Path) -> None:
+    """Bar chart of the MoST gates (α^s, α^t) per block, averaged over the training steps since the last one."""
+    from u4d_aug.viz import plot_gate_weights
+
+    mean = np.mean(gates, axis=0)  # (M, 2)
+    title = f"MoST gate weights, training steps {step - len(gates) + 1}-{step}"
+    plot_gate_weights(path, net.most_names, mean[:, 0], mean[:, 1], title)
 
 
 def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress: bool = True) -> dict:
@@ -299,6 +340,8 @@ def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress:
 
     record: dict = {}
     window: list[dict[str, float]] = []
+    gate_window: list[np.ndarray] = []  # (M, 2) mean MoST gates per step since the last log line
+    gate_plot: list[np.ndarray] = []  # ... since the last gate plot
     tic = t0 = time.perf_counter()
     bar = tqdm(
         range(start, cfg.steps),
@@ -327,6 +370,11 @@ def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress:
         window.append(
             {k: float(all_reduce_mean(v.detach())) for k, v in losses.items()} | {"grad_norm": float(grad_norm)}
         )
+        if net.most_names:
+            gates = all_reduce_mean(net.gate_weights().to(info.device)).cpu().numpy()  # (M, 2)
+            gate_window.append(gates)
+            if info.is_main and cfg.sample_every > 0:
+                gate_plot.append(gates)
         done = step + 1
         elapsed = elapsed_before + time.perf_counter() - t0
         stop = budget_used(elapsed, cfg.max_minutes)
@@ -335,6 +383,11 @@ def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress:
             record = {"step": done, "lr": learning_rate(step, cfg.optim), "time": round(elapsed, 3)}
             record["sec_per_step"] = seconds / len(window)
             record |= {k: float(np.mean([w[k] for w in window])) for k in window[0]}
+            if gate_window:
+                mean = np.mean(gate_window, axis=0, dtype=np.float64)  # (M, 2)
+                record |= {"most_blocks": net.most_names, "most_alpha_s": mean[:, 0].round(4).tolist()}
+                record["most_alpha_t"] = mean[:, 1].round(4).tolist()
+                gate_window = []
             if info.is_main:
                 append_jsonl(log_path, record)
                 bar.set_postfix(loss=f"{record['loss']:.4f}")
@@ -343,6 +396,9 @@ def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress:
             sampler_net = build_net(cfg, info.device).eval()
             ema.copy_to(sampler_net)
             _save_sample_png(sampler_net, cfg, images, out_dir / "samples" / f"step_{done:07d}.png")
+            if gate_plot:
+                _save_gate_png(net, gate_plot, done, out_dir / "samples" / f"gates_{done:07d}.png")
+                gate_plot = []
         if done % cfg.checkpoint_every == 0 or done == cfg.steps or stop:
             if info.is_main:
                 state = checkpoint_state(cfg, done, net, ema, optimizer, elapsed)

@@ -134,3 +134,24 @@ def plot_scan(
     if title:
         fig.suptitle(title, fontsize=10)
     return save_figure(fig, path)
+
+
+def plot_gate_weights(
+    path: str | Path, names: list[str], alpha_s: np.ndarray, alpha_t: np.ndarray, title: str = ""
+) -> Path:
+    """Bar chart of the MoST gates (α^s, α^t) per block, input -> output (U4D MoST figure: spatial at the ends)."""
+    alpha_s, alpha_t = np.asarray(alpha_s, dtype=float), np.asarray(alpha_t, dtype=float)
+    if not len(names) == len(alpha_s) == len(alpha_t):
+        raise ValueError(f"plot_gate_weights: {len(names)} names, {len(alpha_s)} alpha_s, {len(alpha_t)} alpha_t")
+    depth = np.arange(len(names))
+    fig, ax = plt.subplots(figsize=(max(4.0, 0.7 * len(names) + 1.5), 3.0))
+    ax.bar(depth - 0.2, alpha_s, width=0.4, label=r"$\alpha^s$ (spatial)", color="tab:blue")
+    ax.bar(depth + 0.2, alpha_t, width=0.4, label=r"$\alpha^t$ (temporal)", color="tab:orange")
+    ax.axhline(0.5, color="gray", linewidth=0.8, linestyle="--")
+    ax.set_xticks(depth, names)
+    ax.set_ylim(0.0, 1.0)
+    ax.set_xlabel("MoST block (input -> output)")
+    ax.set_ylabel("mean gate weight")
+    ax.set_title(title or "MoST gate weights", fontsize=9)
+    ax.legend(fontsize=8, loc="upper right")
+    return save_figure(fig, path)

@@ -1,4 +1,4 @@
-"""RangeUNet: ε-prediction UNet on range images: ring convs, AdaGN, optional mask head (R2DM family)."""
+"""RangeUNet: ε-prediction UNet on range images: ring convs, AdaGN, optional mask head (R2DM family), MoST."""
 
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ from u4d_aug.nn.layers import (
     Upsample,
     group_norm,
 )
+from u4d_aug.nn.most import MoSTBlock
 
 
 @dataclass
@@ -37,6 +38,10 @@ class UNetConfig:
     mask_head: bool = False  # stage 1: extra 1-channel logit output m_p
     dropout: float = 0.0
     gn_groups: int = 8
+    most: bool = False  # MoST blocks (U4D §2): gated spatial/temporal mixing across the L frames of a sequence
+    most_levels: tuple[int, ...] | None = None  # levels with a MoST (enc + dec; mid with the lowest); None = all
+    most_kernel_t: int = 3  # taps of the temporal conv along L (odd; zero padding beyond the clip)
+    most_gate_noise: float = 0.5  # std of the Gaussian noise on the gate logits in training
 
     def __post_init__(self) -> None:
         if self.base_channels < 1:
@@ -55,6 +60,17 @@ class UNetConfig:
             raise InputError("net.in_channels/out_channels must be >= 1 and net.cond_channels >= 0")
         if not 0.0 <= self.dropout < 1.0:
             raise InputError(f"net.dropout must be in [0, 1), got {self.dropout}")
+        if self.most_levels is not None:
+            self.most_levels = tuple(sorted(set(self.most_levels)))
+            if not self.most_levels or not all(0 <= lv < len(self.channel_multipliers) for lv in self.most_levels):
+                raise InputError(
+                    f"net.most_levels must name levels 0..{len(self.channel_multipliers) - 1} (or be null for all), "
+                    f"got {self.most_levels}"
+                )
+        if self.most_kernel_t < 1 or self.most_kernel_t % 2 == 0:
+            raise InputError(f"net.most_kernel_t must be a positive odd number, got {self.most_kernel_t}")
+        if self.most_gate_noise < 0:
+            raise InputError(f"net.most_gate_noise must be >= 0, got {self.most_gate_noise}")
 
     @property
     def downsampling_factor(self) -> int:
@@ -83,6 +99,9 @@ class RangeUNet(nn.Module):
     Layout follows DDPM/ADM: per level `num_res_blocks` ResBlocks and a stride-2 ring-conv downsample; every
     block output is a skip; the decoder has one extra block per level. Attention (if on) sits only at the
     lowest level, as in R2DM. Output convs are zero-initialised: an untrained net predicts ε̂ = 0, logit 0.
+    With `most`, a MoST block follows the res blocks of each chosen level in the encoder and the decoder (and the
+    mid blocks with the lowest level); they are built after every other module, so the other weights of a
+    seeded net do not depend on `most`, and they start as the identity.
     """
 
     def __init__(self, cfg: UNetConfig, elevation: Tensor | None = None, azimuth: Tensor | None = None):
@@ -107,12 +126,14 @@ class RangeUNet(nn.Module):
         self.down = nn.ModuleList()
         skip_widths = [widths[0]]
         width = widths[0]
+        down_ends, up_ends = {}, {}  # level -> index of its last LevelBlock in self.down / self.up
         for level, (out_width, blocks) in enumerate(zip(widths, cfg.num_res_blocks)):
             lowest = level == num_levels - 1
             for _ in range(blocks):
                 self.down.append(LevelBlock(width, out_width, embed_channels, cfg, attention=lowest))
                 width = out_width
                 skip_widths.append(width)
+            down_ends[level] = len(self.down) - 1
             if not lowest:
                 self.down.append(Downsample(width))
                 skip_widths.append(width)
@@ -131,6 +152,7 @@ class RangeUNet(nn.Module):
                 skip = skip_widths.pop()
                 self.up.append(LevelBlock(width + skip, widths[level], embed_channels, cfg, attention=lowest))
                 width = widths[level]
+            up_ends[level] = len(self.up) - 1
             if level > 0:
                 self.up.append(Upsample(width))
         assert not skip_widths
@@ -145,27 +167,70 @@ class RangeUNet(nn.Module):
             nn.init.zeros_(self.mask_conv.weight)
             nn.init.zeros_(self.mask_conv.bias)
 
-    def forward(self, x_t: Tensor, log_snr: Tensor, cond: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
-        """x_t (B, [L,] C_in, H, W), log_snr (B,) or (), cond (B, [L,] C_cond, H, W) -> (ε̂, mask logits)."""
+        # MoST blocks keyed by the index of the LevelBlock they follow, inserted in depth order (input -> output)
+        self.most_down = nn.ModuleDict()
+        self.most_mid = nn.ModuleDict()
+        self.most_up = nn.ModuleDict()
+        self.most_names: list[str] = []
+        if cfg.most:
+            levels = range(num_levels) if cfg.most_levels is None else cfg.most_levels
+            for level in sorted(levels):
+                self.most_down[str(down_ends[level])] = self._most_block(widths[level], embed_channels)
+                self.most_names.append(f"enc{level}")
+            if num_levels - 1 in levels:
+                self.most_mid[str(len(self.mid) - 1)] = self._most_block(widths[-1], embed_channels)
+                self.most_names.append("mid")
+            for level in sorted(levels, reverse=True):
+                self.most_up[str(up_ends[level])] = self._most_block(widths[level], embed_channels)
+                self.most_names.append(f"dec{level}")
+
+    def _most_block(self, channels: int, embed_channels: int) -> MoSTBlock:
+        cfg = self.cfg
+        return MoSTBlock(channels, embed_channels, cfg.most_kernel_t, cfg.most_gate_noise, cfg.gn_groups)
+
+    def most_blocks(self) -> list[MoSTBlock]:
+        """The MoST blocks in depth order (input -> output), named by `most_names`; empty without `most`."""
+        return [*self.most_down.values(), *self.most_mid.values(), *self.most_up.values()]
+
+    def gate_weights(self) -> Tensor:
+        """(M, 2) batch-mean (α^s, α^t) of each MoST block in the last forward, depth order; (0, 2) without MoST."""
+        rows = [block.last_gates.float().mean(dim=0) for block in self.most_blocks() if block.last_gates is not None]
+        return torch.stack(rows) if rows else torch.zeros(0, 2)
+
+    def most_aux_loss(self) -> Tensor:
+        """Σ over MoST blocks of CV² of the branch importances in the last forward (0 without MoST)."""
+        terms = [block.last_cv for block in self.most_blocks() if block.last_cv is not None]
+        return torch.stack(terms).sum() if terms else torch.zeros(())
+
+    def forward(
+        self, x_t: Tensor, log_snr: Tensor, cond: Tensor | None = None, generator: torch.Generator | None = None
+    ) -> tuple[Tensor, Tensor | None]:
+        """x_t (B, [L,] C_in, H, W), log_snr (B,) or (), cond (B, [L,] C_cond, H, W) -> (ε̂, mask logits).
+
+        `generator` draws the MoST gate noise in training mode (torch's CPU default generator if None).
+        """
         sequence = x_t.dim() == 5
         if x_t.dim() not in (4, 5):
             raise ValueError(f"RangeUNet: x_t must be (B, C, H, W) or (B, L, C, H, W), got {tuple(x_t.shape)}")
         batch = x_t.shape[0]
         log_snr = torch.as_tensor(log_snr, device=x_t.device, dtype=torch.float32).reshape(-1).expand(batch)
+        frames = 1
         if sequence:
-            # Frames are independent here: (B, L) is folded into the batch and unfolded at the end. This is
-            # the seam where the MoST issue adds temporal mixing (it will need `frames` inside the blocks).
+            # (B, L) is folded into the batch, frames of a sequence adjacent, and unfolded at the end; only the
+            # MoST blocks (if any) look across the L frames.
             frames = x_t.shape[1]
             x_t = x_t.flatten(0, 1)
             cond = cond.flatten(0, 1) if cond is not None else None
             log_snr = log_snr.repeat_interleave(frames)
-        eps, mask_logits = self._forward_frames(x_t, log_snr, cond)
+        eps, mask_logits = self._forward_frames(x_t, log_snr, cond, frames, generator)
         if sequence:
             eps = eps.unflatten(0, (batch, frames))
             mask_logits = mask_logits.unflatten(0, (batch, frames)) if mask_logits is not None else None
         return eps, mask_logits
 
-    def _forward_frames(self, x_t: Tensor, log_snr: Tensor, cond: Tensor | None) -> tuple[Tensor, Tensor | None]:
+    def _forward_frames(
+        self, x_t: Tensor, log_snr: Tensor, cond: Tensor | None, frames: int, generator: torch.Generator | None
+    ) -> tuple[Tensor, Tensor | None]:
         cfg = self.cfg
         _, channels, height, width = x_t.shape
         if channels != cfg.in_channels:
@@ -192,16 +257,22 @@ class RangeUNet(nn.Module):
             h = h + self.ray_features()  # (1, C0, H, W) broadcast over the batch
 
         skips = [h]
-        for block in self.down:
+        for index, block in enumerate(self.down):
             h = block(h, emb) if isinstance(block, LevelBlock) else block(h)
+            if str(index) in self.most_down:
+                h = self.most_down[str(index)](h, emb, frames, generator)
             skips.append(h)
-        for block in self.mid:
+        for index, block in enumerate(self.mid):
             h = block(h, emb)
-        for block in self.up:
+            if str(index) in self.most_mid:
+                h = self.most_mid[str(index)](h, emb, frames, generator)
+        for index, block in enumerate(self.up):
             if isinstance(block, LevelBlock):
                 h = block(torch.cat([h, skips.pop()], dim=1), emb)
             else:
                 h = block(h)
+            if str(index) in self.most_up:
+                h = self.most_up[str(index)](h, emb, frames, generator)
 
         h = F.silu(self.out_norm(h))
         eps = self.out_conv(h)  # (N, C_out, H, W)
