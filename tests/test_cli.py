@@ -68,3 +68,12 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     for name in ["frame0.png", "reliability.png", "seg/model.pt", "seg/log.jsonl", "probs/manifest.json"]:
         assert (out / name).is_file(), name
     assert len(list((out / "probs" / "sequences" / "00" / "probs").glob("*.npy"))) == 6
+    for name in ["generated.png", "u4d_stage1/checkpoints", "u4d_stage2/checkpoints", "baseline/checkpoints"]:
+        assert (out / name).exists(), name
+    for method in ["u4d", "baseline"]:
+        manifest = json.loads((out / f"bank_{method}" / "manifest.json").read_text())
+        assert manifest["mode"] == method and manifest["complete"] and len(manifest["samples"]) == 4
+        written = list((out / f"bank_{method}" / "sequences" / "00" / "velodyne").glob("*.bin"))
+        assert len(written) + len(manifest["empty"]) == 4
+        evaluation = json.loads((out / f"eval_{method}" / "evaluation.json").read_text())
+        assert 0.0 <= evaluation["table1"]["jsd"]["value"] <= np.sqrt(np.log(2)) + 1e-9
