@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_bank import checkpoints, gen_config  # noqa: F401  (module-scoped fixture of untrained tiny checkpoints)
+from test_bank import checkpoints, gen_config, sequence_checkpoints  # noqa: F401  (module-scoped tiny checkpoints)
 from test_u4d_train import write_tiny_world
 
 from u4d_aug.cli import main
@@ -29,6 +29,21 @@ def test_report_png_from_u4d_and_baseline_banks(checkpoints, tmp_path):  # noqa:
     assert status == 0 and (tmp_path / "c.png").is_file()
     with pytest.raises(InputError, match="manifest"):
         gen_report(world, {"u4d": world}, tmp_path / "x.png")
+
+
+def test_report_shows_a_frame_of_sequence_banks(sequence_checkpoints, tmp_path):  # noqa: F811
+    world = tmp_path / "world"
+    write_tiny_world(world, tmp_path / "probs", num_scans=2)
+    banks = {"u4d": tmp_path / "u4d", "baseline": tmp_path / "r2dm"}
+    generate_bank(gen_config(sequence_checkpoints, "num=1", "mode=u4d"), banks["u4d"], progress=False)
+    generate_bank(gen_config(sequence_checkpoints, "num=1", "mode=baseline"), banks["baseline"], progress=False)
+    assert bank_geometry(banks["u4d"]).frames == 2
+
+    first = gen_report(world, banks, tmp_path / "f0.png")
+    second = gen_report(world, banks, tmp_path / "f1.png", frame=1)
+    assert first.stat().st_size > 10_000 and first.read_bytes() != second.read_bytes()  # another frame is drawn
+    with pytest.raises(InputError, match="--frame 2 outside"):
+        gen_report(world, banks, tmp_path / "x.png", frame=2)
 
 
 def test_depth_image_puts_points_at_their_range(tmp_path):

@@ -2,7 +2,8 @@
 
 Rows of range images: the real scan, its uncertainty map H(p) with P_u outlined, U4D's stage-1 output x0_u,
 U4D's stage-2 output x0 and the baseline's x0; below them the BEVs of the real, U4D and baseline scans.
-Generated scans are re-projected with the bank's own sensor, size and row mode (from its manifest).
+Generated scans are re-projected with the bank's own sensor, size and row mode (from its manifest). Sequence
+banks (L > 1 frames per sample) show frame `--frame` of each sample.
 """
 
 from __future__ import annotations
@@ -25,12 +26,13 @@ from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
 
 @dataclass(frozen=True)
 class Geometry:
-    """Range-image geometry shared by the banks being compared."""
+    """Range-image geometry shared by the banks being compared, and the bank's frames per sample (L)."""
 
     sensor: Sensor
     height: int
     width: int
     row_mode: RowMode
+    frames: int = 1
 
 
 def bank_geometry(bank: Path) -> Geometry:
@@ -41,7 +43,8 @@ def bank_geometry(bank: Path) -> Geometry:
     missing = [k for k in ("sensor", "height", "width", "row_mode") if k not in manifest]
     if missing:
         raise InputError(f"{bank}/manifest.json: missing {', '.join(missing)}")
-    return Geometry(get_sensor(manifest["sensor"]), manifest["height"], manifest["width"], manifest["row_mode"])
+    frames = int(manifest.get("frames", 1))
+    return Geometry(get_sensor(manifest["sensor"]), manifest["height"], manifest["width"], manifest["row_mode"], frames)
 
 
 def depth_image(points: np.ndarray, geometry: Geometry) -> np.ndarray:
@@ -52,9 +55,9 @@ def depth_image(points: np.ndarray, geometry: Geometry) -> np.ndarray:
     return np.where(projection.mask.numpy(), depth, np.nan)
 
 
-def stage1_depth(layout: BankLayout, index: int, sensor: Sensor) -> np.ndarray | None:
-    """Stage-1 x0_u of sample `index` as (H, W) metres (NaN off the mask), if the bank kept it."""
-    path = layout.stage1_path(index)
+def stage1_depth(layout: BankLayout, index: int, sensor: Sensor, frame: int = 0) -> np.ndarray | None:
+    """Stage-1 x0_u of frame `frame` of sample `index` as (H, W) metres (NaN off the mask), if the bank kept it."""
+    path = layout.stage1_path(index, frame)
     if not path.is_file():
         return None
     x0_u = torch.from_numpy(np.load(path).astype(np.float32))  # (2, H, W) in [-1, 1]
@@ -62,12 +65,15 @@ def stage1_depth(layout: BankLayout, index: int, sensor: Sensor) -> np.ndarray |
     return np.where(x0_u[0].numpy() > -1.0, depth, np.nan)
 
 
-def bank_scan(bank: Path, index: int) -> np.ndarray:
-    """Points of bank sample `index` (InputError if it was not generated or came out empty)."""
-    layout = BankLayout(bank)
-    if layout.is_empty(index):
+def bank_scan(bank: Path, index: int, frame: int = 0) -> np.ndarray:
+    """Points of frame `frame` of bank sample `index` (InputError if it was not generated or came out empty)."""
+    frames = bank_geometry(bank).frames
+    if not 0 <= frame < frames:
+        raise InputError(f"{bank}: --frame {frame} outside the bank's frames 0..{frames - 1}")
+    layout = BankLayout(bank, frames)
+    if layout.is_empty(index, frame):
         raise InputError(f"{bank}: sample {index} has no return (listed under empty); choose another --index")
-    return read_kitti_scan(layout.scan_path(index))
+    return read_kitti_scan(layout.scan_path(index, frame))
 
 
 def plot_comparison(
@@ -117,8 +123,10 @@ def gen_report(
     probs_root: Path | None = None,
     index: int = 0,
     k: float = 0.1,
+    frame: int = 0,
 ) -> Path:
-    """Compare real scan `index` of `real_root` with sample `index` of each bank (stage 1 from the bank named u4d)."""
+    """Compare real scan `index` of `real_root` with frame `frame` of sample `index` of each bank (stage 1 from
+    the bank named u4d)."""
     if not banks:
         raise InputError("--bank: give at least one NAME=DIR bank to compare")
     geometry = bank_geometry(next(iter(banks.values())))
@@ -135,10 +143,12 @@ def gen_report(
         )
         uncertainty = (entropy_image.numpy(), m_u[0].numpy())
     stage1 = None
+    generated = {name: bank_scan(bank, index, frame) for name, bank in banks.items()}
     if "u4d" in banks:
-        stage1 = stage1_depth(BankLayout(banks["u4d"]), index, geometry.sensor)
-    generated = {name: bank_scan(bank, index) for name, bank in banks.items()}
-    title = f"real {item['seq']}/{item['frame']} vs generated sample {index}"
+        layout = BankLayout(banks["u4d"], bank_geometry(banks["u4d"]).frames)
+        stage1 = stage1_depth(layout, index, geometry.sensor, frame)
+    shown = f"sample {index}" if geometry.frames == 1 else f"sample {index}, frame {frame} of {geometry.frames}"
+    title = f"real {item['seq']}/{item['frame']} vs generated {shown}"
     return plot_comparison(png, real, generated, geometry, uncertainty, stage1, title)
 
 
@@ -159,10 +169,11 @@ def add_gen_report_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--probs", type=Path, default=None, help="seg-predict probabilities of REAL (uncertainty)")
     parser.add_argument("--index", type=int, default=0, help="which real scan and which bank sample")
     parser.add_argument("--k", type=float, default=0.1, help="fraction of points in P_u for the outline")
+    parser.add_argument("--frame", type=int, default=0, help="frame of each sample in sequence banks (L > 1)")
 
 
 def run_gen_report(args: argparse.Namespace) -> int:
     """`u4d gen-report`: write the side-by-side PNG."""
-    path = gen_report(args.real, dict(args.bank), args.png, args.sequences, args.probs, args.index, args.k)
+    path = gen_report(args.real, dict(args.bank), args.png, args.sequences, args.probs, args.index, args.k, args.frame)
     print(f"wrote {path}")
     return 0

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+from tqdm.auto import tqdm
 
 from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
@@ -377,7 +378,8 @@ def train_extractor(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
     log_path = out_dir / f"{kind}_log.jsonl"
     model.train()
     start = time.perf_counter()
-    for step in range(1, cfg.train.steps + 1):
+    bar = tqdm(range(1, cfg.train.steps + 1), desc=f"train-extractor {kind}")
+    for step in bar:
         picks = rng.choice(len(dataset), size=min(cfg.train.batch_size, len(dataset)), replace=False)
         items = [dataset[int(i)] for i in picks]
         image, target, mask = range_inputs(
@@ -392,10 +394,11 @@ def train_extractor(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
+        bar.set_postfix(loss=f"{float(loss.detach()):.3f}", refresh=False)
         if step % cfg.train.log_every == 0 or step == cfg.train.steps:
             record = {"step": step, "loss": float(loss.detach()), "seconds": time.perf_counter() - start}
             append_jsonl(log_path, record)
-            print(json.dumps(record))
+            bar.write(json.dumps(record))
     model.eval()
     path = out_dir / f"{kind}.pt"
     digest = save_extractor(path, kind, model, cfg, extra={"steps": cfg.train.steps})
