@@ -177,3 +177,57 @@ def test_hash_covers_input_geometry(trained):
     assert weights_hash("frd", cfg, ckpt["state_dict"]) == trained["frd"][1]
     cfg.data.width = 256
     assert weights_hash("frd", cfg, ckpt["state_dict"]) != trained["frd"][1]
+
+
+class _HeightRule(torch.nn.Module):
+    """Fake FRD head: road below z = -1.6 m, building above (the tiny world exactly), or one constant class."""
+
+    def __init__(self, max_range: float, constant: str | None = None) -> None:
+        super().__init__()
+        self.anchor = torch.nn.Parameter(torch.zeros(1))  # gives the module a device
+        self.max_range, self.constant = max_range, constant
+
+    def logits(self, x: torch.Tensor) -> torch.Tensor:
+        from u4d_aug.data.labels import SEMANTICKITTI_CLASSES
+
+        road, building = SEMANTICKITTI_CLASSES.index("road"), SEMANTICKITTI_CLASSES.index("building")
+        is_road = x[:, 3] * self.max_range < -1.6 if self.constant is None else torch.full(x[:, 3].shape, True)
+        out = torch.zeros(x.shape[0], len(SEMANTICKITTI_CLASSES), *x.shape[2:])
+        out[:, road], out[:, building] = is_road.float(), (~is_road).float()
+        return out
+
+
+def test_heldout_scores_count_pixels_exactly(tmp_path):
+    from u4d_aug.data.datasets import ScanDataset
+    from u4d_aug.data.sensors import get_sensor
+    from u4d_aug.metrics.extractors import Extractor, heldout_scores
+
+    root = write_tiny_root(tmp_path / "root", num_frames=3)
+    dataset = ScanDataset(root, ["00"], labeled_only=True)
+    scans = [dataset[i]["points"] for i in range(3)]
+    labels = [dataset[i]["labels"] for i in range(3)]
+    sensor = get_sensor("hdl64")
+    perfect = Extractor("frd", _HeightRule(sensor.max_range), "", sensor, 16, 128, "linear", "")
+    scores = heldout_scores(perfect, scans, labels, batch_size=2)
+    assert scores["scans"] == 3 and scores["pixels"] > 0
+    assert scores["accuracy"] == 1.0 and scores["miou_present"] == 1.0
+    assert set(scores["iou"]) == {"road", "building"}
+    constant = Extractor("frd", _HeightRule(sensor.max_range, "road"), "", sensor, 16, 128, "linear", "")
+    scores_c = heldout_scores(constant, scans, labels)
+    road_fraction = scores_c["accuracy"]
+    assert 0.0 < road_fraction < 1.0
+    assert scores_c["iou"]["building"] == 0.0 and scores_c["iou"]["road"] == pytest.approx(road_fraction)
+    assert scores_c["miou_present"] == pytest.approx(road_fraction / 2)
+    with pytest.raises(InputError, match="as many label arrays"):
+        heldout_scores(perfect, scans, labels[:1])
+
+
+def test_training_records_heldout_scores(trained, tmp_path):
+    ckpt = torch.load(trained["frd"][0], weights_only=False)
+    heldout = ckpt["heldout"]
+    assert heldout["scans"] == 2 and 0.0 <= heldout["accuracy"] <= 1.0
+    assert 0.0 <= heldout["miou_present"] <= 1.0
+    cfg = _tiny_cfg(trained["root"], tmp_path / "o")
+    cfg.data.val_sequences = ("07",)
+    with pytest.raises(InputError, match="07"):  # a missing held-out split fails before any training
+        train_extractor("frd", cfg)

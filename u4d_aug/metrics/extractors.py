@@ -13,7 +13,9 @@ Feature = concat(global max-pooled feature (G), max over points of the head's fc
 activations) -> (G + F1 + F2,); 256 + 128 + 64 = 448-D with the defaults (R2DM's classifier: 1808-D).
 
 Every checkpoint stores `hash` = sha256[:16] of (kind, model config, weights); FRD/FPD results record it and
-`compare_results` refuses results made with different extractors.
+`compare_results` refuses results made with different extractors. After training, the net's own segmentation
+head is scored on held-out labelled scans (`heldout_scores`: pixel accuracy, mIoU over present classes) and the
+figures are stored in the checkpoint and the log, so a reader can judge whether the features mean anything.
 """
 
 from __future__ import annotations
@@ -54,6 +56,7 @@ class ExtractorDataConfig:
 
     root: str = "data/toy"
     sequences: str | tuple[str, ...] = "train"  # split name or list of sequences
+    val_sequences: str | tuple[str, ...] = "val"  # held-out scans scored after training (train.val_scans)
     sensor: str = "hdl64"
     height: int = 64
     width: int = 1024
@@ -81,6 +84,7 @@ class ExtractorTrainConfig:
     weight_decay: float = 1e-4
     seed: int = 0
     log_every: int = 50
+    val_scans: int = 40  # held-out scans (evenly spaced) scored after training; 0 = skip
     device: str = "cpu"
 
 
@@ -133,10 +137,13 @@ class RangeSegNet(nn.Module):
             h = block(torch.cat([h, skip], dim=1))
         return h
 
+    def logits(self, x: Tensor) -> Tensor:
+        """(B, 5, H, W) -> (B, 19, H, W) class scores."""
+        return self.head(self.decode(x))
+
     def forward(self, x: Tensor, labels: Tensor) -> Tensor:
         """Cross-entropy loss of (B, 5, H, W) images against (B, H, W) train ids (19 ignored)."""
-        logits = self.head(self.decode(x))  # (B, 19, H, W)
-        return F.cross_entropy(logits, labels, ignore_index=SEMANTICKITTI_IGNORE)
+        return F.cross_entropy(self.logits(x), labels, ignore_index=SEMANTICKITTI_IGNORE)
 
 
 class PointNetSeg(nn.Module):
@@ -168,9 +175,13 @@ class PointNetSeg(nn.Module):
         global_feature, fc1, fc2, _ = self._layers(xyz)
         return torch.cat([global_feature, fc1.amax(dim=2), fc2.amax(dim=2)], dim=1)
 
+    def logits(self, xyz: Tensor) -> Tensor:
+        """(B, N, 3) points / 80 -> (B, 19, N) class scores."""
+        return self._layers(xyz)[3]
+
     def forward(self, xyz: Tensor, labels: Tensor) -> Tensor:
         """Cross-entropy loss of (B, N, 3) points against (B, N) train ids (19 ignored)."""
-        return F.cross_entropy(self._layers(xyz)[3], labels, ignore_index=SEMANTICKITTI_IGNORE)
+        return F.cross_entropy(self.logits(xyz), labels, ignore_index=SEMANTICKITTI_IGNORE)
 
 
 def build_model(kind: str, model_cfg: ExtractorModelConfig) -> nn.Module:
@@ -353,6 +364,76 @@ def compare_results(a: dict, b: dict) -> dict[str, float]:
 
 
 # ------------------------------------------------------------------------------------------------------------
+# held-out check
+
+
+@torch.no_grad()
+def heldout_scores(
+    extractor: Extractor, scans: list[np.ndarray], labels: list[np.ndarray], batch_size: int = 4
+) -> dict:
+    """Segmentation quality of the extractor's own head on labelled scans: pixel accuracy, IoU per present class.
+
+    Scored on range-image pixels (FRD) or unprojected pixel points (FPD) whose projected label is not ignore;
+    mIoU averages the classes present in the labels. A feature net that cannot segment held-out scans gives
+    FRD/FPD figures that mean little, so `train_extractor` records these next to the hash.
+    """
+    if not scans or len(scans) != len(labels):
+        raise InputError(f"heldout_scores: need as many label arrays as scans, got {len(scans)} and {len(labels)}")
+    num = NUM_CLASSES - 1
+    confusion = torch.zeros(num * num, dtype=torch.int64)  # row = label, column = prediction
+    device = next(extractor.model.parameters()).device
+    for start in range(0, len(scans), batch_size):
+        stop = start + batch_size
+        image, target, mask = range_inputs(
+            scans[start:stop], extractor.sensor, extractor.height, extractor.width, extractor.row_mode,
+            labels=labels[start:stop],
+        )  # fmt: skip
+        if extractor.kind == "frd":
+            pred = extractor.model.logits(image.to(device)).argmax(1).cpu()  # (B, H, W)
+        else:
+            xyz = point_inputs(image, mask, extractor.sensor, extractor.row_mode)
+            pred = extractor.model.logits(xyz.to(device)).argmax(1).cpu().reshape(target.shape)  # (B, H, W)
+        keep = target != SEMANTICKITTI_IGNORE
+        confusion += torch.bincount(target[keep] * num + pred[keep], minlength=num * num)
+    confusion = confusion.reshape(num, num).double()
+    true_positive = confusion.diagonal()
+    support = confusion.sum(1)
+    union = support + confusion.sum(0) - true_positive
+    present = support > 0
+    iou = true_positive / union.clamp_min(1)
+    return {
+        "scans": len(scans),
+        "pixels": int(support.sum()),
+        "accuracy": float(true_positive.sum() / support.sum().clamp_min(1)),
+        "miou_present": float(iou[present].mean()) if bool(present.any()) else float("nan"),
+        "iou": {SEMANTICKITTI_CLASSES[c]: float(iou[c]) for c in range(num) if present[c]},
+    }
+
+
+def _heldout_scans(dataset: Any, count: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """`count` evenly spaced labelled scans of `dataset` (all when it has fewer)."""
+    picks = np.unique(np.linspace(0, len(dataset) - 1, num=min(count, len(dataset))).round().astype(int))
+    items = [dataset[int(i)] for i in picks]
+    return [it["points"] for it in items], [it["labels"] for it in items]
+
+
+def _heldout_dataset(cfg: ExtractorConfig) -> Any:
+    """The labelled scans of data.val_sequences, or None when train.val_scans = 0; errors name the field."""
+    from u4d_aug.data.datasets import ScanDataset
+
+    if cfg.train.val_scans <= 0:
+        return None
+    names = cfg.data.val_sequences
+    try:
+        dataset = ScanDataset(cfg.data.root, names if isinstance(names, str) else list(names), labeled_only=True)
+    except InputError as error:
+        raise InputError(f"data.val_sequences={names}: {error} (or set train.val_scans=0)") from None
+    if len(dataset) == 0:
+        raise InputError(f"{cfg.data.root}: no labelled scans in data.val_sequences={names} (or set train.val_scans=0)")
+    return dataset
+
+
+# ------------------------------------------------------------------------------------------------------------
 # training
 
 
@@ -366,6 +447,7 @@ def train_extractor(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
     dataset = ScanDataset(cfg.data.root, sequences, labeled_only=True)
     if len(dataset) == 0:
         raise InputError(f"{cfg.data.root}: no labelled scans in sequences {cfg.data.sequences}")
+    val_dataset = _heldout_dataset(cfg)  # opened before training so that a wrong split fails at once
     sensor = get_sensor(cfg.data.sensor)
     rng = np.random.default_rng(cfg.train.seed)
     with torch.random.fork_rng():
@@ -400,8 +482,18 @@ def train_extractor(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
             append_jsonl(log_path, record)
             bar.write(json.dumps(record))
     model.eval()
+    extra: dict[str, Any] = {"steps": cfg.train.steps}
+    if val_dataset is not None:
+        frozen = Extractor(kind, model, "", sensor, cfg.data.height, cfg.data.width, cfg.data.row_mode, "")
+        scores = heldout_scores(frozen, *_heldout_scans(val_dataset, cfg.train.val_scans))
+        extra["heldout"] = scores
+        append_jsonl(log_path, {"step": cfg.train.steps, "heldout": scores})
+        print(
+            f"held-out {scores['scans']} scans of {cfg.data.val_sequences}: pixel accuracy {scores['accuracy']:.3f}, "
+            f"mIoU over present classes {scores['miou_present']:.3f}"
+        )
     path = out_dir / f"{kind}.pt"
-    digest = save_extractor(path, kind, model, cfg, extra={"steps": cfg.train.steps})
+    digest = save_extractor(path, kind, model, cfg, extra=extra)
     return path, digest
 
 
@@ -428,6 +520,7 @@ __all__ = [
     "add_train_extractor_arguments",
     "compare_results",
     "extract_features",
+    "heldout_scores",
     "load_extractor",
     "run_train_extractor",
     "train_extractor",
