@@ -49,7 +49,7 @@ class GenerateConfig:
     stage1: str = ""  # u4d mode
     stage2: str = ""  # u4d and complete modes
     baseline: str = ""  # baseline mode
-    sampler: Sampler = "ddim"
+    sampler: Sampler = "ddpm"  # ancestral, as R2DM; DDIM at few steps keeps x_1 noise with briefly trained nets
     steps: int = 32
     stage1_steps: int | None = None  # None = steps; the uncertain region allows fewer
     num: int = 64

@@ -86,7 +86,7 @@ class DiffusionTrainConfig:
     log_every: int = 50
     checkpoint_every: int = 500
     keep_checkpoints: int = 2  # 0 = keep all
-    sample_every: int = 0  # 0 = no sample PNGs; else a DDIM sample of the EMA net every that many steps
+    sample_every: int = 0  # 0 = no sample PNGs; else a DDPM sample of the EMA net every that many steps
     sample_steps: int = 32
     cache_images: bool = True  # keep the projected range images of the training scans in memory
     seed: int = 0
@@ -263,7 +263,7 @@ def config_from_checkpoint(ckpt: dict, source: str) -> DiffusionTrainConfig:
 
 
 def _save_sample_png(net: RangeUNet, cfg: DiffusionTrainConfig, images: RangeImages, path: Path) -> None:
-    """A DDIM sample of the EMA net (stage 2: completing the first training item's x0_u) as a PNG, L depth rows."""
+    """An ancestral DDPM sample of the EMA net (stage 2: completing the first item's x0_u) as a PNG, L depth rows."""
     import matplotlib.pyplot as plt
 
     from u4d_aug import pipeline
@@ -274,17 +274,22 @@ def _save_sample_png(net: RangeUNet, cfg: DiffusionTrainConfig, images: RangeIma
     if cfg.diffusion.stage == "stage2":
         first = images[0]
         x0 = pipeline.complete(
-            (net, cfg), first["x0_u"][None].to(device), first["m_u"][None].to(device), cfg.sample_steps, generator
+            (net, cfg),
+            first["x0_u"][None].to(device),
+            first["m_u"][None].to(device),
+            cfg.sample_steps,
+            generator,
+            "ddpm",
         )["x0"]
     elif cfg.diffusion.stage == "stage1":
-        x0 = pipeline.generate_stage1((net, cfg), 1, cfg.sample_steps, generator)["x0_u"]
+        x0 = pipeline.generate_stage1((net, cfg), 1, cfg.sample_steps, generator, "ddpm")["x0_u"]
     else:
-        x0 = pipeline.generate_baseline((net, cfg), 1, cfg.sample_steps, generator)["x0"]
+        x0 = pipeline.generate_baseline((net, cfg), 1, cfg.sample_steps, generator, "ddpm")["x0"]
     frames = (x0[0] if x0.dim() == 5 else x0[:1]).cpu().numpy()  # (L, 2, H, W)
     fig, axes = plt.subplots(len(frames) + 1, 1, figsize=(10, 1.5 * (len(frames) + 1)))
     for index, frame in enumerate(frames):
         which = f", frame {index}" if len(frames) > 1 else ""
-        title = f"{cfg.diffusion.stage} depth (EMA, DDIM {cfg.sample_steps}{which})"
+        title = f"{cfg.diffusion.stage} depth (EMA, DDPM {cfg.sample_steps}{which})"
         draw_range_image(axes[index], frame[0], title)
     draw_range_image(axes[-1], frames[0, 1], "reflectance" + (", frame 0" if len(frames) > 1 else ""))
     save_figure(fig, path)
