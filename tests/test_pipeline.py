@@ -13,7 +13,15 @@ from u4d_aug.data.sensors import hdl64
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_torch_save
-from u4d_aug.pipeline import complete, generate_baseline, generate_stage1, generate_u4d, load_generator, to_points
+from u4d_aug.pipeline import (
+    complete,
+    generate_baseline,
+    generate_stage1,
+    generate_u4d,
+    load_generator,
+    mask_from_logits,
+    to_points,
+)
 from u4d_aug.range_view import project, to_image
 from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state
 
@@ -150,3 +158,28 @@ def test_sequence_completion_mixes_the_frames_conditions(sequence_checkpoints):
     assert float((filled[:, 1] - empty[:, 1]).abs().max()) > 1e-3  # frame 1 sees it through MoST
     with pytest.raises(InputError, match="m_u"):
         complete(stage2, x0_u, m_u[:, :1], 2, torch.Generator())
+
+
+@pytest.mark.parametrize("pos_weight", [1.0, 4.0])
+def test_mask_threshold_undoes_the_bce_positive_weight(pos_weight):
+    """Fit one logit per pixel group to Bernoulli(q) targets with the weighted BCE of training: m_p = 1 iff q > 1/2."""
+    frequencies = torch.tensor([0.1, 0.3, 0.45, 0.55, 0.7, 0.9])
+    targets = (torch.arange(1000)[None, :] < frequencies[:, None] * 1000).float()  # (6, 1000), exact frequency q
+    logits = torch.zeros(6, 1, requires_grad=True)
+    optimizer = torch.optim.LBFGS([logits], lr=1.0, max_iter=200)
+
+    def loss():
+        optimizer.zero_grad()
+        value = torch.nn.functional.binary_cross_entropy_with_logits(
+            logits.expand_as(targets), targets, pos_weight=torch.tensor(pos_weight)
+        )
+        value.backward()
+        return value
+
+    optimizer.step(loss)
+    fitted = logits.detach()[:, 0]
+    expected = torch.log(pos_weight * frequencies / (1 - frequencies))
+    torch.testing.assert_close(fitted, expected, atol=1e-3, rtol=1e-3)
+    assert mask_from_logits(fitted, pos_weight).tolist() == [0.0, 0.0, 0.0, 1.0, 1.0, 1.0]
+    if pos_weight > 1:  # a plain sigmoid > 0.5 would also keep the q = 0.3 and 0.45 pixels
+        assert (torch.sigmoid(fitted) > 0.5).sum() == 5
