@@ -1,7 +1,7 @@
 """Generation and training speed of U4D (stage 1 + stage 2) vs the R2DM-style baseline, and the UNet's GFLOP/s.
 
-    python benchmarks/bench_generation_speed.py            # configs/u4d/cpu.yaml, DDIM 32 steps (stage 1: 16)
-    python benchmarks/bench_generation_speed.py --quick    # configs/u4d/tiny.yaml, DDIM 4 steps (stage 1: 2)
+    python benchmarks/bench_generation_speed.py            # configs/u4d/cpu.yaml, DDPM 32 steps (stage 1: 16)
+    python benchmarks/bench_generation_speed.py --quick    # configs/u4d/tiny.yaml, DDPM 4 steps (stage 1: 2)
     python benchmarks/bench_generation_speed.py --stage1-overrides net.base_channels=8 --stage1-steps 8
     python benchmarks/bench_generation_speed.py --stage1 runs/u4d_cpu_stage1 --stage2 runs/u4d_cpu_stage2 \
         --baseline runs/u4d_cpu_baseline             # trained nets (EMA weights) instead of preset-built ones
@@ -10,17 +10,22 @@ Nets: built from the preset (`u4d_aug.train.build_net`, untrained weights: the c
 with `--stage1-overrides key=value ..` applied to stage 1 only, or loaded from checkpoints
 (`u4d_aug.pipeline.load_generator`). All nets must share one resolution.
 Generation: seconds per scan of `generate_u4d` (stage 1 with `--stage1-steps`, then stage 2 with `--steps`)
-and of `generate_baseline` (`--steps`), DDIM, at each `--batches` size (per-scan = call time / batch);
+and of `generate_baseline` (`--steps`), with `--sampler` (DDPM, as `u4d generate`; DDIM costs the same per step),
+at each `--batches` size (per-scan = call time / batch, one generator per scan as in `u4d generate`);
 stage 1 alone (`generate_stage1`) is timed too, stage 2 = U4D - stage 1. Repetitions interleave U4D and
-the baseline so that load from other processes hits both alike; the ratio is of the medians. Goal: U4D <= 1.3x.
+the baseline so that load from other processes hits both alike. Two ratios: of the medians, and the median of
+the per-repetition ratios (each U4D call over the baseline call right after it: load that drifts between
+repetitions cancels); the goal U4D <= 1.3x is judged on the paired one, the worst over batch sizes.
 Training: one step = GaussianDiffusion forward (losses) + backward + grad-norm clip + AdamW + EMA, as in
 `u4d_aug.train.train`, at the preset's batch size on synthetic range images (x0 uniform in [-1, 1], m_u
 Bernoulli(uncertainty.k) when k is a fraction, else 0.1, x0_u = x0 on m_u and -1 elsewhere; `stage_inputs`).
 FLOPs: `torch.utils.flop_counter.FlopCounterMode` counts matmul/conv/attention FLOPs (not norms or
 elementwise ops); achieved GFLOP/s = FLOPs of one no-grad forward / its median time, against a square float32
 matmul timed in the same run with the same threads. Goal: UNet >= 50% of the matmul, judged on the baseline
-net (the preset's UNet; a lighter stage 1 is expected to fall short) at the largest batch. Params and GFLOP
-per forward (one scan) are also given at 64x1024 and for the full-size preset, counted on the meta device.
+net (the preset's UNet; a lighter stage 1 is expected to fall short) at the largest batch, and on a one-scan
+forward of the full-size preset's UNet (paper widths, 64x1024; `--full-reps`; against the faster of two
+2048² matmul runs around it). Params and GFLOP per forward (one scan) are also given at 64x1024 and for the full-size
+preset, counted on the meta device.
 Writes benchmarks/results/generation_speed.json. On a shared machine, compare ratios rather than absolutes;
 the 1/5/15-min load averages before and after are recorded.
 """
@@ -102,23 +107,28 @@ def time_generation(nets: dict[str, Loaded], args: argparse.Namespace) -> list[d
     tasks = {}
     for batch in args.batches:
         tasks[(batch, "u4d")] = functools.partial(
-            generate_u4d, stage1, stage2, batch, args.steps, stage1_steps=args.stage1_steps
+            generate_u4d, stage1, stage2, batch, args.steps, sampler=args.sampler, stage1_steps=args.stage1_steps
         )
-        tasks[(batch, "stage1")] = functools.partial(generate_stage1, stage1, batch, args.stage1_steps)
-        tasks[(batch, "baseline")] = functools.partial(generate_baseline, baseline, batch, args.steps)
-    for function in tasks.values():  # warm-up
-        function(generator=torch.Generator().manual_seed(0))
+        tasks[(batch, "stage1")] = functools.partial(
+            generate_stage1, stage1, batch, args.stage1_steps, sampler=args.sampler
+        )
+        tasks[(batch, "baseline")] = functools.partial(
+            generate_baseline, baseline, batch, args.steps, sampler=args.sampler
+        )
+    for (batch, _), function in tasks.items():  # warm-up
+        function(generator=[torch.Generator().manual_seed(i) for i in range(batch)])
     seconds: dict[tuple, list[float]] = {key: [] for key in tasks}
     for rep in range(args.reps):
         for (batch, name), function in tasks.items():
-            generator = torch.Generator().manual_seed(rep)  # DDIM: only x_1 is drawn; the cost does not depend on it
+            generators = [torch.Generator().manual_seed(rep * 1000 + i) for i in range(batch)]  # one per scan
             start = time.perf_counter()
-            function(generator=generator)
+            function(generator=generators)
             seconds[(batch, name)].append((time.perf_counter() - start) / batch)
         print(f"  generation rep {rep + 1}/{args.reps}", flush=True)
     rows = []
     for batch in args.batches:
         u4d, first, base = (statistics.median(seconds[(batch, name)]) for name in ("u4d", "stage1", "baseline"))
+        paired = [u / b for u, b in zip(seconds[(batch, "u4d")], seconds[(batch, "baseline")], strict=True)]
         rows.append(
             {
                 "batch": batch,
@@ -127,9 +137,8 @@ def time_generation(nets: dict[str, Loaded], args: argparse.Namespace) -> list[d
                 "stage2_s_per_scan": u4d - first,
                 "baseline_s_per_scan": base,
                 "u4d_over_baseline": u4d / base,
-                "u4d_over_baseline_reps": [
-                    u / b for u, b in zip(seconds[(batch, "u4d")], seconds[(batch, "baseline")], strict=True)
-                ],
+                "u4d_over_baseline_paired": statistics.median(paired),
+                "u4d_over_baseline_reps": paired,
                 "u4d_s_per_scan_reps": seconds[(batch, "u4d")],
                 "baseline_s_per_scan_reps": seconds[(batch, "baseline")],
             }
@@ -268,6 +277,37 @@ def time_unet(nets: dict[str, Loaded], args: argparse.Namespace, matmul: float) 
     return rows
 
 
+def time_full_unet(args: argparse.Namespace) -> dict | None:
+    """Achieved GFLOP/s of a one-scan no-grad forward of the full-size preset's baseline UNet (paper widths,
+    untrained: the cost does not depend on the weights) as a fraction of a 2048² matmul timed before and after
+    it (the faster run: conservative); None when skipped."""
+    if args.full_preset is None or args.full_reps < 1:
+        return None
+    matmul_before = matmul_gflops(2048, args.reps)["gflop_per_s"]
+    cfg = preset_config(args.full_preset, "baseline", [])
+    net = build_net(cfg).requires_grad_(False).eval()
+    inputs = net_inputs(net, 1, cfg.height, cfg.width)
+    flops = forward_flops(net, 1, cfg.height, cfg.width)
+    with torch.no_grad():
+        net(*inputs)  # warm-up
+        median = statistics.median(seconds_per_call(lambda: net(*inputs)) for _ in range(args.full_reps))
+    matmul = max(matmul_before, matmul_gflops(2048, args.reps)["gflop_per_s"])
+    gflops = flops / 1e9 / median
+    return {
+        "source": shown(args.full_preset),
+        "height": cfg.height,
+        "width": cfg.width,
+        "params": sum(p.numel() for p in net.parameters()),
+        "batch": 1,
+        "gflop_per_forward": flops / 1e9,
+        "median_forward_s": median,
+        "gflop_per_s": gflops,
+        "matmul_gflop_per_s": matmul,
+        "fraction_of_matmul": gflops / matmul,
+        "reps": args.full_reps,
+    }
+
+
 def net_sizes(nets: dict[str, Loaded], args: argparse.Namespace) -> list[dict]:
     """Params and GFLOP of a one-scan forward: each net at its size and at 64x1024, the full preset at its size."""
     cases = []
@@ -298,17 +338,22 @@ def net_sizes(nets: dict[str, Loaded], args: argparse.Namespace) -> list[dict]:
 
 def print_report(result: dict) -> None:
     print(
-        f"\n{result['height']}x{result['width']}, DDIM {result['steps']} steps (stage 1: {result['stage1_steps']}), "
+        f"\n{result['height']}x{result['width']}, {result['sampler'].upper()} {result['steps']} steps "
+        f"(stage 1: {result['stage1_steps']}), "
         f"torch {result['torch']}, {result['threads']} threads, load average {result['load_average_before'][0]:.2f}"
         f" -> {result['load_average_after'][0]:.2f}"
     )
-    header = f"{'batch':>5} | {'U4D s/scan':>10} {'stage1':>8} {'stage2':>8} | {'baseline':>9} | {'U4D/base':>8}"
+    header = (
+        f"{'batch':>5} | {'U4D s/scan':>10} {'stage1':>8} {'stage2':>8} | {'baseline':>9} | "
+        f"{'U4D/base':>8} {'paired':>7}"
+    )
     print(header)
     print("-" * len(header))
     for row in result["generation"]:
         print(
             f"{row['batch']:>5} | {row['u4d_s_per_scan']:>10.4f} {row['stage1_s_per_scan']:>8.4f} "
-            f"{row['stage2_s_per_scan']:>8.4f} | {row['baseline_s_per_scan']:>9.4f} | {row['u4d_over_baseline']:>7.2f}x"
+            f"{row['stage2_s_per_scan']:>8.4f} | {row['baseline_s_per_scan']:>9.4f} | "
+            f"{row['u4d_over_baseline']:>7.2f}x {row['u4d_over_baseline_paired']:>6.2f}x"
         )
     print(f"\n{'training':<9} {'batch':>5} {'steps/s':>8} {'step s':>8} {'GFLOP/step':>10} {'GFLOP/s':>8}")
     for row in result["training"]:
@@ -324,6 +369,13 @@ def print_report(result: dict) -> None:
             f"{row['stage']:<9} {row['batch']:>5} {row['gflop_per_forward']:>8.3f} {row['median_forward_s']:>8.4f} "
             f"{row['gflop_per_s']:>8.2f} {row['fraction_of_matmul']:>8.0%}"
         )
+    full = result["unet_full"]
+    if full is not None:
+        print(
+            f"{'full':<9} {full['batch']:>5} {full['gflop_per_forward']:>8.1f} {full['median_forward_s']:>8.3f} "
+            f"{full['gflop_per_s']:>8.2f} {full['fraction_of_matmul']:>8.0%}  ({full['height']}x{full['width']}, "
+            f"{full['params']:,} params, {full['source']})"
+        )
     print(f"\n{'net':<9} {'H x W':>9} {'params':>11} {'GFLOP/scan':>10}  source")
     for row in result["nets"]:
         size = f"{row['height']}x{row['width']}"
@@ -331,12 +383,17 @@ def print_report(result: dict) -> None:
     goals = result["goals"]
     print(
         f"\ngoal U4D <= {GOAL_RATIO}x baseline per scan: {'met' if goals['u4d_ratio_met'] else 'NOT met'} "
-        f"(worst {goals['u4d_over_baseline_worst']:.2f}x)"
+        f"(worst over batch sizes of the paired median {goals['u4d_over_baseline_worst']:.2f}x)"
     )
     print(
         f"goal UNet >= {GOAL_FRACTION:.0%} of matmul: {'met' if goals['unet_fraction_met'] else 'NOT met'} "
         f"(baseline net at batch {goals['unet_fraction_batch']}: {goals['unet_fraction']:.0%})"
     )
+    if goals["unet_full_fraction"] is not None:
+        print(
+            f"goal UNet >= {GOAL_FRACTION:.0%} of matmul, full-size preset: "
+            f"{'met' if goals['unet_full_fraction_met'] else 'NOT met'} ({goals['unet_full_fraction']:.0%})"
+        )
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -348,14 +405,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--stage1-overrides", nargs="*", default=[], metavar="KEY=VALUE", help="applied to the stage-1 preset only"
     )
-    parser.add_argument("--steps", type=int, default=None, help="DDIM steps of stage 2 and the baseline (32)")
-    parser.add_argument("--stage1-steps", type=int, default=None, help="DDIM steps of stage 1 (16)")
+    parser.add_argument("--steps", type=int, default=None, help="sampling steps of stage 2 and the baseline (32)")
+    parser.add_argument("--stage1-steps", type=int, default=None, help="sampling steps of stage 1 (16)")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 8], help="generation batch sizes")
     parser.add_argument("--reps", type=int, default=None, help="timed repetitions; medians are reported (5)")
     parser.add_argument("--train-steps", type=int, default=None, help="timed training steps per stage (5)")
     parser.add_argument("--forward-calls", type=int, default=3, help="UNet forwards per repetition")
     parser.add_argument("--matmul-size", type=int, default=None, help="square matmul size (2048)")
     parser.add_argument("--full-preset", type=Path, default=FULL_PRESET, help="preset counted for params/FLOPs")
+    parser.add_argument("--full-reps", type=int, default=None, help="timed full-size forwards, 0 skips (3; quick 0)")
+    parser.add_argument("--sampler", choices=["ddpm", "ddim"], default="ddpm", help="sampler of the timed generation")
     parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
     parser.add_argument("--quick", action="store_true", help="tiny preset, 4 (2) steps, 3 reps, matmul 512")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "generation_speed.json")
@@ -368,6 +427,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "reps": 3 if quick else 5,
         "train_steps": 3 if quick else 5,
         "matmul_size": 512 if quick else 2048,
+        "full_reps": 0 if quick else 3,
     }
     for key, value in defaults.items():
         if getattr(args, key) is None:
@@ -392,12 +452,14 @@ def main(argv: list[str] | None = None) -> int:
         print("matmul and UNet forwards ...", flush=True)
         matmul = matmul_gflops(args.matmul_size, args.reps)
         unet = time_unet(nets, args, matmul["gflop_per_s"])
+        print("full-size UNet forward ...", flush=True)
+        full = time_full_unet(args)
         sizes = net_sizes(nets, args)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     cfg = nets["baseline"][1]
-    worst_ratio = max(row["u4d_over_baseline"] for row in generation)
+    worst_ratio = max(row["u4d_over_baseline_paired"] for row in generation)
     largest = max(args.batches)
     fraction = next(r["fraction_of_matmul"] for r in unet if r["batch"] == largest and r["stage"] == "baseline")
     result = {
@@ -415,7 +477,7 @@ def main(argv: list[str] | None = None) -> int:
         "checkpoints": {stage: shown(getattr(args, stage)) for stage in STAGES},
         "height": cfg.height,
         "width": cfg.width,
-        "sampler": "ddim",
+        "sampler": args.sampler,
         "steps": args.steps,
         "stage1_steps": args.stage1_steps,
         "reps": args.reps,
@@ -423,6 +485,7 @@ def main(argv: list[str] | None = None) -> int:
         "training": training,
         "matmul": matmul,
         "unet": unet,
+        "unet_full": full,
         "nets": sizes,
         "goals": {
             "u4d_over_baseline_max": GOAL_RATIO,
@@ -433,6 +496,8 @@ def main(argv: list[str] | None = None) -> int:
             "unet_fraction_net": "baseline",
             "unet_fraction_batch": largest,
             "unet_fraction_met": fraction >= GOAL_FRACTION,
+            "unet_full_fraction": None if full is None else full["fraction_of_matmul"],
+            "unet_full_fraction_met": None if full is None else full["fraction_of_matmul"] >= GOAL_FRACTION,
         },
     }
     print_report(result)

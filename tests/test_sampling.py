@@ -65,6 +65,20 @@ def test_same_generator_same_sample_different_generator_different(sampler):
 
 
 @pytest.mark.parametrize("sampler", SAMPLERS)
+def test_one_generator_per_element_gives_the_batch_of_one_samples(sampler):
+    net = random_net()
+    seeds = [3, 4, 5]
+    batched = sampler(net, (3, *SHAPE[1:]), 4, [torch.Generator().manual_seed(s) for s in seeds])
+    for i, seed in enumerate(seeds):
+        alone = sampler(net, (1, *SHAPE[1:]), 4, torch.Generator().manual_seed(seed))
+        torch.testing.assert_close(batched.x0[i : i + 1], alone.x0, atol=1e-5, rtol=0)
+        torch.testing.assert_close(batched.extra[i : i + 1], alone.extra, atol=1e-4, rtol=0)  # mask logits
+    assert not torch.allclose(batched.x0[0], batched.x0[1], atol=0.1)
+    with pytest.raises(ValueError, match="2 generators for a batch of 3"):
+        sampler(net, (3, *SHAPE[1:]), 4, [torch.Generator(), torch.Generator()])
+
+
+@pytest.mark.parametrize("sampler", SAMPLERS)
 @pytest.mark.parametrize("steps", [1, 8, 64])
 def test_perfect_denoiser_recovers_x0(sampler, steps):
     x0 = torch.rand(SHAPE, generator=torch.Generator().manual_seed(1)) * 1.8 - 0.9

@@ -1,8 +1,9 @@
 """`u4d generate CONFIG --out BANK [--num N] [--mode u4d|baseline|complete] [--steps S] [--seed S]`.
 
 Writes a bank of generated scans (layout in `u4d_aug.bank`). Sample i is drawn with its own generator seeded
-seed + i, so a bank does not depend on the number of torchrun ranks that share the work (rank r takes samples
-r, r + world, ...); finished samples are skipped on a re-run. A generator trained on L > 1 frames writes each
+seed + i, also inside a batch (`batch_size` samples per sampler call, fixed blocks of consecutive indices), so a
+bank does not depend on the number of torchrun ranks that share the work (rank r takes blocks r, r + world, ...);
+finished samples are skipped on a re-run. A generator trained on L > 1 frames writes each
 sample as an L-frame sequence (one bank sequence per sample); in completion mode sample i then completes the
 x0_u of window i of L real frames and keeps those frames' relative poses.
 """
@@ -54,6 +55,9 @@ class GenerateConfig:
     stage1_steps: int | None = None  # None = steps; the uncertain region allows fewer
     num: int = 64
     seed: int = 0  # sample i uses seed + i
+    # samples per sampler call (fixed blocks of consecutive indices); each keeps its own seed, so a batch gives
+    # the scans of one-by-one calls up to float rounding, and the same batch_size gives the same bytes
+    batch_size: int = 8
     frames: int | None = None  # L frames per sample; None = the L the generator was trained with (1: scans)
     device: str = "auto"
     # completion mode: x0_u, m_u from these real scans (sample i completes scan i mod count, or for sequence
@@ -65,6 +69,8 @@ class GenerateConfig:
     def __post_init__(self) -> None:
         if self.num < 0 or self.steps < 1 or (self.stage1_steps is not None and self.stage1_steps < 1):
             raise InputError(f"num must be >= 0 and steps >= 1, got num={self.num}, steps={self.steps}")
+        if self.batch_size < 1:
+            raise InputError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.frames is not None and self.frames < 1:
             raise InputError(f"frames must be >= 1 or null (the generator's own), got {self.frames}")
 
@@ -142,35 +148,44 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
     if info.is_main:
         write_manifest(layout.root, manifest)
 
-    todo = [i for i in shard(list(range(cfg.num)), info.rank, info.world_size) if not layout.is_done(i)]
-    for i in tqdm(todo, disable=not (progress and info.is_main), desc=f"generate {cfg.mode}"):
-        generator = torch.Generator().manual_seed(cfg.seed + i)
-        masks = uncertainty = x0_u = None  # per frame: (L, H, W), (L, H, W), (L, 2, H, W)
+    # fixed blocks of batch_size consecutive samples, sharded across ranks: a block's scans do not depend on the
+    # rank count, and a block with a missing sample is generated again whole (finished samples are not rewritten)
+    blocks = [list(range(start, min(start + cfg.batch_size, cfg.num))) for start in range(0, cfg.num, cfg.batch_size)]
+    todo = [block for block in shard(blocks, info.rank, info.world_size) if not all(map(layout.is_done, block))]
+    bar = tqdm(total=sum(map(len, todo)), disable=not (progress and info.is_main), desc=f"generate {cfg.mode}")
+    for block in todo:
+        n = len(block)
+        generators = [torch.Generator().manual_seed(cfg.seed + i) for i in block]  # sample i: seed + i
+        masks = uncertainty = x0_u = None  # per sample and frame: (n, L, H, W), (n, L, H, W), (n, L, 2, H, W)
         if cfg.mode == "u4d":
             result = generate_u4d(
-                nets["stage1"], nets["stage2"], 1, cfg.steps, generator, cfg.sampler, cfg.stage1_steps, frames
+                nets["stage1"], nets["stage2"], n, cfg.steps, generators, cfg.sampler, cfg.stage1_steps, frames
             )
-            masks, x0_u = _per_frame(result["m_u_pred"])[:, 0], _per_frame(result["x0_u"])
+            masks, x0_u = _per_sample(result["m_u_pred"], n)[:, :, 0], _per_sample(result["x0_u"], n)
         elif cfg.mode == "baseline":
-            result = generate_baseline(nets["baseline"], 1, cfg.steps, generator, cfg.sampler, frames)
+            result = generate_baseline(nets["baseline"], n, cfg.steps, generators, cfg.sampler, frames)
         else:
-            item = scans[i % len(scans)]
-            if frames == 1:
-                item = {"points": [item["points"]], "seq": item["seq"], "frames": [item["frame"]], "poses": None}
-            conditions = [
-                _real_condition(points, item["seq"], frame, main[1], cfg.probs_root, generator)
-                for points, frame in zip(item["points"], item["frames"])
+            parts = [
+                _real_sample_condition(scans, i, generator, frames, main[1], cfg)
+                for i, generator in zip(block, generators)
             ]
-            x0_u, m_u, entropy_image = (torch.stack(parts) for parts in zip(*conditions))  # (L, C, H, W), (L, H, W)
-            if frames > 1:
-                x0_u, m_u = x0_u[None], m_u[None]  # one L-frame sequence
-                write_sequence_poses(layout, i, item["poses"])
-            result = complete(nets["stage2"], x0_u, m_u, cfg.steps, generator, cfg.sampler)
-            masks, uncertainty, x0_u = _per_frame(m_u)[:, 0], entropy_image.numpy(), _per_frame(x0_u)
-        clouds = to_points(result["x0"], sensor, main[1].row_mode)  # L point clouds, frames in order
-        for frame, points in enumerate(clouds):
-            side = [None if part is None else part[frame] for part in (masks, uncertainty, x0_u)]
-            write_sample(layout, i, points, *side, frame=frame)
+            for i, (_, _, _, poses) in zip(block, parts):
+                if poses is not None:
+                    write_sequence_poses(layout, i, poses)
+            x0_u, m_u, entropy_image = (torch.stack([part[k] for part in parts]) for k in range(3))  # (n, L, ...)
+            if frames == 1:
+                x0_u, m_u = x0_u[:, 0], m_u[:, 0]  # single scans: (n, C, H, W)
+            result = complete(nets["stage2"], x0_u, m_u, cfg.steps, generators, cfg.sampler)
+            masks, uncertainty, x0_u = _per_sample(m_u, n)[:, :, 0], entropy_image.numpy(), _per_sample(x0_u, n)
+        clouds = to_points(result["x0"], sensor, main[1].row_mode)  # n·L point clouds, samples then frames
+        for j, i in enumerate(block):
+            if layout.is_done(i):
+                continue
+            for frame in range(frames):
+                side = [None if part is None else part[j, frame] for part in (masks, uncertainty, x0_u)]
+                write_sample(layout, i, clouds[j * frames + frame], *side, frame=frame)
+        bar.update(n)
+    bar.close()
 
     barrier()
     if info.is_main:
@@ -183,9 +198,29 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
     return manifest
 
 
-def _per_frame(images: torch.Tensor) -> np.ndarray:
-    """Images of one sample, (1, [L,] C, H, W) or (L, C, H, W) -> (L, C, H, W) numpy."""
-    return images.detach().cpu().reshape(-1, *images.shape[-3:]).numpy()
+def _per_sample(images: torch.Tensor, n: int) -> np.ndarray:
+    """Images of n samples, (n, [L,] C, H, W) -> (n, L, C, H, W) numpy."""
+    return images.detach().cpu().reshape(n, -1, *images.shape[-3:]).numpy()
+
+
+def _real_sample_condition(
+    scans: ScanDataset | SequenceDataset,
+    index: int,
+    generator: torch.Generator,
+    frames: int,
+    train_cfg: DiffusionTrainConfig,
+    cfg: GenerateConfig,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, np.ndarray | None]:
+    """Completion mode: x0_u (L, 2, H, W), m_u (L, 1, H, W), entropy (L, H, W) and poses (or None) of sample index."""
+    item = scans[index % len(scans)]
+    if frames == 1:
+        item = {"points": [item["points"]], "seq": item["seq"], "frames": [item["frame"]], "poses": None}
+    conditions = [
+        _real_condition(points, item["seq"], frame, train_cfg, cfg.probs_root, generator)
+        for points, frame in zip(item["points"], item["frames"])
+    ]
+    x0_u, m_u, entropy_image = (torch.stack(parts) for parts in zip(*conditions))
+    return x0_u, m_u, entropy_image, (item["poses"] if frames > 1 else None)
 
 
 def _sample_entry(cfg: GenerateConfig, index: int, scans: ScanDataset | SequenceDataset | None, frames: int) -> dict:

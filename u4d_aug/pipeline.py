@@ -24,7 +24,7 @@ from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.nn.unet import RangeUNet
 from u4d_aug.range_view import RowMode, unproject
-from u4d_aug.sampling import Sample, ddim_sample, ddpm_sample
+from u4d_aug.sampling import Generators, Sample, ddim_sample, ddpm_sample
 from u4d_aug.train import DiffusionTrainConfig, build_net, config_from_checkpoint, find_checkpoint
 
 Sampler = Literal["ddim", "ddpm"]
@@ -61,7 +61,7 @@ def _sample(
     loaded: Loaded,
     batch_shape: tuple[int, ...],
     steps: int,
-    generator: torch.Generator,
+    generator: Generators,
     cond: Tensor | None,
     sampler: Sampler,
 ) -> Sample:
@@ -90,7 +90,7 @@ def generate_stage1(
     stage1: Loaded,
     n: int,
     steps: int,
-    generator: torch.Generator,
+    generator: Generators,
     sampler: Sampler = "ddim",
     frames: int | None = None,
 ) -> dict[str, Tensor]:
@@ -110,7 +110,7 @@ def complete(
     x0_u: Tensor,
     m_u: Tensor,
     steps: int,
-    generator: torch.Generator,
+    generator: Generators,
     sampler: Sampler = "ddim",
 ) -> dict[str, Tensor]:
     """Stage 2: x0 (B, [L,] 2, H, W) ~ p(x0 | x0_u (B, [L,] 2, H, W), m_u (B, [L,] 1, H, W)), e.g. from real scans."""
@@ -136,7 +136,7 @@ def generate_u4d(
     stage2: Loaded,
     n: int,
     steps: int,
-    generator: torch.Generator,
+    generator: Generators,
     sampler: Sampler = "ddim",
     stage1_steps: int | None = None,
     frames: int | None = None,
@@ -157,7 +157,7 @@ def generate_baseline(
     net: Loaded,
     n: int,
     steps: int,
-    generator: torch.Generator,
+    generator: Generators,
     sampler: Sampler = "ddim",
     frames: int | None = None,
 ) -> dict[str, Tensor]:

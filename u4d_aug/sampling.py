@@ -10,7 +10,7 @@ x̂0 = (x_t − σ ε̂)/α to [−1, 1] at every step and return the last x̂0 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, Literal, NamedTuple
 
 import torch
@@ -20,6 +20,9 @@ from tqdm.auto import tqdm
 from u4d_aug.diffusion import alpha_sigma, log_snr
 
 DenoiseFn = Callable[[Tensor, Tensor, "Tensor | None"], "Tensor | tuple[Tensor, Any]"]
+# one generator for the whole batch, or one per batch element: element i then draws exactly the noise a batch of
+# one with generator i draws, so batching does not change what a seed generates
+Generators = torch.Generator | Sequence[torch.Generator]
 
 
 class Sample(NamedTuple):
@@ -34,7 +37,7 @@ def ddpm_sample(
     denoise_fn: DenoiseFn,
     shape: tuple[int, ...],
     steps: int,
-    generator: torch.Generator,
+    generator: Generators,
     cond: Tensor | None = None,
     device: torch.device | str | None = None,
     progress: bool = False,
@@ -48,7 +51,7 @@ def ddim_sample(
     denoise_fn: DenoiseFn,
     shape: tuple[int, ...],
     steps: int,
-    generator: torch.Generator,
+    generator: Generators,
     cond: Tensor | None = None,
     device: torch.device | str | None = None,
     progress: bool = False,
@@ -62,15 +65,17 @@ def _sample(
     denoise_fn: DenoiseFn,
     shape: tuple[int, ...],
     steps: int,
-    generator: torch.Generator,
+    generator: Generators,
     cond: Tensor | None,
     device: torch.device | str | None,
     progress: bool,
 ) -> Sample:
     if steps < 1:
         raise ValueError(f"sampling steps must be >= 1, got {steps}")
-    device = torch.device(device) if device is not None else generator.device
     batch = shape[0]
+    if not isinstance(generator, torch.Generator) and len(generator) != batch:
+        raise ValueError(f"got {len(generator)} generators for a batch of {batch}")
+    device = torch.device(device) if device is not None else _first(generator).device
     # the schedule in float64 python scalars: exact at the ends of the grid where alpha or sigma ~ 5e-4
     grid = log_snr(torch.linspace(1.0, 0.0, steps + 1, dtype=torch.float64)).tolist()
     x = _randn(shape, generator, device)  # x_1 ~ N(0, I)
@@ -99,6 +104,16 @@ def _alpha_sigma(lam: float) -> tuple[float, float]:
     return float(alpha), float(sigma)
 
 
-def _randn(shape: tuple[int, ...], generator: torch.Generator, device: torch.device) -> Tensor:
-    """Noise drawn on the generator's device, then moved: a CPU generator gives one sample on any device."""
-    return torch.randn(shape, generator=generator, device=generator.device).to(device)
+def _first(generator: Generators) -> torch.Generator:
+    return generator if isinstance(generator, torch.Generator) else generator[0]
+
+
+def _randn(shape: tuple[int, ...], generator: Generators, device: torch.device) -> Tensor:
+    """Noise drawn on the generator's device, then moved: a CPU generator gives one sample on any device.
+
+    With one generator per batch element, element i is drawn alone from generator i, shape (1, *shape[1:]).
+    """
+    if isinstance(generator, torch.Generator):
+        return torch.randn(shape, generator=generator, device=generator.device).to(device)
+    parts = [torch.randn((1, *shape[1:]), generator=g, device=g.device).to(device) for g in generator]
+    return torch.cat(parts)
