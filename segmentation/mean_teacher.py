@@ -18,6 +18,7 @@ BatchNorm policy (`MeanTeacherConfig.bn_mode`), chosen explicitly:
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -35,6 +36,10 @@ class MeanTeacherConfig:
     # L_mt weight: 200 for MinkUNet18 / SemanticKITTI upstream (Cylinder3D: 250 SK, 500 nuScenes); large
     # because the MSE is averaged over N x C, so the right value scales with the number of classes.
     consistency_weight: float = 200.0
+    # sigmoid ramp-up of the L_mt weight, w * exp(-5 (1 - t/T)^2) over the first T steps (Tarvainen & Valpola 2017;
+    # Laine & Aila 2017): the young teacher is close to the random init, and matching it makes the student
+    # underconfident on short schedules; 0 = constant weight (LaserMix upstream, trained for many epochs)
+    consistency_rampup_steps: int = 0
     sup_weight: float = 1.0  # weight of L_sup (labeled scans)
     mix_weight: float = 1.0  # weight of L_mix (LaserMix scans with GT / pseudo-labels)
     num_areas_choices: tuple[int, ...] = (3, 4, 5, 6)  # LaserMix MinkUNet18 config
@@ -107,11 +112,24 @@ def consistency_loss(student_logits: torch.Tensor, teacher_logits: torch.Tensor)
     return F.mse_loss(p_student, p_teacher)
 
 
+def consistency_rampup(step: int, rampup_steps: int) -> float:
+    """exp(-5 (1 - t/T)^2) for t < T, else 1 (the mean-teacher sigmoid ramp-up, Tarvainen & Valpola 2017)."""
+    if rampup_steps <= 0 or step >= rampup_steps:
+        return 1.0
+    phase = 1.0 - max(step, 0) / rampup_steps
+    return math.exp(-5.0 * phase * phase)
+
+
 def total_loss(
-    loss_sup: torch.Tensor, loss_mix: torch.Tensor, loss_mt: torch.Tensor | None, config: MeanTeacherConfig
+    loss_sup: torch.Tensor,
+    loss_mix: torch.Tensor,
+    loss_mt: torch.Tensor | None,
+    config: MeanTeacherConfig,
+    step: int | None = None,
 ) -> torch.Tensor:
-    """L = w_sup * L_sup + w_mix * L_mix + w_mt * L_mt (LaserMix `SemiBase3DSegmentor.loss`)."""
+    """L = w_sup * L_sup + w_mix * L_mix + w_mt(step) * L_mt (LaserMix `SemiBase3DSegmentor.loss`, ramped w_mt)."""
     loss = config.sup_weight * loss_sup + config.mix_weight * loss_mix
     if loss_mt is not None:
-        loss = loss + config.consistency_weight * loss_mt
+        ramp = 1.0 if step is None else consistency_rampup(step, config.consistency_rampup_steps)
+        loss = loss + config.consistency_weight * ramp * loss_mt
     return loss

@@ -136,7 +136,7 @@ def semi_step(student: nn.Module, teacher: nn.Module, batch: dict, cfg: SegTrain
     loss_mix = segmentation_loss(mix_logits, torch.cat(mixed_targets), cfg.loss, SEMANTICKITTI_IGNORE)["loss"]
     loss_mt = consistency_loss(unl_logits, teacher_logits)
     return {
-        "loss": total_loss(loss_sup, loss_mix, loss_mt, cfg.semi),
+        "loss": total_loss(loss_sup, loss_mix, loss_mt, cfg.semi, step=int(batch["step"])),
         "loss_sup": loss_sup,
         "loss_mix": loss_mix,
         "loss_mt": loss_mt,

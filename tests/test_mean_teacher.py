@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from torch import nn
 
+from segmentation.config import SemiConfig
 from segmentation.mean_teacher import (
     MeanTeacherConfig,
     consistency_loss,
+    consistency_rampup,
     copy_buffers,
     ema_update,
     make_teacher,
@@ -124,3 +128,18 @@ def test_config_defaults_and_total_loss():
     one = torch.tensor(1.0)
     assert total_loss(one, 2 * one, 0.01 * one, cfg).item() == pytest.approx(1 + 2 + 2)
     assert total_loss(one, 2 * one, None, cfg).item() == pytest.approx(3)
+
+
+def test_consistency_rampup_is_the_sigmoid_ramp_and_scales_only_the_mt_term():
+    assert consistency_rampup(0, 100) == pytest.approx(math.exp(-5.0))
+    assert consistency_rampup(50, 100) == pytest.approx(math.exp(-1.25))
+    assert consistency_rampup(100, 100) == 1.0 and consistency_rampup(500, 100) == 1.0
+    assert consistency_rampup(0, 0) == 1.0  # no ramp-up: constant weight
+    ramp = [consistency_rampup(t, 100) for t in range(101)]
+    assert all(a < b for a, b in zip(ramp, ramp[1:]))
+    cfg = MeanTeacherConfig(consistency_weight=200.0, consistency_rampup_steps=100)
+    one = torch.tensor(1.0)
+    assert total_loss(one, 2 * one, 0.01 * one, cfg, step=50).item() == pytest.approx(3 + 2 * math.exp(-1.25))
+    assert total_loss(one, 2 * one, 0.01 * one, cfg, step=100).item() == pytest.approx(5)
+    with pytest.raises(ValueError, match="consistency_rampup_steps"):
+        SemiConfig(consistency_rampup_steps=-1)
