@@ -17,7 +17,7 @@ from u4d_aug.data.sensors import hdl64
 from u4d_aug.data.sim import objects
 from u4d_aug.data.sim.config import SimConfig
 from u4d_aug.data.sim.geometry import RAW, MeshBuilder, strip
-from u4d_aug.data.sim.streets import Bend, Warp, make_network
+from u4d_aug.data.sim.streets import Bend, Warp, make_hills, make_network
 from u4d_aug.data.sim.world import _add_mesh
 from u4d_aug.data.sim.writer import (
     add_simulate_arguments,
@@ -101,6 +101,9 @@ def test_layout_poses_times_labels(tiny_world: Path) -> None:
     # road under the sensor at about -sensor_height
     road = (semantic == 40) & (r < 15)
     assert abs(np.median(points[road, 2]) + 1.80) < 0.05
+    # the labels stop at label_range (50 m), as in the real seq-00 frames
+    assert np.all(semantic[r > 50.5] == 0) and np.all(instance[r > 50.5] == 0)
+    assert np.mean(semantic[r < 49.5] == 0) < 0.01
 
 
 def test_ring_major_storage_order() -> None:
@@ -193,6 +196,50 @@ def test_streets_bend_within_limits() -> None:
     straight = make_network(np.random.default_rng(3), _tiny("street.straight_prob=1").street, 400.0).warp
     xy = np.random.default_rng(0).uniform(-300, 300, (100, 2))
     np.testing.assert_array_equal(straight.points(xy), xy)
+
+
+def test_hills_gradient_and_limits() -> None:
+    cfg = _tiny("street.flat_prob=0")
+    xy = np.random.default_rng(0).uniform(-400, 400, (2000, 2))
+    for seed in range(5):
+        hills = make_hills(np.random.default_rng(seed), cfg.street)
+        eps = 1e-3
+        numeric = np.stack(
+            [
+                (hills(xy + [eps, 0]) - hills(xy - [eps, 0])) / (2 * eps),
+                (hills(xy + [0, eps]) - hills(xy - [0, eps])) / (2 * eps),
+            ],
+            axis=-1,
+        )
+        np.testing.assert_allclose(hills.gradient(xy), numeric, atol=1e-6)
+        grade = np.linalg.norm(hills.gradient(xy), axis=1)
+        assert grade.max() <= cfg.street.hill_max_grade + 1e-9
+        assert np.ptp(hills(xy)) > 1.0  # genuinely hilly over a few hundred metres
+        assert np.sum(np.abs(hills.amplitude) * np.linalg.norm(hills.wavevector, axis=1) ** 2) <= (
+            1.0 / cfg.street.hill_min_radius + 1e-12
+        )
+    flat = make_hills(np.random.default_rng(0), _tiny("street.flat_prob=1").street)
+    assert np.all(flat(xy) == 0.0)
+
+
+def test_ego_rides_the_hills() -> None:
+    seq = build_sequence(2, 0, 20, hdl64(), _tiny("street.flat_prob=0"))
+    hills = seq.world.network.warp.hills
+    poses, xy = seq.ego.poses, seq.ego.xy
+    assert np.ptp(hills(seq.ego.route_xy)) > 0.3  # the route climbs or descends
+    np.testing.assert_allclose(poses[:, 2, 3], hills(xy) + seq.cfg.lidar.sensor_height, atol=0.02)
+    # the body's up axis is normal to the ground (up to the sensor mount tilt, std 0.3 deg)
+    grade = hills.gradient(xy)
+    normal = np.column_stack([-grade, np.ones(len(grade))])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    cos = np.einsum("ij,ij->i", poses[:, :3, 2], normal)
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 1.5
+    # the road around the sensor lies at -sensor_height in the sensor frame, uphill or downhill
+    for frame in (0, 19):
+        scan = render_frame(seq, frame)
+        r = np.linalg.norm(scan.points[:, :3], axis=1)
+        road = (scan.semantic == RAW["road"]) & (r < 12)
+        assert abs(np.median(scan.points[road, 2]) + seq.cfg.lidar.sensor_height) < 0.05
 
 
 def test_warp_bends_surfaces_and_carries_objects_rigidly() -> None:

@@ -16,7 +16,7 @@ import numpy as np
 from u4d_aug.data.sim import objects
 from u4d_aug.data.sim.config import AgentConfig, SimConfig
 from u4d_aug.data.sim.geometry import TriangleMesh, concat_meshes
-from u4d_aug.data.sim.streets import Line, Network, arc_length, lane_path, plan_route, sample_path
+from u4d_aug.data.sim.streets import Hills, Line, Network, arc_length, lane_path, plan_route, sample_path
 from u4d_aug.data.sim.world import World
 
 
@@ -98,7 +98,12 @@ def ego_motion(rng: np.random.Generator, net: Network, cfg: SimConfig, frames: i
     heading = int(rng.integers(4))
     length = frames * ac.ego_speed[1] * dt + 150.0
     nodes = plan_route(rng, net, (i0, j0), heading, length, ac.ego_turn_prob)
-    lattice, turning = lane_path(net, nodes, _EgoLane(ac.ego_center_bias), start_fraction=float(rng.uniform(0.2, 0.6)))
+    lattice, turning = lane_path(
+        net,
+        nodes,
+        _EgoLane(ac.ego_center_bias),
+        start_fraction=float(rng.uniform(0.2, 0.6)),
+    )
     path = net.warp.points(lattice)
     s = arc_length(path)
     at = speed_profile(rng, s, turning, frames, dt, ac.ego_speed, ac.ego_turn_speed, ac.ego_accel)
@@ -108,15 +113,28 @@ def ego_motion(rng: np.random.Generator, net: Network, cfg: SimConfig, frames: i
     lateral = ac.ego_lateral_jitter * np.sin(2 * np.pi * at / wavelength + phase)
     xy = xy + lateral[:, None] * np.column_stack([-np.sin(yaw), np.cos(yaw)])
     poses = np.tile(np.eye(4), (frames, 1, 1))
-    c, sn = np.cos(yaw), np.sin(yaw)
-    poses[:, 0, 0], poses[:, 0, 1], poses[:, 1, 0], poses[:, 1, 1] = c, -sn, sn, c
+    hills = net.warp.hills
+    grade = np.zeros_like(xy) if hills is None else hills.gradient(xy)
+    poses[:, :3, :3] = on_slope(yaw, grade)
     poses[:, :2, 3] = xy
-    poses[:, 2, 3] = cfg.lidar.sensor_height
+    poses[:, 2, 3] = cfg.lidar.sensor_height + (0.0 if hills is None else hills(xy))
     pitch, roll = np.radians(rng.normal(0.0, cfg.lidar.mount_tilt_deg, 2))
+    roll += np.arctan(ac.lane_camber)  # the lane slopes down to the curb: the car leans right
     cp, sp, cr, sr = np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
     tilt = np.eye(4)
     tilt[:3, :3] = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) @ np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
     return EgoMotion(poses @ tilt, xy, yaw, path, lattice)
+
+
+def on_slope(yaw: np.ndarray, grade: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) body rotations heading `yaw` (F,) on ground of grade (F, 2): x forward, z normal to the ground."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    forward = np.column_stack([c, s, grade[:, 0] * c + grade[:, 1] * s])
+    left = np.column_stack([-s, c, -grade[:, 0] * s + grade[:, 1] * c])
+    x = forward / np.linalg.norm(forward, axis=1, keepdims=True)
+    z = np.cross(x, left)
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    return np.stack([x, np.cross(z, x), z], axis=2)
 
 
 def _overlap(xy_a, yaw_a, ext_a, xy_b, yaw_b, ext_b, margin: float) -> bool:
@@ -259,8 +277,10 @@ def _limb_pose(agent: Agent, frame: int) -> np.ndarray:
     return out
 
 
-def dynamic_mesh(agents: list[Agent], frame: int, ego_xy: np.ndarray, radius: float) -> TriangleMesh:
-    """All agents within `radius` of the ego, posed for `frame`, as one mesh."""
+def dynamic_mesh(
+    agents: list[Agent], frame: int, ego_xy: np.ndarray, radius: float, hills: Hills | None = None
+) -> TriangleMesh:
+    """All agents within `radius` of the ego, posed for `frame`, as one mesh (on the `hills` ground if given)."""
     meshes = []
     for agent in agents:
         if np.linalg.norm(agent.xy[frame] - ego_xy) > radius:
@@ -271,6 +291,8 @@ def dynamic_mesh(agents: list[Agent], frame: int, ego_xy: np.ndarray, radius: fl
         world[:, 0] = c * local[:, 0] - s * local[:, 1] + agent.xy[frame, 0]
         world[:, 1] = s * local[:, 0] + c * local[:, 1] + agent.xy[frame, 1]
         world[:, 2] = local[:, 2] + agent.z
+        if hills is not None:  # point by point: the body follows the local grade (a few cm over its length)
+            world[:, 2] += hills(world[:, :2])
         m = agent.mesh
         meshes.append(
             TriangleMesh(world.astype(np.float32), m.triangles, m.semantic, m.instance, m.material, m.reflectivity)

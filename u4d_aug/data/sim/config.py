@@ -34,6 +34,13 @@ class StreetConfig:
     straight_prob: float = 0.2  # a street family stays straight
     bend_max_slope: float = 0.36  # max |d offset / ds|: heading swing about +-20 deg
     bend_min_radius: float = 70.0  # m, smallest centre-line curve radius
+    # gentle hills (streets.Hills): three plane waves, capped by grade and curvature; real seq 00 is not flat
+    # (ground 0.7 m lower 30 m to the left, 0.2 m higher ahead), which spreads the ground rings over 20-40 m
+    hill_amplitude: tuple[float, float] = (0.5, 2.0)  # m, per wave
+    hill_wavelength: tuple[float, float] = (120.0, 300.0)  # m
+    hill_max_grade: float = 0.05  # max |grad h|
+    hill_min_radius: float = 500.0  # m, smallest vertical curve radius
+    flat_prob: float = 0.1  # the world is flat
 
 
 @dataclass
@@ -51,9 +58,13 @@ class LotConfig:
     row_setback: tuple[float, float] = (1.0, 3.0)  # row-house facade distance from the sidewalk
     front_fence_prob: float = 0.9  # fence, wall or hedge at the front of a house lot
     hedge_prob: float = 0.8  # that front boundary is a hedge (gardens: always)
+    # m; below the sensor (1.8 m), as in real seq 00 where the upper rings see over the hedges at 6-7 m
+    hedge_height: tuple[float, float] = (0.9, 1.8)
     yard_trees: tuple[int, int] = (2, 5)  # tall canopies behind the houses hide the far field
     yard_bushes: tuple[int, int] = (4, 10)
     courtyard_tree_area: float = 120.0  # m^2 of back courtyard per tree
+    # garden shed / bin shelter in a front yard (raw 52 other-structure; real seq 00: 1.2 % of the points)
+    shed_prob: float = 0.3
     shrub_bed_prob: float = 0.6  # a row of shrubs along the front of a house yard (real seq 00: 22 % vegetation)
     other_ground_prob: float = 0.05  # gravel/paved yard (raw 49) instead of grass (real seq 00: none)
     # yard under low shrubs (vegetation) instead of lawn (terrain); real seq 00: 22 % vegetation, 2 % terrain
@@ -66,6 +77,10 @@ class StreetObjectConfig:
 
     tree_spacing: tuple[float, float] = (6.0, 12.0)
     street_tree_prob: float = 0.65  # a street side has a tree row
+    tree_clearance: float = 2.5  # m, lowest canopy point of a street tree above the sidewalk
+    # m, street tree distance from the curb without a grass strip: at the back of the sidewalk (capped at width
+    # - 0.6 m), as real seq 00 shows no trunk within 10 m of the sensor
+    tree_offset: float = 3.0
     pole_spacing: tuple[float, float] = (22.0, 35.0)
     sign_prob: float = 0.7  # traffic sign near a street end
     object_prob: float = 0.5  # trash bin / bollards / box (raw 99 other-object) per 20 m
@@ -95,6 +110,10 @@ class AgentConfig:
     ego_accel: float = 1.5  # m/s^2
     ego_turn_prob: float = 0.4  # turn left/right at an intersection instead of going straight
     ego_lateral_jitter: float = 0.15  # m, slow wander within the lane
+    # cross slope of the ego lane down to the right curb (road camber, ~2.5 %): the car rolls right, so the flat
+    # world reads higher on the right and lower on the left (real seq-00 frame 0: ground at 4.7 m is 0.17 m
+    # higher on the right, 0.15 m lower on the left)
+    lane_camber: float = 0.025
     ego_center_bias: float = 0.4  # on one-lane-per-direction streets, drive this share closer to the centre
 
 
@@ -130,6 +149,9 @@ class LidarConfig:
     intensity_noise: float = 0.04
     zero_threshold: tuple[float, float] = (0.02, 0.10)  # weak returns read 0 (threshold drawn per point)
     intensity_step: float = 0.01  # KITTI remission is quantised to 0.01
+    # returns farther than this read raw 0 (unlabeled): the real seq-00 labels stop at ~50 m (every return beyond
+    # 50 m is unlabeled, 1.7 % of a scan); None labels everything
+    label_range: float | None = 50.0
 
 
 @dataclass

@@ -260,11 +260,11 @@ def bush(mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float, size: f
     mb.add(b, "vegetation", "hedge", sample_reflectivity(rng, "hedge", len(b[1])))
 
 
-def hedge(mb: MeshBuilder, rng: np.random.Generator, p0, p1, ground_z: float) -> None:
-    """Hedge along p0 -> p1: a row of overlapping box-like blobs ~0.8 m deep, 0.8-2 m tall."""
+def hedge(mb: MeshBuilder, rng: np.random.Generator, p0, p1, ground_z: float, height_range=(1.0, 2.5)) -> None:
+    """Hedge along p0 -> p1: a row of overlapping box-like blobs ~1 m deep, `height_range` m tall."""
     p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
     length = np.linalg.norm(p1 - p0)
-    height = rng.uniform(1.0, 2.5)
+    height = rng.uniform(*height_range)
     refl = sample_reflectivity(rng, "hedge")[0]
     n = max(1, int(length / 1.6))
     for k in range(n):
@@ -301,6 +301,17 @@ def fence(mb: MeshBuilder, rng: np.random.Generator, p0, p1, ground_z: float) ->
         material = "fence" if kind == "slats" else "metal"
     part = transform(merge(*parts), yaw, (p0[0], p0[1], ground_z))
     mb.add(part, "fence", material, sample_reflectivity(rng, material, len(part[1])))
+
+
+def shed(mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float, yaw: float, footprint) -> None:
+    """Garden shed or bin shelter (SemanticKITTI other-structure): a wooden or metal box with an overhanging roof."""
+    sx, sy = footprint
+    height = rng.uniform(1.3, 2.4)
+    material = "fence" if rng.random() < 0.6 else "metal"
+    walls = box([sx, sy, height], [0.0, 0.0, height / 2], bottom=False)
+    roof = box([sx + 0.3, sy + 0.3, 0.08], [0.0, 0.0, height + 0.04])
+    part = transform(merge(walls, roof), yaw, (xy[0], xy[1], ground_z))
+    mb.add(part, "other-structure", material, sample_reflectivity(rng, material, len(part[1])))
 
 
 def street_light(mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float, arm_yaw: float) -> None:

@@ -4,7 +4,8 @@ Rays come from the sensor's ring elevation table (top ring first) and `azimuth_s
 stored ring-major in azimuth order like a KITTI velodyne file. The static world is one
 `open3d.t.geometry.RaycastingScene` per sequence; the moving agents get a small scene per frame and the nearer
 hit wins. Intensity = reflectivity x g(|cos incidence|) x range falloff + noise, clipped to [0, 1], with weak
-returns read as 0 and quantised to 0.01 as in KITTI remission.
+returns read as 0 and quantised to 0.01 as in KITTI remission. Returns beyond `label_range` keep raw id 0
+(unlabeled), as the real SemanticKITTI seq-00 labels do past ~50 m.
 """
 
 from __future__ import annotations
@@ -25,12 +26,14 @@ _PENETRATION = np.array([m.penetration for m in MATERIALS], dtype=np.float32)
 # Rays blocked by the ego car (roof edge, hood, antenna mounts), measured on the lowest rings of the real
 # KITTI seq-00 scans: (azimuth centre deg, half width deg at the top elevation, top elevation deg, widening
 # deg per deg below). KITTI loses about 3,500 points per scan there (ring 63 keeps ~56 % of its azimuths).
+# Top elevations are those of the simulated beams (after bottom_ring_raise_deg): the rear gap opens at ring 53,
+# the hood at ring 57, the side mounts at ring 56 and the right-front mount at ring 47, as in frames 0-5.
 _EGO_ZONES = (
-    (180.0, 15.0, -18.0, 3.5),  # rear: roof and trunk
-    (0.0, 10.0, -20.5, 3.5),  # front: hood
-    (-65.0, 6.0, -15.9, 0.0),  # right-front mount
-    (-125.0, 4.0, -19.5, 0.0),
-    (135.0, 4.0, -19.5, 0.0),
+    (181.0, 18.0, -19.35, 2.9),  # rear: roof and trunk
+    (0.0, 8.7, -21.8, 4.0),  # front: hood
+    (-68.0, 9.0, -16.4, 0.0),  # right-front mount
+    (-126.0, 4.0, -20.9, 0.0),
+    (134.0, 4.0, -20.9, 0.0),
 )
 
 
@@ -193,4 +196,8 @@ class LidarSimulator:
         points[:, 1] = local[sel, 1] * d
         points[:, 2] = local[sel, 2] * d + offset_z[sel]
         points[:, 3] = intensity[sel]
-        return Scan(points, semantic[sel], instance[sel], ring[sel])
+        semantic, instance = semantic[sel], instance[sel]
+        if cfg.label_range is not None:  # the annotation stops short of the sensor's reach
+            far = d > np.float32(cfg.label_range)
+            semantic[far], instance[far] = 0, 0
+        return Scan(points, semantic, instance, ring[sel])

@@ -10,6 +10,11 @@ two sines, curve radius >= `bend_min_radius`) and every y-street by f_y; interse
 Lanes, curbs, sidewalks, ground and buildings follow the map point by point (a shear: cross-sections narrow by
 cos(heading), <= 6 % at the slope cap); compact objects (vehicles, trees, poles, signs) are moved rigidly and
 turned to the local direction of their street, so they keep their shape.
+
+The ground is not flat either: gentle hills `Hills` (a few plane waves, grade <= `hill_max_grade`, curvature
+radius >= `hill_min_radius`) lift every surface point by point and set every compact object on the ground's
+tangent plane at its anchor, so streets climb and yards fall away beside them (real seq 00: the ground 30 m to
+the left of the sensor lies 0.7 m lower than under it).
 """
 
 from __future__ import annotations
@@ -71,11 +76,46 @@ class Bend:
 
 
 @dataclass
+class Hills:
+    """Ground height h(p) = sum_k a_k sin(w_k . p + phase_k) in metres over world points p (gentle hills)."""
+
+    amplitude: np.ndarray  # (K,) m
+    wavevector: np.ndarray  # (K, 2) rad/m
+    phase: np.ndarray  # (K,) rad
+
+    def __call__(self, xy: np.ndarray) -> np.ndarray:
+        """(...,) height at (..., 2) world points."""
+        xy = np.asarray(xy, dtype=np.float64)
+        return np.sin(xy @ self.wavevector.T + self.phase) @ self.amplitude
+
+    def gradient(self, xy: np.ndarray) -> np.ndarray:
+        """(..., 2) grade dh/dxy at (..., 2) world points."""
+        xy = np.asarray(xy, dtype=np.float64)
+        return (np.cos(xy @ self.wavevector.T + self.phase) * self.amplitude) @ self.wavevector
+
+
+def make_hills(rng: np.random.Generator, cfg: StreetConfig) -> Hills:
+    """Three plane waves with random directions, wavelengths and phases, scaled to the grade/curvature caps."""
+    flat = rng.random() < cfg.flat_prob
+    amplitude = rng.uniform(*cfg.hill_amplitude, 3)
+    angle = rng.uniform(0.0, 2.0 * np.pi, 3)
+    freq = 2.0 * np.pi / rng.uniform(*cfg.hill_wavelength, 3)
+    phase = rng.uniform(0.0, 2.0 * np.pi, 3)
+    grade = float(np.sum(amplitude * freq))
+    curvature = float(np.sum(amplitude * freq**2))
+    scale = 0.0 if flat else min(1.0, cfg.hill_max_grade / grade, 1.0 / (cfg.hill_min_radius * curvature))
+    return Hills(amplitude * scale, np.column_stack([np.cos(angle), np.sin(angle)]) * freq[:, None], phase)
+
+
+@dataclass
 class Warp:
-    """Shear of the lattice plane that bends the streets: (x, y) -> (x + bend_y(y), y + bend_x(x))."""
+    """Shear of the lattice plane that bends the streets: (x, y) -> (x + bend_y(y), y + bend_x(x)); with `hills`
+    every point is also lifted by the ground height at its mapped position (compact objects: the tangent plane at
+    their anchor)."""
 
     bend_x: Bend  # offset of x-streets (in y) as a function of x
     bend_y: Bend  # offset of y-streets (in x) as a function of y
+    hills: Hills | None = None
 
     def points(self, xy: np.ndarray) -> np.ndarray:
         """(..., 2) lattice coordinates -> world coordinates."""
@@ -110,6 +150,10 @@ class Warp:
         dx, dy = out[rigid, 0] - a[:, 0], out[rigid, 1] - a[:, 1]
         out[rigid, 0] = moved[:, 0] + c * dx - s * dy
         out[rigid, 1] = moved[:, 1] + s * dx + c * dy
+        if self.hills is not None:  # surfaces follow the ground point by point, objects its tangent plane
+            out[free, 2] += self.hills(out[free, :2])
+            grade = self.hills.gradient(moved)
+            out[rigid, 2] += self.hills(moved) + np.einsum("ij,ij->i", grade, out[rigid, :2] - moved)
         return out
 
 

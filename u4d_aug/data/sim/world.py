@@ -171,7 +171,7 @@ def build_world(rng: np.random.Generator, cfg: SimConfig, net: Network, route_xy
 
 def _road_plane(mb: MeshBuilder, rng, bounds) -> None:
     x0, y0, x1, y1 = bounds
-    v, t = grid_surface(x0, x1, y0, y1, 40.0)
+    v, t = grid_surface(x0, x1, y0, y1, 8.0)  # fine enough to follow the hills (sag <= 1.5 cm per cell)
     mb.add((v, t), "road", "asphalt", sample_reflectivity(rng, "asphalt", len(t)))
 
 
@@ -251,10 +251,10 @@ def _side_strip(mb, rng, cfg: SimConfig, net: Network, curb, side, line, line_si
     obj = cfg.objects
     if rng.random() < obj.street_tree_prob:
         t = t0 + rng.uniform(2.0, 6.0)
-        offset = grass / 2 if grass > 0 else 1.5
+        offset = grass / 2 if grass > 0 else min(obj.tree_offset, sidewalk - 0.6)
         scale = rng.uniform(0.8, 1.2)
         while t < t1 - 2.0:
-            objects.tree(mb, rng, at(t, offset), h, scale * rng.uniform(0.85, 1.15), clearance=3.0)
+            objects.tree(mb, rng, at(t, offset), h, scale * rng.uniform(0.85, 1.15), clearance=obj.tree_clearance)
             occupied.append(t)
             t += rng.uniform(*obj.tree_spacing)
     t = t0 + rng.uniform(3.0, 15.0)
@@ -507,7 +507,7 @@ def _lot(mb, rng, cfg: SimConfig, frame: _LotFrame, u0, u1, depth, h, ids, heigh
             objects.tree(mb, rng, frame.xy(rng.uniform(u0 + 1, u1 - 1), rng.uniform(2, depth - 1)), h)
         for _ in range(int(width * depth / 15)):
             objects.bush(mb, rng, frame.xy(rng.uniform(u0 + 1, u1 - 1), rng.uniform(1, depth - 1)), h)
-        _front_boundary(mb, rng, frame, u0, u1, h, 1.0, lc.hedge_prob)
+        _front_boundary(mb, rng, frame, u0, u1, h, 1.0, lc)
         return
     commercial = kind == "commercial"
     setback = rng.uniform(*lc.setback) * (1.5 if commercial else 1.0)
@@ -548,21 +548,26 @@ def _lot(mb, rng, cfg: SimConfig, frame: _LotFrame, u0, u1, depth, h, ids, heigh
                 rng.uniform(0.8, 1.8),
             )
     if rng.random() < lc.front_fence_prob:
-        _front_boundary(mb, rng, frame, u0, u1, h, 0.0, lc.hedge_prob)
+        _front_boundary(mb, rng, frame, u0, u1, h, 0.0, lc)
     if yard > 2.0 and rng.random() < lc.shrub_bed_prob:  # planted bed behind the fence line
         depth_bed = rng.uniform(1.2, min(3.0, yard))
         for uu in np.arange(u0 + 0.8, u1 - 0.8, rng.uniform(1.0, 1.6)):
             objects.bush(mb, rng, frame.xy(uu, rng.uniform(0.8, depth_bed)), h, rng.uniform(0.6, 1.2))
+    if lc.shed_prob > 0 and yard > 2.5 and width > 5.0 and rng.random() < lc.shed_prob:
+        size = rng.uniform(1.2, [min(3.0, width - 2.0), min(2.5, yard - 1.0)])
+        uu = rng.uniform(u0 + 0.6 + size[0] / 2, u1 - 0.6 - size[0] / 2)
+        yaw = float(np.arctan2(frame.u[1], frame.u[0]))
+        objects.shed(mb, rng, frame.xy(uu, 1.0 + size[1] / 2), h, yaw, size)
 
 
-def _front_boundary(mb, rng, frame: _LotFrame, u0, u1, h, hedge_bias, hedge_prob) -> None:
+def _front_boundary(mb, rng, frame: _LotFrame, u0, u1, h, hedge_bias, lc) -> None:
     """Fence, wall or hedge along the lot front with an entrance gap."""
     gate = rng.uniform(u0 + 1.0, max(u0 + 1.5, u1 - 3.0))
     for a, b in ((u0 + 0.2, gate), (gate + 1.5, u1 - 0.2)):
         if b - a < 0.8:
             continue
         p0, p1 = frame.xy(a, 0.3), frame.xy(b, 0.3)
-        if rng.random() < hedge_prob + (1.0 - hedge_prob) * hedge_bias:
-            objects.hedge(mb, rng, p0, p1, h)
+        if rng.random() < lc.hedge_prob + (1.0 - lc.hedge_prob) * hedge_bias:
+            objects.hedge(mb, rng, p0, p1, h, lc.hedge_height)
         else:
             objects.fence(mb, rng, p0, p1, h)

@@ -4,8 +4,9 @@ sequences/XX/{velodyne,labels}/NNNNNN.{bin,label}, poses.txt (cam0 frame, Semant
 relative to frame 0), calib.txt (KITTI odometry seq-00 calibration), times.txt (0.1 s) and manifest.json
 (seed + resolved config). Sequence k draws its streets and ego route from np.random.default_rng([seed, k, 0, 0]),
 the static world from [seed, k, 0, 1], the agents from [seed, k, 0, 2] and the ray pattern from [seed, k, 0, 3]
-(so a change to, say, vegetation settings keeps the street layout), and frame f from [seed, k, 1, f]; files do
-not depend on --workers, and a re-run skips frames whose files exist (writes are atomic).
+(so a change to, say, vegetation settings keeps the street layout), the ground hills from [seed, k, 0, 4] and
+frame f from [seed, k, 1, f]; files do not depend on --workers, and a re-run skips frames whose files exist
+(writes are atomic).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.data.sim.agents import Agent, EgoMotion, dynamic_mesh, ego_motion, make_agents
 from u4d_aug.data.sim.config import SimConfig
 from u4d_aug.data.sim.raycast import LidarSimulator, Scan, ray_pattern
-from u4d_aug.data.sim.streets import make_network
+from u4d_aug.data.sim.streets import make_hills, make_network
 from u4d_aug.data.sim.world import World, build_world
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_json
@@ -80,6 +81,7 @@ def build_sequence(seed: int, index: int, frames: int, sensor: Sensor, cfg: SimC
     streets, statics, movers, sensing = (np.random.default_rng([seed, index, 0, k]) for k in range(4))
     extent = frames * cfg.agents.ego_speed[1] / cfg.frame_rate + cfg.view_radius + 250.0
     net = make_network(streets, cfg.street, extent)
+    net.warp.hills = make_hills(np.random.default_rng([seed, index, 0, 4]), cfg.street)
     ego = ego_motion(streets, net, cfg, frames)
     world = build_world(statics, cfg, net, ego.route_xy)
     agents = make_agents(movers, world, ego, cfg)
@@ -90,7 +92,7 @@ def build_sequence(seed: int, index: int, frames: int, sensor: Sensor, cfg: SimC
 
 def render_frame(seq: SequenceSim, frame: int) -> Scan:
     """Ray-cast frame `frame` of a built sequence."""
-    dynamic = dynamic_mesh(seq.agents, frame, seq.ego.xy[frame], seq.cfg.view_radius)
+    dynamic = dynamic_mesh(seq.agents, frame, seq.ego.xy[frame], seq.cfg.view_radius, seq.world.network.warp.hills)
     rng = np.random.default_rng([seq.seed, seq.index, 1, frame])
     return seq.lidar.scan(seq.ego.poses[frame], dynamic, rng)
 
