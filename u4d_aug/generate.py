@@ -170,7 +170,7 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
                 for i, generator in zip(block, generators)
             ]
             for i, (_, _, _, poses) in zip(block, parts):
-                if poses is not None:
+                if poses is not None and not layout.is_done(i):  # finished samples of the block stay untouched
                     write_sequence_poses(layout, i, poses)
             x0_u, m_u, entropy_image = (torch.stack([part[k] for part in parts]) for k in range(3))  # (n, L, ...)
             if frames == 1:
