@@ -1,7 +1,10 @@
 """`u4d sim-report`: do simulated scans look like real ones (points/scan, rings, range, elevation, classes).
 
 Range histogram: 1 m bins over 0-80 m, compared with the Jensen-Shannon distance (scipy `jensenshannon`,
-base 2, so 0 = identical and 1 = disjoint). Rings are recovered from the storage order (KITTI stores one ring
+base 2, so 0 = identical and 1 = disjoint). A reference of a few consecutive real frames shows one place, so the
+report also measures how far one place of the simulated world lies from the simulated pool (`place_spread`:
+the same JS between the first n consecutive frames of each simulated sequence, n = the real frame count, and
+the pooled simulated histogram); a sim-vs-real JS inside that spread is as close as one place can get. Rings are recovered from the storage order (KITTI stores one ring
 after the other in azimuth order; a new ring starts where the azimuth wraps around), as in data/sensors.py.
 """
 
@@ -93,6 +96,35 @@ def dataset_stats(root: Path, max_frames: int = 30) -> dict:
     return total
 
 
+def _range_hist(scan_path: Path) -> np.ndarray:
+    points = load_kitti_frame(scan_path).points
+    return np.histogram(np.linalg.norm(points[:, :3].astype(np.float64), axis=1), RANGE_BINS)[0]
+
+
+def place_spread(root: Path, frames_per_place: int, pooled: np.ndarray, max_places: int = 16) -> dict:
+    """Range JS between each sequence's first `frames_per_place` consecutive scans and the pooled histogram.
+
+    Returns {"frames_per_place", "places", "median", "min", "max", "per_place"} over up to `max_places` sequences
+    holding at least that many scans.
+    """
+    per_place = {}
+    for sequence in sorted((Path(root) / "sequences").glob("*/velodyne")):
+        scans = sorted(sequence.glob("*.bin"))
+        if len(scans) < frames_per_place or len(per_place) >= max_places:
+            continue
+        hist = sum(_range_hist(scan) for scan in scans[:frames_per_place])
+        per_place[sequence.parent.name] = float(jensenshannon(hist, pooled, base=2))
+    values = list(per_place.values())
+    return {
+        "frames_per_place": frames_per_place,
+        "places": len(values),
+        "median": float(np.median(values)) if values else None,
+        "min": min(values) if values else None,
+        "max": max(values) if values else None,
+        "per_place": per_place,
+    }
+
+
 def compare(sim_root: Path, real_root: Path, max_frames: int = 30) -> tuple[dict, dict, dict]:
     """(report dict, sim stats, real stats)."""
     sim, real = dataset_stats(sim_root, max_frames), dataset_stats(real_root, max_frames)
@@ -103,6 +135,7 @@ def compare(sim_root: Path, real_root: Path, max_frames: int = 30) -> tuple[dict
         "points_per_scan": {"sim": sim["points_per_scan"], "real": real["points_per_scan"]},
         "range_js": float(jensenshannon(sim["range_hist"], real["range_hist"], base=2)),
         "elevation_js": float(jensenshannon(sim["elevation_hist"], real["elevation_hist"], base=2)),
+        "range_js_place_spread": place_spread(sim_root, real["frames"], sim["range_hist"]),
         "range_share": {},
         "points_per_ring": {
             "sim": np.round(sim["ring_counts"][: _rings(sim)], 1).tolist(),
@@ -212,6 +245,13 @@ def run_sim_report(args: argparse.Namespace) -> int:
     pps = report["points_per_scan"]
     print(f"points/scan       sim {pps['sim']:>8.0f}   real {pps['real']:>8.0f}")
     print(f"range JS distance {report['range_js']:.3f}   elevation JS distance {report['elevation_js']:.3f}")
+    spread = report["range_js_place_spread"]
+    if spread["places"]:
+        print(
+            f"  one simulated place ({spread['frames_per_place']} consecutive scans) vs the simulated pool: "
+            f"range JS median {spread['median']:.3f} (min {spread['min']:.3f}, max {spread['max']:.3f}, "
+            f"{spread['places']} places)"
+        )
     for name, share in report["range_share"].items():
         print(f"  range {name:<7s}  sim {share['sim']:7.2%}   real {share['real']:7.2%}")
     print("class share        sim      real")
