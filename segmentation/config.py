@@ -68,11 +68,24 @@ class OptimConfig:
 
 @dataclass
 class LossConfig:
-    """Supervised loss = ce_weight * CE + lovasz_weight * Lovász-softmax (Cylinder3D uses 1 + 3)."""
+    """Supervised loss = ce_weight * CE + lovasz_weight * Lovász-softmax (Cylinder3D uses 1 + 3).
+
+    class_weighting "inverse_sqrt" weights the CE of class c by f_c^(-1/2) (f_c = its share of the labelled
+    training points, as SalsaNext), scaled so the mean weight per training point is 1 and capped at
+    max_class_weight; "none" = plain CE (mmdet3d MinkUNet).
+    """
 
     ce_weight: float = 1.0
     lovasz_weight: float = 0.0  # 0 = cross-entropy only, as mmdet3d MinkUNet
     label_smoothing: float = 0.0
+    class_weighting: Literal["none", "inverse_sqrt"] = "none"
+    max_class_weight: float = 50.0
+
+    def __post_init__(self) -> None:
+        if self.class_weighting not in ("none", "inverse_sqrt"):
+            raise ValueError(f"loss.class_weighting must be 'none' or 'inverse_sqrt'; got {self.class_weighting!r}")
+        if self.max_class_weight < 1.0:
+            raise ValueError(f"loss.max_class_weight must be >= 1; got {self.max_class_weight}")
 
 
 @dataclass

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -19,13 +19,65 @@ FrameId = tuple[str, str]  # (sequence, frame), e.g. ("00", "000123")
 
 @dataclass
 class AugmentConfig:
-    """Scan augmentation as the LaserMix MinkUNet config: rotation about z, flips, scaling, jitter."""
+    """Scan augmentation as the LaserMix MinkUNet config: rotation about z, flips, scaling, jitter.
+
+    paste_prob > 0 adds PolarMix's instance-level rotate-pasting (Xiao et al., NeurIPS 2022): with that
+    probability a labeled training scan receives the points of the `paste_classes` (train-id names) of another
+    random training scan, as `paste_copies` copies rotated about z by random angles (labels kept).
+    """
 
     rotate: bool = True
     flip: bool = True
     scale_min: float = 0.95
     scale_max: float = 1.05
     jitter_std: float = 0.01
+    paste_prob: float = 0.0
+    paste_classes: list[str] = field(
+        default_factory=lambda: [
+            "bicycle",
+            "motorcycle",
+            "truck",
+            "other-vehicle",
+            "person",
+            "bicyclist",
+            "motorcyclist",
+        ]
+    )
+    paste_copies: int = 2
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.paste_prob <= 1.0 or self.paste_copies < 1:
+            raise ValueError("augment.paste_prob must be in [0, 1] and augment.paste_copies >= 1")
+
+
+def paste_instances(
+    points: torch.Tensor,
+    labels: torch.Tensor,
+    source_points: torch.Tensor,
+    source_labels: torch.Tensor,
+    class_ids: torch.Tensor,
+    copies: int,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """PolarMix instance-level rotate-pasting: append the source points whose label is in class_ids, `copies`
+    times, each copy rotated about z by an angle drawn uniformly in [0, 2 pi) (Xiao et al. 2022, Sec. 3.2).
+
+    points (N, 4), labels (N,); source_points (M, 4), source_labels (M,) -> (N + copies * M_sel, 4), labels.
+    """
+    chosen = torch.isin(source_labels, class_ids)
+    angles = torch.rand(copies, generator=generator, dtype=torch.float64) * 2.0 * math.pi
+    if not bool(chosen.any()):
+        return points, labels
+    picked, picked_labels = source_points[chosen], source_labels[chosen]
+    out_points, out_labels = [points], [labels]
+    for angle in angles.tolist():
+        c, s = math.cos(angle), math.sin(angle)
+        copy = picked.clone()
+        copy[:, 0] = c * picked[:, 0] - s * picked[:, 1]
+        copy[:, 1] = s * picked[:, 0] + c * picked[:, 1]
+        out_points.append(copy)
+        out_labels.append(picked_labels)
+    return torch.cat(out_points), torch.cat(out_labels)
 
 
 def augment(points: torch.Tensor, generator: torch.Generator, cfg: AugmentConfig) -> torch.Tensor:

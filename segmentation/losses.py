@@ -44,10 +44,36 @@ def lovasz_softmax(probs: torch.Tensor, target: torch.Tensor, ignore_index: int 
     return torch.stack(losses).mean()
 
 
+def class_weights(counts: torch.Tensor, cfg: LossConfig) -> torch.Tensor | None:
+    """(K,) CE class weights from the training point counts (K,) per train id, or None for "none".
+
+    "inverse_sqrt": w_c = f_c^(-1/2) with f_c = counts_c / sum(counts) (SalsaNext, Cortinhal et al. 2020),
+    scaled so that sum_c f_c w_c = 1 (a point weighs 1 on average), then capped at cfg.max_class_weight;
+    classes without a training point get weight 1 (they never occur as a target).
+    """
+    if cfg.class_weighting == "none":
+        return None
+    elif cfg.class_weighting == "inverse_sqrt":
+        share = counts.double() / counts.sum().clamp_min(1)
+        present = share > 0
+        weight = torch.ones_like(share)
+        weight[present] = share[present].rsqrt()
+        weight[present] /= (share[present] * weight[present]).sum()
+        return weight.clamp(max=cfg.max_class_weight).float()
+    raise ValueError(f"loss.class_weighting must be 'none' or 'inverse_sqrt'; got {cfg.class_weighting!r}")
+
+
 def segmentation_loss(
-    logits: torch.Tensor, target: torch.Tensor, cfg: LossConfig, ignore_index: int
+    logits: torch.Tensor,
+    target: torch.Tensor,
+    cfg: LossConfig,
+    ignore_index: int,
+    class_weight: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
-    """{"loss", "loss_ce", ["loss_lovasz"]} of logits (N, K) against train ids (N,), ignore id dropped."""
+    """{"loss", "loss_ce", ["loss_lovasz"]} of logits (N, K) against train ids (N,), ignore id dropped.
+
+    class_weight (K,) weights the cross-entropy per target class (weighted mean over points, as torch).
+    """
     valid = target != ignore_index
     if not bool(valid.any()):
         zero = logits.sum() * 0.0  # keeps every parameter in the graph (DDP needs a gradient for each)
@@ -55,7 +81,10 @@ def segmentation_loss(
         if cfg.lovasz_weight > 0:
             out["loss_lovasz"] = zero.detach()
         return out
-    loss_ce = F.cross_entropy(logits.float(), target, ignore_index=ignore_index, label_smoothing=cfg.label_smoothing)
+    weight = None if class_weight is None else class_weight.to(logits.device, torch.float32)
+    loss_ce = F.cross_entropy(
+        logits.float(), target, weight=weight, ignore_index=ignore_index, label_smoothing=cfg.label_smoothing
+    )
     out = {"loss_ce": loss_ce}
     loss = cfg.ce_weight * loss_ce
     if cfg.lovasz_weight > 0:

@@ -105,8 +105,18 @@ def pitch_range(cfg: SegTrainConfig) -> tuple[float, float]:
     return (sensor.fov_down_deg, sensor.fov_up_deg)
 
 
-def semi_step(student: nn.Module, teacher: nn.Module, batch: dict, cfg: SegTrainConfig, device: torch.device) -> dict:
-    """Losses of one labeled + unlabeled batch: {"loss", "loss_sup", "loss_mix", "loss_mt", "pseudo_kept"}."""
+def semi_step(
+    student: nn.Module,
+    teacher: nn.Module,
+    batch: dict,
+    cfg: SegTrainConfig,
+    device: torch.device,
+    class_weight: torch.Tensor | None = None,
+) -> dict:
+    """Losses of one labeled + unlabeled batch: {"loss", "loss_sup", "loss_mix", "loss_mt", "pseudo_kept"}.
+
+    class_weight (K,) weights the CE of the supervised and the LaserMix-mixed losses (loss.class_weighting).
+    """
     labeled = [p.to(device) for p in batch["points"]]  # B x (N_b, 4)
     targets = [t.to(device) for t in batch["labels"]]  # B x (N_b,) train ids
     unlabeled = [p.to(device) for p in batch["unlabeled"]]  # B x (M_b, 4)
@@ -132,8 +142,9 @@ def semi_step(student: nn.Module, teacher: nn.Module, batch: dict, cfg: SegTrain
     logits = student(scans)  # (sum of all points, K)
     counts = [sum(p.shape[0] for p in group) for group in (labeled, mixed, unlabeled)]
     sup_logits, mix_logits, unl_logits = logits.split(counts)
-    loss_sup = segmentation_loss(sup_logits, torch.cat(targets), cfg.loss, SEMANTICKITTI_IGNORE)["loss"]
-    loss_mix = segmentation_loss(mix_logits, torch.cat(mixed_targets), cfg.loss, SEMANTICKITTI_IGNORE)["loss"]
+    ignore = SEMANTICKITTI_IGNORE
+    loss_sup = segmentation_loss(sup_logits, torch.cat(targets), cfg.loss, ignore, class_weight)["loss"]
+    loss_mix = segmentation_loss(mix_logits, torch.cat(mixed_targets), cfg.loss, ignore, class_weight)["loss"]
     loss_mt = consistency_loss(unl_logits, teacher_logits)
     return {
         "loss": total_loss(loss_sup, loss_mix, loss_mt, cfg.semi, step=int(batch["step"])),

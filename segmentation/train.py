@@ -35,17 +35,18 @@ from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
 from segmentation.config import OptimConfig, SegTrainConfig
-from segmentation.data import augment, load_or_make_split
+from segmentation.data import augment, load_or_make_split, paste_instances
 from segmentation.evaluate import accumulate, evenly_spaced, summary_of
-from segmentation.losses import segmentation_loss
+from segmentation.losses import class_weights, segmentation_loss
 from segmentation.mean_teacher import make_teacher, teacher_mode
 from segmentation.models import build_model
 from segmentation.plots import plot_learning_curve, plot_reliability
 from segmentation.predict import load_checkpoint
 from segmentation.semi import UnlabeledStream, load_unlabeled, semi_step, unlabeled_stream, update_teacher
 from u4d_aug.config import config_to_dict, load_config, save_config
-from u4d_aug.data.datasets import ScanDataset
-from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
+from u4d_aug.data.datasets import ScanDataset, scan_path
+from u4d_aug.data.formats import label_path_for, read_kitti_label
+from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE, map_semantickitti
 from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, budget_used, cleanup, init_distributed
 from u4d_aug.errors import InputError
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_json, atomic_write_text, read_jsonl
@@ -117,6 +118,11 @@ class TrainBatches(Dataset):
     ) -> None:
         self.scans, self.cfg, self.rank, self.world_size = scans, cfg, rank, world_size
         self.unlabeled = unlabeled
+        names = list(SEMANTICKITTI_CLASSES)
+        unknown = [name for name in cfg.augment.paste_classes if name not in names]
+        if unknown:
+            raise InputError(f"augment.paste_classes: unknown class names {unknown}; valid: {names}")
+        self.paste_ids = torch.tensor([names.index(name) for name in cfg.augment.paste_classes], dtype=torch.int64)
 
     def __len__(self) -> int:
         return self.cfg.optim.steps
@@ -134,6 +140,17 @@ class TrainBatches(Dataset):
             if cfg.data.max_points is not None and scan.shape[0] > cfg.data.max_points:
                 keep = torch.randperm(scan.shape[0], generator=generator)[: cfg.data.max_points]
                 scan, target = scan[keep], target[keep]
+            if cfg.augment.paste_prob > 0 and float(torch.rand((), generator=generator)) < cfg.augment.paste_prob:
+                source = self.scans[int(torch.randint(len(self.scans), (), generator=generator))]
+                scan, target = paste_instances(
+                    scan,
+                    target,
+                    torch.from_numpy(source["points"]),
+                    torch.from_numpy(source["labels"]),
+                    self.paste_ids,
+                    cfg.augment.paste_copies,
+                    generator,
+                )
             points.append(augment(scan, generator, cfg.augment))
             labels.append(target)
         batch = {"step": step, "slots": list(slots), "points": points, "labels": labels}
@@ -142,11 +159,24 @@ class TrainBatches(Dataset):
         return batch
 
 
-def supervised_step(model: nn.Module, batch: dict, cfg: SegTrainConfig, device: torch.device) -> dict:
+def supervised_step(
+    model: nn.Module, batch: dict, cfg: SegTrainConfig, device: torch.device, class_weight: torch.Tensor | None = None
+) -> dict:
     """Losses of one labeled batch: {"loss", "loss_ce", ["loss_lovasz"]} (the loop backpropagates "loss")."""
     logits = model([p.to(device, non_blocking=True) for p in batch["points"]])  # (sum N_b, K)
     target = torch.cat(batch["labels"]).to(device)  # (sum N_b,)
-    return segmentation_loss(logits, target, cfg.loss, SEMANTICKITTI_IGNORE)
+    return segmentation_loss(logits, target, cfg.loss, SEMANTICKITTI_IGNORE, class_weight)
+
+
+def train_class_counts(scans: ScanDataset) -> torch.Tensor:
+    """(K,) labelled points per train id over the training scans (labels only; the ignore id dropped)."""
+    counts = np.zeros(len(SEMANTICKITTI_CLASSES), dtype=np.int64)
+    for seq, frame in scans.entries:
+        path = label_path_for(scan_path(scans.root, seq, frame))
+        semantic, _ = read_kitti_label(path)
+        train_ids = map_semantickitti(semantic)
+        counts += np.bincount(train_ids, minlength=SEMANTICKITTI_IGNORE + 1)[: len(counts)]
+    return torch.from_numpy(counts)
 
 
 def train_scans(cfg: SegTrainConfig, info: DistInfo) -> ScanDataset:
@@ -262,6 +292,8 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
         val_scans = ScanDataset(cfg.data.root, cfg.data.val_sequences, labeled_only=True)
         val_scans = val_scans if len(val_scans) else None
     unlabeled = unlabeled_stream(cfg) if cfg.mode == "semi" else None
+    # CE class weights from the labelled training points (every rank counts the same scans)
+    class_weight = class_weights(train_class_counts(scans), cfg.loss) if cfg.loss.class_weighting != "none" else None
 
     # ---- model and optimiser (same initial weights on every rank; DDP also broadcasts rank 0's)
     torch.manual_seed(cfg.seed)
@@ -294,6 +326,9 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
     if info.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
         save_config(cfg, out_dir / "config.yaml")
+        if class_weight is not None and start_step == 0:
+            names = class_names(cfg)
+            append_jsonl(log_path, {"step": 0, "class_weight": dict(zip(names, class_weight.tolist()))})
     ddp_model = DistributedDataParallel(model) if info.world_size > 1 else model
 
     loader = DataLoader(
@@ -319,9 +354,9 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
         torch.manual_seed(derived_seed(cfg.seed, _STEP, step, info.rank))  # dropout of this step only
 
         if cfg.mode == "supervised":
-            losses = supervised_step(ddp_model, batch, cfg, device)
+            losses = supervised_step(ddp_model, batch, cfg, device, class_weight)
         elif cfg.mode == "semi":
-            losses = semi_step(ddp_model, teacher, batch, cfg, device)
+            losses = semi_step(ddp_model, teacher, batch, cfg, device, class_weight)
         else:
             raise ValueError(f"mode must be 'supervised' or 'semi'; got {cfg.mode!r}")
         optimizer.zero_grad(set_to_none=True)
@@ -391,6 +426,7 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
                     "elapsed": elapsed,
                     "metrics": last_summary,
                     "class_names": class_names(cfg),
+                    "class_weight": class_weight,
                 }
                 save_checkpoint(out_dir / "checkpoints" / f"step_{done:07d}.pt", state, cfg.keep_checkpoints)
             barrier()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from segmentation.data import AugmentConfig, augment, load_or_make_split, make_split
+from segmentation.data import AugmentConfig, augment, load_or_make_split, make_split, paste_instances
 from u4d_aug.errors import InputError
 
 FRAMES = [(seq, f"{i:06d}") for seq in ("00", "01", "02", "03") for i in range(25)]
@@ -54,3 +54,36 @@ def test_augment_preserves_ranges_and_intensity():
     assert torch.allclose(out[:, 2:], pts[:, 2:])
     g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
     assert torch.equal(augment(pts, g1, AugmentConfig()), augment(pts, g2, AugmentConfig()))
+
+
+def test_paste_instances_appends_rotated_copies_of_the_chosen_classes():
+    g = torch.Generator().manual_seed(0)
+    points, labels = torch.randn(50, 4), torch.full((50,), 8)  # road
+    source = torch.randn(40, 4)
+    source_labels = torch.tensor([0] * 10 + [5] * 6 + [8] * 24)  # car, person, road
+    out, out_labels = paste_instances(points, labels, source, source_labels, torch.tensor([5]), 3, g)
+    assert out.shape == (50 + 3 * 6, 4)
+    assert torch.equal(out[:50], points) and torch.equal(out_labels[:50], labels)  # the scan itself untouched
+    assert torch.equal(out_labels[50:], torch.full((18,), 5))
+    person = source[10:16]
+    for k in range(3):
+        copy = out[50 + 6 * k : 56 + 6 * k]
+        torch.testing.assert_close(copy[:, 2:], person[:, 2:])  # height and intensity kept
+        torch.testing.assert_close(copy[:, :2].norm(dim=1), person[:, :2].norm(dim=1))  # rotated about z
+        cross = person[:, 0] * copy[:, 1] - person[:, 1] * copy[:, 0]
+        dot = (person[:, :2] * copy[:, :2]).sum(1)
+        angle = torch.atan2(cross, dot)
+        torch.testing.assert_close(angle, angle[:1].expand(6), atol=1e-5, rtol=0)  # one rigid angle per copy
+    again = paste_instances(
+        points, labels, source, source_labels, torch.tensor([5]), 3, torch.Generator().manual_seed(0)
+    )
+    assert torch.equal(again[0], out)  # randomness only from the generator
+    none, none_labels = paste_instances(points, labels, source, source_labels, torch.tensor([3]), 2, g)
+    assert none is points and none_labels is labels  # no truck in the source: nothing pasted
+
+
+def test_paste_config_is_validated():
+    with pytest.raises(ValueError, match="paste_prob"):
+        AugmentConfig(paste_prob=1.5)
+    with pytest.raises(ValueError, match="paste_copies"):
+        AugmentConfig(paste_copies=0)

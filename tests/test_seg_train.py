@@ -14,15 +14,18 @@ import pytest
 import torch
 
 from segmentation.config import LossConfig, OptimConfig, SegTrainConfig
-from segmentation.losses import lovasz_softmax, segmentation_loss
+from segmentation.losses import class_weights, lovasz_softmax, segmentation_loss
 from segmentation.train import (
+    TrainBatches,
     add_seg_train_arguments,
     batch_indices,
     learning_rate,
     run_seg_train,
     train,
+    train_class_counts,
 )
 from u4d_aug.config import load_config
+from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.formats import write_kitti_label, write_kitti_scan
 from u4d_aug.errors import InputError
 from u4d_aug.io import read_jsonl
@@ -145,6 +148,42 @@ def test_segmentation_loss_weights_and_all_ignored():
     assert float(empty["loss"].detach()) == 0.0 and empty["loss"].requires_grad
 
 
+def test_inverse_sqrt_class_weights_by_hand():
+    counts = torch.tensor([64, 16, 0, 4])  # shares 64/84, 16/84, -, 4/84
+    share = counts.double() / 84
+    raw = share.clamp_min(1e-12).rsqrt()
+    scale = (share * raw)[[0, 1, 3]].sum()  # = sum of sqrt(share) over present classes
+    weight = class_weights(counts, LossConfig(class_weighting="inverse_sqrt"))
+    expected = torch.tensor([raw[0] / scale, raw[1] / scale, 1.0, raw[3] / scale], dtype=torch.float32)
+    torch.testing.assert_close(weight, expected)
+    assert float((share * weight.double())[[0, 1, 3]].sum()) == pytest.approx(1.0)  # a point weighs 1 on average
+    assert float(weight[3] / weight[0]) == pytest.approx(4.0)  # 16x rarer -> 4x the weight
+    capped = class_weights(counts, LossConfig(class_weighting="inverse_sqrt", max_class_weight=1.5))
+    assert float(capped.max()) == 1.5 and float(capped[0]) == pytest.approx(float(expected[0]))
+    assert class_weights(counts, LossConfig()) is None
+    with pytest.raises(ValueError, match="class_weighting"):
+        LossConfig(class_weighting="inverse")
+
+
+def test_weighted_cross_entropy_is_torch_weighted_mean():
+    logits = torch.randn(12, 3, generator=torch.Generator().manual_seed(1))
+    target = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1, 2, 3, 3, 0])  # 3 = ignore
+    weight = torch.tensor([0.5, 2.0, 4.0])
+    out = segmentation_loss(logits, target, LossConfig(), ignore_index=3, class_weight=weight)
+    keep = target != 3
+    per_point = torch.nn.functional.cross_entropy(logits[keep], target[keep], reduction="none")
+    w = weight[target[keep]]
+    assert float(out["loss_ce"]) == pytest.approx(float((w * per_point).sum() / w.sum()), rel=1e-6)
+
+
+def test_class_counts_of_the_training_scans(toy_root):
+    scans = ScanDataset(toy_root, ["00"], labeled_only=True)
+    counts = train_class_counts(scans)
+    expected = sum(np.bincount(scans[i]["labels"], minlength=20)[:19] for i in range(len(scans)))
+    np.testing.assert_array_equal(counts.numpy(), expected)
+    assert counts[0] > 0 and counts[8] > 0 and counts[12] > 0  # car, road, building of the toy scans
+
+
 # ------------------------------------------------------------------------------------------- schedule, data
 
 
@@ -211,6 +250,29 @@ def test_tiny_run_writes_outputs_and_learns(toy_root, tmp_path):
     # a second run into the same folder must not silently mix with the first
     with pytest.raises(InputError, match="--resume"):
         train(tiny_config(toy_root, out), progress=False)
+
+
+def test_class_weighted_run_logs_its_weights(toy_root, tmp_path):
+    out = tmp_path / "weighted"
+    train(tiny_config(toy_root, out, "optim.steps=2", "loss.class_weighting=inverse_sqrt"), progress=False)
+    first = read_jsonl(out / "log.jsonl")[0]
+    weight = first["class_weight"]
+    assert first["step"] == 0 and weight["car"] > weight["road"] > 0  # the toy scans hold 2x road as car
+    ckpt = torch.load(out / "checkpoints" / "step_0000002.pt", weights_only=True)
+    assert ckpt["class_weight"].tolist() == pytest.approx(list(weight.values()))
+
+
+def test_paste_augmentation_adds_labelled_copies_in_the_batch(toy_root, tmp_path):
+    base = ["optim.steps=1", "augment.paste_classes=[car]", "augment.paste_copies=2", "data.max_points=null"]
+    scans = ScanDataset(toy_root, ["00", "01"], labeled_only=True)
+    plain = TrainBatches(scans, tiny_config(toy_root, tmp_path, *base), 0, 1)[0]
+    pasted = TrainBatches(scans, tiny_config(toy_root, tmp_path, *base, "augment.paste_prob=1.0"), 0, 1)[0]
+    for before, after, labels in zip(plain["labels"], pasted["labels"], pasted["points"]):
+        extra = len(after) - len(before)
+        assert extra > 0 and extra % 2 == 0 and len(labels) == len(after)
+        assert int((after == 0).sum()) == int((before == 0).sum()) + extra  # every pasted point is a car
+    with pytest.raises(InputError, match="paste_classes"):
+        TrainBatches(scans, tiny_config(toy_root, tmp_path, "augment.paste_classes=[lorry]"), 0, 1)
 
 
 def test_label_fraction_trains_on_the_split(toy_root, tmp_path):
