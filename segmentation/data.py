@@ -11,6 +11,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from u4d_aug.data.labels import SEMANTICKITTI_CLASSES
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_json
 
@@ -32,17 +33,8 @@ class AugmentConfig:
     scale_max: float = 1.05
     jitter_std: float = 0.01
     paste_prob: float = 0.0
-    paste_classes: list[str] = field(
-        default_factory=lambda: [
-            "bicycle",
-            "motorcycle",
-            "truck",
-            "other-vehicle",
-            "person",
-            "bicyclist",
-            "motorcyclist",
-        ]
-    )
+    # the thing classes bicycle .. motorcyclist (car is common enough)
+    paste_classes: list[str] = field(default_factory=lambda: list(SEMANTICKITTI_CLASSES[1:8]))
     paste_copies: int = 2
 
     def __post_init__(self) -> None:
