@@ -5,8 +5,8 @@ with the two-scene strategy (static scene once + small dynamic scene per frame, 
 rebuilding one scene with static + dynamic per frame, render + write per frame (steady state), and
 end-to-end `simulate` frames/s with 1 and 2 workers: 2 sequences of 100 frames (10 s of driving each; real
 SemanticKITTI sequences hold 271-4541 frames), world generation, scene build and the workers' start-up (each
-spawned worker imports open3d, ~2 s) included. The goal is >= 10 frames/s on 2 cores. Medians of several
-repetitions. Writes benchmarks/results/sim.json.
+spawned worker imports open3d, ~2 s) included; one run each. The goal is >= 10 frames/s on 2 cores. The
+per-frame and build rows are medians of several repetitions. Writes benchmarks/results/sim.json.
 
     python benchmarks/bench_sim.py [--quick]
 """

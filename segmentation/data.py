@@ -40,6 +40,11 @@ class AugmentConfig:
     def __post_init__(self) -> None:
         if not 0.0 <= self.paste_prob <= 1.0 or self.paste_copies < 1:
             raise ValueError("augment.paste_prob must be in [0, 1] and augment.paste_copies >= 1")
+        unknown = [name for name in self.paste_classes if name not in SEMANTICKITTI_CLASSES]
+        if unknown:
+            raise ValueError(
+                f"augment.paste_classes: unknown class names {unknown}; valid: {list(SEMANTICKITTI_CLASSES)}"
+            )
 
 
 def paste_instances(

@@ -118,10 +118,7 @@ class TrainBatches(Dataset):
     ) -> None:
         self.scans, self.cfg, self.rank, self.world_size = scans, cfg, rank, world_size
         self.unlabeled = unlabeled
-        names = list(SEMANTICKITTI_CLASSES)
-        unknown = [name for name in cfg.augment.paste_classes if name not in names]
-        if unknown:
-            raise InputError(f"augment.paste_classes: unknown class names {unknown}; valid: {names}")
+        names = list(SEMANTICKITTI_CLASSES)  # AugmentConfig has checked the paste class names
         self.paste_ids = torch.tensor([names.index(name) for name in cfg.augment.paste_classes], dtype=torch.int64)
 
     def __len__(self) -> int:

@@ -271,8 +271,8 @@ def test_paste_augmentation_adds_labelled_copies_in_the_batch(toy_root, tmp_path
         extra = len(after) - len(before)
         assert extra > 0 and extra % 2 == 0 and len(labels) == len(after)
         assert int((after == 0).sum()) == int((before == 0).sum()) + extra  # every pasted point is a car
-    with pytest.raises(InputError, match="paste_classes"):
-        TrainBatches(scans, tiny_config(toy_root, tmp_path, "augment.paste_classes=[lorry]"), 0, 1)
+    with pytest.raises(InputError, match="paste_classes: unknown class names \\['lorry'\\]"):
+        tiny_config(toy_root, tmp_path, "augment.paste_classes=[lorry]")  # refused when the config loads
 
 
 def test_label_fraction_trains_on_the_split(toy_root, tmp_path):

@@ -5,8 +5,8 @@ base 2, so 0 = identical and 1 = disjoint). A reference of a few consecutive rea
 report also measures how far one place of the simulated world lies from the simulated pool (`place_spread`:
 the same JS between the first n consecutive frames of each simulated sequence, n = the real frame count, and
 the pooled simulated histogram); a sim-vs-real JS inside that spread is as close as one place can get.
-Rings are recovered from the storage order (KITTI stores one ring
-after the other in azimuth order; a new ring starts where the azimuth wraps around), as in data/sensors.py.
+Rings are recovered from the storage order (KITTI stores one ring after the other in azimuth order; a new ring
+starts where the azimuth wraps around), as in data/sensors.py.
 """
 
 from __future__ import annotations
