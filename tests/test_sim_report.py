@@ -58,7 +58,8 @@ def test_identical_roots_have_zero_distance(tiny_world: Path) -> None:
     shares = [s["sim"] for s in report["class_share"].values()]
     assert sum(shares) == pytest.approx(1.0)
     assert sum(s["sim"] for s in report["range_share"].values()) == pytest.approx(1.0, abs=1e-6)
-    assert sim["range_hist"].sum() == sum(len(read_kitti_scan(p)) for p in tiny_world.rglob("*.bin"))
+    ranges = [np.linalg.norm(read_kitti_scan(p)[:, :3], axis=1) for p in tiny_world.rglob("*.bin")]
+    assert sim["range_hist"].sum() == sum(int((r < RANGE_BINS[-1]).sum()) for r in ranges)  # every point 0-80 m
 
 
 def test_place_spread_is_the_js_of_each_sequence_start(tiny_world: Path) -> None:
