@@ -60,6 +60,13 @@ def test_scan_dataset_items(tmp_path, rng):
     assert len(ScanDataset(tmp_path, labeled_only=True)) == 4
     assert [e[0] for e in ScanDataset(tmp_path, sequences=[1]).entries] == ["01", "01"]
     assert resolve_sequences(tmp_path, ["00", 1]) == ["00", "01"]
+    assert resolve_sequences(tmp_path, "00-01") == resolve_sequences(tmp_path, ["00-00", "01"]) == ["00", "01"]
+    with pytest.raises(InputError, match="ends before it starts"):
+        resolve_sequences(tmp_path, "01-00")
+    with pytest.raises(InputError, match="sequences/02/velodyne"):
+        resolve_sequences(tmp_path, "00-02")  # every sequence of the range must exist
+    with pytest.raises(InputError, match="a range like '00-87'"):
+        resolve_sequences(tmp_path, "trian")
 
 
 def test_missing_velodyne_folder(tmp_path, rng):

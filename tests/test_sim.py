@@ -311,3 +311,31 @@ def test_four_sequences_cover_fifteen_classes(tmp_path: Path) -> None:
             present |= set(np.unique(map_semantickitti(render_frame(seq, frame).semantic)).tolist())
     present.discard(19)
     assert len(present) >= 15, sorted(present)
+
+
+def _instances(mesh, label: str) -> int:
+    return len(np.unique(mesh.instance[mesh.semantic == RAW[label]]))
+
+
+def test_sidewalk_bicycles_only_when_asked() -> None:
+    off = build_sequence(4, 0, 3, hdl64(), _tiny()).world.mesh
+    on = build_sequence(4, 0, 3, hdl64(), _tiny("objects.sidewalk_bicycle_prob=1.0")).world.mesh
+    assert _instances(on, "bicycle") >= _instances(off, "bicycle") + 10
+    # every bicycle is a rigid ~1.8 m object standing on the ground, not floating or buried
+    for inst in np.unique(on.instance[on.semantic == RAW["bicycle"]]):
+        v = on.vertices[np.unique(on.triangles[(on.instance == inst) & (on.semantic == RAW["bicycle"])])]
+        assert 1.3 < np.ptp(v[:, :2], axis=0).max() < 2.2 and 0.8 < np.ptp(v[:, 2]) < 1.4
+
+
+def test_rich_preset_makes_rare_classes_frequent() -> None:
+    rich = load_config(SimConfig, REPO / "configs" / "sim" / "seg_rich.yaml", [])
+    counts = {"default": {}, "rich": {}}
+    for name, cfg in (("default", SimConfig()), ("rich", rich)):
+        for index in range(3):
+            seq = build_sequence(5, index, 3, hdl64(), cfg)
+            for label in ("truck", "other-vehicle", "motorcycle", "bicycle"):
+                counts[name][label] = counts[name].get(label, 0) + _instances(seq.world.mesh, label)
+            for agent in seq.agents:
+                counts[name][agent.kind] = counts[name].get(agent.kind, 0) + 1
+    for key in ("truck", "other-vehicle", "motorcycle", "bicycle", "person", "bicyclist", "motorcyclist"):
+        assert counts["rich"].get(key, 0) > 1.5 * counts["default"].get(key, 0), (key, counts)

@@ -7,6 +7,7 @@ test 11-21; relative pose of scan j in scan i = T_i^-1 T_j). Items are plain num
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -65,20 +66,37 @@ def scan_path(root: PathLike, seq: str, frame: str) -> Path:
     return Path(root) / "sequences" / seq / "velodyne" / f"{frame}.bin"
 
 
-def resolve_sequences(root: PathLike, sequences: str | Sequence[str | int] | None) -> list[str]:
-    """None -> every sequence present; 'train'/'val'/'test' -> that split; a list -> those (ints as '%02d').
+_RANGE = re.compile(r"^(\d+)-(\d+)$")
 
-    Every named sequence must exist with a `velodyne/` folder (InputError naming the missing path).
+
+def resolve_sequences(root: PathLike, sequences: str | Sequence[str | int] | None) -> list[str]:
+    """None -> every sequence present; 'train'/'val'/'test' -> that split; 'A-B' -> A..B; a list -> those.
+
+    List items are names, ints (as '%02d') or 'A-B' ranges ('00-87' -> '00', '01', ..., '87', zero-padded to the
+    width of A). Every named sequence must exist with a `velodyne/` folder (InputError naming the missing path).
     """
     if sequences is None:
         return list_sequences(root)
     if isinstance(sequences, str):
-        if sequences not in SEMANTICKITTI_SPLITS:
+        if sequences in SEMANTICKITTI_SPLITS:
+            sequences = SEMANTICKITTI_SPLITS[sequences]
+        elif _RANGE.match(sequences):
+            sequences = [sequences]
+        else:
             raise InputError(
-                f"sequences={sequences!r}: expected a split name {sorted(SEMANTICKITTI_SPLITS)} or a list of sequences"
+                f"sequences={sequences!r}: expected a split name {sorted(SEMANTICKITTI_SPLITS)}, a range like "
+                "'00-87' or a list of sequences"
             )
-        sequences = SEMANTICKITTI_SPLITS[sequences]
-    names = [f"{s:02d}" if isinstance(s, int) else str(s) for s in sequences]
+    names = []
+    for s in sequences:
+        match = _RANGE.match(s) if isinstance(s, str) else None
+        if match:
+            first, last = match.groups()
+            if int(last) < int(first):
+                raise InputError(f"sequences: range {s!r} ends before it starts")
+            names += [f"{i:0{len(first)}d}" for i in range(int(first), int(last) + 1)]
+        else:
+            names.append(f"{s:02d}" if isinstance(s, int) else str(s))
     if not names:
         raise InputError(f"{root}: empty sequence list")
     for name in names:

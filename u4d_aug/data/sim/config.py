@@ -90,6 +90,9 @@ class StreetObjectConfig:
     # parked vehicle kinds along parking strips: car, truck, other-vehicle (van), motorcycle
     parked_weights: tuple[float, float, float, float] = (0.87, 0.03, 0.04, 0.06)
     bicycle_prob: float = 0.5  # parked bicycles near a building front, per lot
+    # a group of 1-4 bicycles across the sidewalk (rack), per 20 m of sidewalk; 0 = none (the default world,
+    # tuned to real seq 00, which holds no bicycle); configs/sim/seg_rich.yaml raises it for segmentor training
+    sidewalk_bicycle_prob: float = 0.0
 
 
 @dataclass

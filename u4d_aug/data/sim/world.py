@@ -274,6 +274,17 @@ def _side_strip(mb, rng, cfg: SimConfig, net: Network, curb, side, line, line_si
             off = 0.5 if rng.random() < 0.5 else sidewalk - 0.5
             objects.other_object(mb, rng, at(tt, off), h, float(np.arctan2(u[1], u[0])))
             occupied.append(tt)
+    if obj.sidewalk_bicycle_prob > 0 and sidewalk > 2.4:  # no draw when off: the default world stays as it was
+        for t in np.arange(t0 + 8.0, t1 - 8.0, 20.0):
+            tt = t + rng.uniform(-5, 5)
+            count = int(rng.integers(1, 5))
+            if rng.random() < obj.sidewalk_bicycle_prob and free(tt, 1.0 + 0.8 * count):
+                across = float(np.arctan2(n[1], n[0]))  # bicycles stand across the sidewalk, 0.8 m apart
+                for k in range(count):
+                    c = at(tt + 0.8 * (k - (count - 1) / 2), 1.2)
+                    mesh = objects.two_wheeler(rng, "bicycle", ids.take())
+                    _add_mesh(mb, objects.place(mesh, across + rng.normal(0, 0.1), (c[0], c[1], h)))
+                occupied.append(tt)
     if rng.random() < 0.06 and sidewalk > 3.0:  # bus shelter: other-structure
         tt = rng.uniform(t0 + 5, max(t0 + 6, t1 - 8))
         c = at(tt, sidewalk - 0.8)
