@@ -353,3 +353,12 @@ def test_global_batch_does_not_depend_on_the_number_of_ranks(toy_root):
     merged = [rank0["points"][0], rank1["points"][0], rank0["points"][1]]  # slots 0, 1, 2
     assert all(torch.equal(a, b) for a, b in zip(single["points"], merged))
     assert all(p.shape == (500, 4) for p in single["points"])
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "configs" / "seg").glob("*.yaml")), ids=lambda p: p.name)
+def test_seg_presets_load(path: Path) -> None:
+    cfg = load_config(SegTrainConfig, path, [])
+    assert cfg.optim.steps >= 1 and cfg.model.voxel_size > 0
+    if path.name.startswith("cpu_"):  # 30-minute presets: the held-out sequences never train
+        train, val = cfg.data.train_sequences, cfg.data.val_sequences
+        assert isinstance(val, (str, list)) and train != val and cfg.max_minutes > 0
