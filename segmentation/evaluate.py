@@ -151,7 +151,9 @@ def add_seg_eval_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `u4d seg-eval CKPT DATA [--sequences ..] [--json] [--png OUT]`."""
     parser.add_argument("checkpoint", type=Path, help="segmentation checkpoint (.pt from u4d seg-train)")
     parser.add_argument("data", type=Path, help="SemanticKITTI-layout root with labels")
-    parser.add_argument("--sequences", nargs="+", default=None, help="sequences (e.g. 08) or a split name; default all")
+    parser.add_argument(
+        "--sequences", nargs="+", default=None, help="sequences (e.g. 08), ranges (88-99) or a split name; default all"
+    )
     parser.add_argument("--json", action="store_true", help="print the summary as json")
     parser.add_argument("--png", type=Path, default=None, help="write the reliability diagram here")
     parser.add_argument("--max-scans", type=int, default=None, help="evaluate this many evenly spaced scans")

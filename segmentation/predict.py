@@ -171,7 +171,10 @@ def add_seg_predict_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("data", type=Path, help="SemanticKITTI-layout root (ROOT/sequences/XX/velodyne)")
     parser.add_argument("--out", type=Path, required=True, help="output root: OUT/sequences/XX/probs/*.npy")
     parser.add_argument(
-        "--sequences", nargs="+", default=None, help="sequences (e.g. 00 01) or a split name; default all"
+        "--sequences",
+        nargs="+",
+        default=None,
+        help="sequences (e.g. 00 01), ranges (00-87) or a split name; default all",
     )
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -26,6 +26,7 @@ from segmentation.predict import (
     checkpoint_hash,
     load_checkpoint,
     model_from_checkpoint,
+    parse_sequences,
     predict_probs,
     predict_root,
     probs_path,
@@ -177,3 +178,9 @@ def test_evaluate_on_real_semantickitti(trained, real_root):
     assert summary["num_scans"] == 1 and summary["num_points"] > 100_000
     assert {"road", "car", "building", "vegetation"} <= set(summary["classes_present"])
     assert 0.0 <= summary["miou_present"] <= 1.0 and not math.isnan(summary["ece_pooled"])
+
+
+def test_cli_sequence_ranges() -> None:
+    assert parse_sequences(["88-99"]) == ["88-99"]  # expanded by resolve_sequences
+    assert parse_sequences(["00-02,05", "07"]) == ["00-02", "05", "07"]
+    assert parse_sequences(["train"]) == "train" and parse_sequences(None) is None
