@@ -73,8 +73,8 @@ def child(args: argparse.Namespace) -> dict:
     from u4d_aug.distributed import DistInfo
 
     overrides = [f"data.root={REAL}", "data.train_sequences=['00']", "data.label_fraction=1.0", f"mode={args.mode}"]
-    if args.max_points:
-        overrides.append(f"data.max_points={args.max_points}")
+    overrides.append(f"data.max_points={args.max_points or 'null'}")  # the preset's own subset otherwise
+    overrides.append("semi.burn_in_steps=0")  # every timed step is a mean-teacher step
     cfg = load_config(SegTrainConfig, PRESET, overrides)
     device = torch.device("cpu")
     scans = train_scans(cfg, DistInfo(0, 1, 0, device))
@@ -97,7 +97,7 @@ def child(args: argparse.Namespace) -> dict:
         losses["loss"].backward()
         optimizer.step()
         if teacher is not None:
-            update_teacher(teacher, model, cfg.semi)
+            update_teacher(teacher, model, cfg.semi, i)
         if i:  # step 0 is the warm-up
             times.append(time.perf_counter() - start)
     points = [sum(p.shape[0] for p in b["points"] + b.get("unlabeled", [])) for b in batches[1:]]

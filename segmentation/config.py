@@ -112,8 +112,11 @@ class SemiConfig(MeanTeacherConfig):
             raise ValueError(f"semi.banks ratios must be >= 0 and sum to <= 1; got {ratios}")
         if not 0.0 <= self.ema_decay <= 1.0 or not 0.0 <= self.pseudo_threshold <= 1.0:
             raise ValueError("semi.ema_decay and semi.pseudo_threshold must be in [0, 1]")
-        if self.consistency_rampup_steps < 0:
-            raise ValueError(f"semi.consistency_rampup_steps must be >= 0, got {self.consistency_rampup_steps}")
+        if self.consistency_rampup_steps < 0 or self.burn_in_steps < 0:
+            raise ValueError(
+                "semi.consistency_rampup_steps and semi.burn_in_steps must be >= 0, got "
+                f"{self.consistency_rampup_steps} and {self.burn_in_steps}"
+            )
 
 
 @dataclass

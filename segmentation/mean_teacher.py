@@ -40,6 +40,10 @@ class MeanTeacherConfig:
     # Laine & Aila 2017): the young teacher is close to the random init, and matching it makes the student
     # underconfident on short schedules; 0 = constant weight (LaserMix upstream, trained for many epochs)
     consistency_rampup_steps: int = 0
+    # burn-in (Unbiased Teacher, Liu et al. 2021): the first steps train the student on the labeled scans only,
+    # the teacher follows as an EMA with the student's BatchNorm statistics; LaserMix, pseudo-labels and L_mt
+    # start after it (the ramp-up counts from there). 0 = mean teacher from step 0 (LaserMix upstream).
+    burn_in_steps: int = 0
     sup_weight: float = 1.0  # weight of L_sup (labeled scans)
     mix_weight: float = 1.0  # weight of L_mix (LaserMix scans with GT / pseudo-labels)
     num_areas_choices: tuple[int, ...] = (3, 4, 5, 6)  # LaserMix MinkUNet18 config

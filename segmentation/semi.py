@@ -147,7 +147,7 @@ def semi_step(
     loss_mix = segmentation_loss(mix_logits, torch.cat(mixed_targets), cfg.loss, ignore, class_weight)["loss"]
     loss_mt = consistency_loss(unl_logits, teacher_logits)
     return {
-        "loss": total_loss(loss_sup, loss_mix, loss_mt, cfg.semi, step=int(batch["step"])),
+        "loss": total_loss(loss_sup, loss_mix, loss_mt, cfg.semi, step=int(batch["step"]) - cfg.semi.burn_in_steps),
         "loss_sup": loss_sup,
         "loss_mix": loss_mix,
         "loss_mt": loss_mt,
@@ -155,9 +155,18 @@ def semi_step(
     }
 
 
+def in_burn_in(cfg: SemiConfig, step: int) -> bool:
+    """Whether step `step` is a supervised burn-in step (no unlabeled scans, no teacher forward)."""
+    return step < cfg.burn_in_steps
+
+
 @torch.no_grad()
-def update_teacher(teacher: nn.Module, student: nn.Module, cfg: SemiConfig) -> None:
-    """EMA of the parameters after each optimiser step; BatchNorm buffers copied when bn_mode == copy_student."""
+def update_teacher(teacher: nn.Module, student: nn.Module, cfg: SemiConfig, step: int) -> None:
+    """EMA of the parameters after optimiser step `step`; BatchNorm buffers copied when bn_mode == copy_student.
+
+    During burn-in the teacher never runs forward, so its BatchNorm statistics are copied from the student too
+    (otherwise they would stay at their initial values until the first mean-teacher step).
+    """
     ema_update(teacher, student, cfg.ema_decay)
-    if cfg.bn_mode == "copy_student":
+    if cfg.bn_mode == "copy_student" or in_burn_in(cfg, step):
         copy_buffers(teacher, student)

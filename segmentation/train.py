@@ -2,8 +2,9 @@
 
 Reads top to bottom like nanoGPT's train.py: set-up, data, model, optimiser, then one loop that takes a batch,
 computes the loss with the step function of the configured mode (`supervised_step`, or its sibling
-`segmentation.semi.semi_step`: LaserMix mean teacher on labeled + unlabeled scans), steps AdamW at the
-warm-up + cosine learning rate of that step, updates the teacher (mode "semi"), evaluates, logs and checkpoints.
+`segmentation.semi.semi_step`: LaserMix mean teacher on labeled + unlabeled scans, after semi.burn_in_steps
+supervised steps), steps AdamW at the warm-up + cosine learning rate of that step, updates the teacher (mode
+"semi"), evaluates, logs and checkpoints.
 
 Exact resume: the scans of step s, their point subsets and augmentations depend only on (seed, step, slot
 in the batch), and the global torch RNG (dropout) is re-seeded from (seed, step, rank) before every step,
@@ -42,7 +43,14 @@ from segmentation.mean_teacher import make_teacher, teacher_mode
 from segmentation.models import build_model
 from segmentation.plots import plot_learning_curve, plot_reliability
 from segmentation.predict import load_checkpoint
-from segmentation.semi import UnlabeledStream, load_unlabeled, semi_step, unlabeled_stream, update_teacher
+from segmentation.semi import (
+    UnlabeledStream,
+    in_burn_in,
+    load_unlabeled,
+    semi_step,
+    unlabeled_stream,
+    update_teacher,
+)
 from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.datasets import ScanDataset, scan_path
 from u4d_aug.data.formats import label_path_for, read_kitti_label
@@ -151,7 +159,7 @@ class TrainBatches(Dataset):
             points.append(augment(scan, generator, cfg.augment))
             labels.append(target)
         batch = {"step": step, "slots": list(slots), "points": points, "labels": labels}
-        if self.unlabeled is not None:
+        if self.unlabeled is not None and not in_burn_in(cfg.semi, step):
             batch["unlabeled"] = load_unlabeled(self.unlabeled, cfg, step, slots)
         return batch
 
@@ -350,7 +358,7 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
             group["lr"] = lr
         torch.manual_seed(derived_seed(cfg.seed, _STEP, step, info.rank))  # dropout of this step only
 
-        if cfg.mode == "supervised":
+        if cfg.mode == "supervised" or (cfg.mode == "semi" and in_burn_in(cfg.semi, step)):
             losses = supervised_step(ddp_model, batch, cfg, device, class_weight)
         elif cfg.mode == "semi":
             losses = semi_step(ddp_model, teacher, batch, cfg, device, class_weight)
@@ -363,7 +371,7 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
         )
         optimizer.step()
         if teacher is not None:
-            update_teacher(teacher, model, cfg.semi)
+            update_teacher(teacher, model, cfg.semi, step)
         done = step + 1
 
         for key, value in losses.items():

@@ -125,7 +125,7 @@ def test_semi_step_runs_and_the_teacher_follows_by_ema(toy_root, tmp_path):
     losses["loss"].backward()
     assert all(p.grad is None for p in teacher.parameters())  # the teacher gets no gradient
     optimizer.step()
-    update_teacher(teacher, student, cfg.semi)
+    update_teacher(teacher, student, cfg.semi, step=0)
 
     student_params = dict(student.named_parameters())
     changed = 0
@@ -204,6 +204,31 @@ def test_semi_resume_in_a_fresh_process_is_bit_exact(toy_root, bank_root, tmp_pa
         assert torch.equal(final[key], resumed[key]), key
     steps = [r["step"] for r in read_jsonl(half / "log.jsonl") if "loss" in r]
     assert steps == list(range(1, 7))
+
+
+def test_burn_in_trains_supervised_then_switches_to_the_mean_teacher(toy_root, tmp_path):
+    """semi.burn_in_steps=3: steps 1-3 are supervised (no unlabeled scans, teacher BN = student BN), then L_mt."""
+    cfg = semi_config(toy_root, tmp_path / "run", "semi.burn_in_steps=3", "data.max_points=400")
+    batches = TrainBatches(train_scans(cfg, CPU), cfg, 0, 1, unlabeled_stream(cfg))
+    assert "unlabeled" not in batches[2] and len(batches[3]["unlabeled"]) == 2
+
+    torch.manual_seed(0)
+    student = build_model(cfg.model)
+    teacher = teacher_mode(make_teacher(student), cfg.semi.bn_mode)
+    student.train()
+    student([p for p in batches[0]["points"]])  # moves the student's BatchNorm running statistics
+    update_teacher(teacher, student, cfg.semi, step=2)  # a burn-in step: buffers copied
+    for (name, t), s in zip(teacher.named_buffers(), student.buffers()):
+        assert torch.equal(t, s), name
+    student([p for p in batches[1]["points"]])
+    update_teacher(teacher, student, cfg.semi, step=3)  # a mean-teacher step: parameters only (bn_mode batch)
+    assert any(not torch.equal(t, s) for t, s in zip(teacher.buffers(), student.buffers()))
+
+    train(cfg, progress=False)
+    records = [r for r in read_jsonl(tmp_path / "run" / "log.jsonl") if "loss" in r]
+    assert [r["step"] for r in records] == list(range(1, 7))
+    assert all("loss_ce" in r and "loss_mt" not in r for r in records[:3])
+    assert all("loss_mt" in r and np.isfinite(r["loss_mix"]) for r in records[3:])
 
 
 @pytest.mark.slow
