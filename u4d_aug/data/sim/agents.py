@@ -90,7 +90,7 @@ def speed_profile(rng, path_s, turning, frames, dt, speed_range, turn_speed, acc
 
 
 def ego_motion(rng: np.random.Generator, net: Network, cfg: SimConfig, frames: int) -> EgoMotion:
-    """Ego route and poses; the sensor sits `lidar.sensor_height` above the road, level."""
+    """Ego route and poses: the sensor sits `lidar.sensor_height` above the road, the body follows its slope."""
     ac = cfg.agents
     dt = 1.0 / cfg.frame_rate
     i0 = int(np.argmin([abs(line.position) for line in net.xs]))
