@@ -19,47 +19,19 @@ import argparse
 import json
 import os
 import platform
-import resource
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import torch
+from peak_memory import peak_mb, run_case, start_memory_window
 
 from u4d_aug.io import atomic_write_json
 
 REPO = Path(__file__).resolve().parents[1]
 REAL = REPO.parent / "shared" / "data" / "real" / "semantickitti"
 PRESET = REPO / "configs" / "seg" / "cpu_semi.yaml"
-
-
-def _status_mb(field: str) -> float | None:
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith(field + ":"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return None
-
-
-def start_memory_window() -> float:
-    """Reset the peak-RSS mark and return the current RSS in MB (ru_maxrss fallback without /proc)."""
-    try:
-        Path("/proc/self/clear_refs").write_text("5")
-        current = _status_mb("VmRSS")
-        if current is not None:
-            return current
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def peak_mb() -> float:
-    peak = _status_mb("VmHWM")
-    return peak if peak is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def child(args: argparse.Namespace) -> dict:
@@ -112,16 +84,10 @@ def child(args: argparse.Namespace) -> dict:
 
 
 def run_child(mode: str, args: argparse.Namespace) -> dict:
-    # this checkout's packages first (an editable install may point at another clone)
-    pythonpath = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
-    env = dict(os.environ, OMP_WAIT_POLICY="PASSIVE", PYTHONPATH=pythonpath)
-    command = [sys.executable, __file__, "--child", mode, "--threads", str(args.threads), "--steps", str(args.steps)]
+    argv = ["--child", mode, "--threads", str(args.threads), "--steps", str(args.steps)]
     if args.max_points:
-        command += ["--max-points", str(args.max_points)]
-    done = subprocess.run(command, capture_output=True, text=True, env=env, check=False, cwd=REPO)
-    if done.returncode != 0:
-        raise RuntimeError(f"{mode} case failed:\n{done.stderr[-3000:]}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+        argv += ["--max-points", str(args.max_points)]
+    return run_case(__file__, argv, f"{mode} case")
 
 
 def main() -> int:

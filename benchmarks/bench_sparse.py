@@ -32,9 +32,7 @@ import argparse
 import json
 import os
 import platform
-import resource
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -43,6 +41,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from peak_memory import peak_mb, run_case, start_memory_window
 
 from segmentation.models import SegModelConfig, build_model
 from segmentation.sparse import SparseConv3d, SparseTensor, voxelize
@@ -51,38 +50,6 @@ from u4d_aug.io import atomic_write_json
 REPO = Path(__file__).resolve().parents[1]
 SEQUENCE = REPO.parent / "shared" / "data" / "real" / "semantickitti" / "sequences" / "00"
 CROP_XY, CROP_Z = 25.6, 3.2  # metres; grid origin at (-25.6, -25.6, -3.2)
-
-
-def _status_mb(field: str) -> float | None:
-    """VmRSS / VmHWM of this process from /proc/self/status in MB, None where unavailable."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith(field + ":"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return None
-
-
-def start_memory_window() -> float:
-    """Reset the kernel's peak-RSS mark (write 5 to /proc/self/clear_refs) and return the current RSS in MB.
-
-    Without /proc (not Linux) this falls back to ru_maxrss, whose earlier peaks then hide smaller later ones.
-    """
-    try:
-        Path("/proc/self/clear_refs").write_text("5")
-        current = _status_mb("VmRSS")
-        if current is not None:
-            return current
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def peak_mb() -> float:
-    """Peak RSS since the last reset (VmHWM), else ru_maxrss (KB on Linux), in MB."""
-    peak = _status_mb("VmHWM")
-    return peak if peak is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def load_scan(path: Path) -> torch.Tensor:
@@ -225,12 +192,7 @@ def train_child(args: argparse.Namespace) -> dict:
 
 
 def run_child(argv: list[str], threads: int) -> dict:
-    env = dict(os.environ, OMP_WAIT_POLICY="PASSIVE")
-    command = [sys.executable, __file__, "--threads", str(threads), *argv]
-    done = subprocess.run(command, capture_output=True, text=True, env=env, check=False)
-    if done.returncode != 0:
-        raise RuntimeError(f"{' '.join(argv)} failed:\n{done.stderr[-3000:]}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    return run_case(__file__, ["--threads", str(threads), *argv], " ".join(argv))
 
 
 def conv_table(args: argparse.Namespace, tmp: Path) -> list[dict]:

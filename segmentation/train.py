@@ -51,7 +51,7 @@ from segmentation.semi import (
     unlabeled_stream,
     update_teacher,
 )
-from u4d_aug.config import config_to_dict, load_config, save_config
+from u4d_aug.config import add_run_arguments, config_to_dict, load_config, save_config
 from u4d_aug.data.datasets import ScanDataset, scan_path
 from u4d_aug.data.formats import label_path_for, read_kitti_label
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE, map_semantickitti
@@ -483,18 +483,7 @@ def _differences(old: dict, new: dict, prefix: str = "") -> list[tuple[str, obje
 
 def add_seg_train_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `u4d seg-train CONFIG [key=value ...] [--resume [CKPT]] [--out DIR]`."""
-    parser.add_argument("config", type=Path, help="yaml preset, e.g. configs/seg/cpu_minkunet.yaml")
-    parser.add_argument("overrides", nargs="*", help="key=value overrides, e.g. optim.steps=100 model.width=0.5")
-    parser.add_argument(
-        "--resume",
-        nargs="?",
-        const="last",
-        default=None,
-        metavar="CKPT",
-        help="continue a run: from CKPT, or without a value from the newest OUT/checkpoints/step_*.pt",
-    )
-    parser.add_argument("--out", type=Path, default=None, help="output folder (overrides out_dir)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_run_arguments(parser, "configs/seg/cpu_minkunet.yaml", "optim.steps=100 model.width=0.5")
 
 
 def run_seg_train(args: argparse.Namespace) -> int:

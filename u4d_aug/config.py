@@ -8,6 +8,7 @@ config that is saved next to every output and inside every checkpoint.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import re
 import types
@@ -206,3 +207,19 @@ def _coerce(value: Any, tp: Any, key: str, source: str) -> Any:
             return Path(value)
         fail()
     return value
+
+
+def add_run_arguments(parser: argparse.ArgumentParser, config_example: str, overrides_example: str) -> None:
+    """Arguments of a resumable training command: CONFIG [key=value ...] [--resume [CKPT]] [--out DIR]."""
+    parser.add_argument("config", type=Path, help=f"yaml preset, e.g. {config_example}")
+    parser.add_argument("overrides", nargs="*", help=f"key=value overrides, e.g. {overrides_example}")
+    parser.add_argument(
+        "--resume",
+        nargs="?",
+        const="last",
+        default=None,
+        metavar="CKPT",
+        help="continue a run: from CKPT, or without a value from the newest OUT/checkpoints/step_*.pt",
+    )
+    parser.add_argument("--out", type=Path, default=None, help="output folder (overrides the config's)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")

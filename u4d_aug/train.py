@@ -25,7 +25,7 @@ import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from u4d_aug.config import config_from_dict, config_to_dict, load_config, parse_override, save_config
+from u4d_aug.config import add_run_arguments, config_from_dict, config_to_dict, load_config, parse_override, save_config
 from u4d_aug.data.datasets import ScanDataset, SequenceDataset, scan_path
 from u4d_aug.data.formats import load_kitti_frame
 from u4d_aug.data.sensors import Sensor, get_sensor
@@ -430,18 +430,7 @@ def split_stage_override(overrides: list[str]) -> list[str]:
 
 def add_train_diffusion_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `u4d train-diffusion CONFIG stage=stage1|stage2|baseline [key=value ..] [--resume] [--out]`."""
-    parser.add_argument("config", type=Path, help="yaml preset, e.g. configs/u4d/cpu.yaml")
-    parser.add_argument("overrides", nargs="*", help="key=value overrides; stage=stage1|stage2|baseline first")
-    parser.add_argument(
-        "--resume",
-        nargs="?",
-        const="last",
-        default=None,
-        metavar="CKPT",
-        help="continue a run: from CKPT, or without a value from the newest OUT/checkpoints/step_*.pt",
-    )
-    parser.add_argument("--out", type=Path, default=None, help="output folder (overrides out)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_run_arguments(parser, "configs/u4d/cpu.yaml", "stage=stage1 steps=100 (stage=stage1|stage2|baseline)")
 
 
 def run_train_diffusion(args: argparse.Namespace) -> int:
