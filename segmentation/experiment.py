@@ -42,6 +42,8 @@ class ArmConfig:
     mode: Literal["supervised", "semi"] = "supervised"
     bank: Path | None = None  # SemanticKITTI-layout root of generated scans; None = unlabeled split only
     bank_ratio: float = 0.5  # share of the unlabeled scans drawn from the bank
+    # key=value overrides of this arm only, after the experiment's (ablations, e.g. semi.pseudo_threshold=0.75)
+    overrides: list[str] = field(default_factory=list)
 
 
 def default_arms() -> list[ArmConfig]:
@@ -87,9 +89,10 @@ def bank_problem(arm: ArmConfig) -> str | None:
 
 
 def run_config(cfg: ExperimentConfig, arm: ArmConfig, backbone: str, seed: int) -> SegTrainConfig:
-    """The seg-train config of one run: the base preset + overrides + this arm / backbone / seed."""
+    """The seg-train config of one run: the base preset + the experiment's and the arm's overrides + backbone / seed."""
     out = cfg.out_dir / "runs" / arm.name / backbone / f"seed{seed}"
-    run = load_config(SegTrainConfig, cfg.base, [*cfg.overrides, f"model.name={backbone}", f"seed={seed}"])
+    overrides = [*cfg.overrides, *arm.overrides, f"model.name={backbone}", f"seed={seed}"]
+    run = load_config(SegTrainConfig, cfg.base, overrides)
     run.mode = arm.mode
     run.out_dir = out
     run.semi.banks = [BankConfig(Path(arm.bank), arm.bank_ratio)] if arm.bank is not None else []
@@ -141,6 +144,7 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True) -> dict:
         for backbone in cfg.backbones:
             bank = None if arm.bank is None else str(arm.bank)
             entry: dict = {"arm": arm.name, "mode": arm.mode, "backbone": backbone, "bank": bank}
+            entry["overrides"] = list(arm.overrides)
             if problem is not None:
                 entry.update(status="missing", reason=problem)
                 results["arms"].append(entry)

@@ -11,9 +11,11 @@ import torch
 from test_seg_train import write_toy_root
 
 from segmentation.experiment import (
+    ArmConfig,
     ExperimentConfig,
     add_experiment_arguments,
     mean_std,
+    run_config,
     run_experiment,
 )
 from u4d_aug.config import load_config
@@ -42,6 +44,25 @@ def test_mean_std_over_seeds():
 def test_config_rejects_duplicate_arms():
     with pytest.raises(InputError, match="distinct"):
         load_config(ExperimentConfig, TINY, ["arms=[{name: a}, {name: a}]"])
+
+
+def test_arm_overrides_change_only_their_arm():
+    cfg = load_config(
+        ExperimentConfig,
+        TINY,
+        [
+            f"base={TINY_SEMI}",
+            "overrides=[optim.steps=7]",
+            "arms=[{name: mt, mode: semi}, {name: mt-t075, mode: semi, overrides: [semi.pseudo_threshold=0.75]}]",
+        ],
+    )
+    plain, ablation = (run_config(cfg, arm, "spvcnn", 3) for arm in cfg.arms)
+    assert ablation.semi.pseudo_threshold == 0.75 and plain.semi.pseudo_threshold == 0.9
+    for run in (plain, ablation):  # the experiment's overrides, backbone and seed reach both arms
+        assert run.optim.steps == 7 and run.model.name == "spvcnn" and run.seed == 3 and run.mode == "semi"
+    assert ablation.out_dir.parts[-3:] == ("mt-t075", "spvcnn", "seed3")
+    with pytest.raises(InputError, match="pseudo_treshold"):
+        run_config(cfg, ArmConfig("typo", "semi", overrides=["semi.pseudo_treshold=0.75"]), "minkunet", 0)
 
 
 def test_tiny_experiment_with_a_missing_bank_is_resumable(tmp_path):
