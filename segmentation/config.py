@@ -117,6 +117,8 @@ class SemiConfig(MeanTeacherConfig):
                 "semi.consistency_rampup_steps and semi.burn_in_steps must be >= 0, got "
                 f"{self.consistency_rampup_steps} and {self.burn_in_steps}"
             )
+        if self.pseudo_class_share is not None and not 0.0 < self.pseudo_class_share <= 1.0:
+            raise ValueError(f"semi.pseudo_class_share must be in (0, 1] or null; got {self.pseudo_class_share}")
 
 
 @dataclass

@@ -33,6 +33,11 @@ class MeanTeacherConfig:
 
     ema_decay: float = 0.99  # teacher <- decay * teacher + (1 - decay) * student, every step (mmdet momentum 0.01)
     pseudo_threshold: float = 0.9  # teacher confidence below this -> ignore id (0.95 upstream on nuScenes)
+    # class-balanced pseudo-labels (CBST, Zou et al. 2018): each predicted class keeps at least this top share of
+    # its points by confidence in the batch (class threshold = min(pseudo_threshold, the confidence at that
+    # share)); None = one global threshold (LaserMix). A young teacher is confident on road and vegetation only,
+    # so a global 0.9 gives the rare classes no pseudo-label at all.
+    pseudo_class_share: float | None = None
     # L_mt weight: 200 for MinkUNet18 / SemanticKITTI upstream (Cylinder3D: 250 SK, 500 nuScenes); large
     # because the MSE is averaged over N x C, so the right value scales with the number of classes.
     consistency_weight: float = 200.0
@@ -96,12 +101,27 @@ def copy_buffers(teacher: nn.Module, student: nn.Module) -> None:
 
 @torch.no_grad()
 def pseudo_labels(
-    teacher_logits: torch.Tensor, threshold: float = 0.9, ignore_index: int = 19
+    teacher_logits: torch.Tensor, threshold: float = 0.9, ignore_index: int = 19, class_share: float | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pseudo-labels (N,) = argmax softmax, ignore_index where confidence (N,) < threshold (LaserMix)."""
+    """Pseudo-labels (N,) = argmax softmax, ignore_index where confidence (N,) < the threshold (LaserMix).
+
+    With class_share, the threshold of predicted class c is min(threshold, t_c), t_c the confidence of its
+    ceil(class_share * n_c)-th most confident of the n_c points predicted as c: every predicted class keeps at
+    least that top share (class-balanced self-training, Zou et al. 2018).
+    """
     confidence, labels = F.softmax(teacher_logits.float(), dim=1).max(dim=1)  # (N,), (N,)
-    labels = labels.masked_fill(confidence < threshold, ignore_index)
-    return labels, confidence
+    if class_share is None:
+        keep = confidence >= threshold
+    else:
+        if not 0.0 < class_share <= 1.0:
+            raise ValueError(f"class_share must be in (0, 1]; got {class_share}")
+        per_class = torch.full((teacher_logits.shape[1],), float(threshold), device=confidence.device)  # (K,)
+        for c in labels.unique().tolist():
+            scores = confidence[labels == c]  # (n_c,)
+            kth = torch.topk(scores, math.ceil(class_share * scores.numel())).values[-1]
+            per_class[c] = torch.minimum(per_class[c], kth)
+        keep = confidence >= per_class[labels]
+    return labels.masked_fill(~keep, ignore_index), confidence
 
 
 def consistency_loss(student_logits: torch.Tensor, teacher_logits: torch.Tensor) -> torch.Tensor:

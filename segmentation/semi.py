@@ -126,7 +126,9 @@ def semi_step(
     # teacher: pseudo-labels y_hat (sum M_b,) of the unlabeled scans, ignore id below the threshold
     with torch.no_grad():
         teacher_logits = teacher(unlabeled)  # (sum M_b, K)
-    pseudo, _ = pseudo_labels(teacher_logits, cfg.semi.pseudo_threshold, SEMANTICKITTI_IGNORE)
+    pseudo, _ = pseudo_labels(
+        teacher_logits, cfg.semi.pseudo_threshold, SEMANTICKITTI_IGNORE, cfg.semi.pseudo_class_share
+    )
     pseudo_per_scan = pseudo.split([p.shape[0] for p in unlabeled])
 
     # LaserMix: 2 mixed scans per (labeled, unlabeled) pair, area count seeded by (seed, step, slot)

@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import nn
 
-from segmentation.config import SemiConfig
+from segmentation.config import SegTrainConfig, SemiConfig
 from segmentation.mean_teacher import (
     MeanTeacherConfig,
     consistency_loss,
@@ -20,6 +20,8 @@ from segmentation.mean_teacher import (
     teacher_mode,
     total_loss,
 )
+from u4d_aug.config import load_config
+from u4d_aug.errors import InputError
 
 
 def _net(seed: int) -> nn.Module:
@@ -105,6 +107,37 @@ def test_pseudo_labels_below_threshold_get_ignore_id():
     labels, _ = pseudo_labels(logits, threshold=0.95, ignore_index=16)
     assert labels.tolist() == [0, 16, 16, 16]
     assert pseudo_labels(logits, threshold=0.0)[0].tolist() == [0, 1, 2, 1]
+
+
+def test_class_balanced_pseudo_labels_keep_a_share_of_every_predicted_class():
+    # class 0: confident (0.99, 0.98, 0.97, 0.96 and one 0.5); class 1: never above 0.8 (0.8, 0.7, 0.6, 0.55)
+    probs = torch.tensor(
+        [
+            [0.99, 0.01],
+            [0.98, 0.02],
+            [0.97, 0.03],
+            [0.96, 0.04],
+            [0.5, 0.5],
+            [0.2, 0.8],
+            [0.3, 0.7],
+            [0.4, 0.6],
+            [0.45, 0.55],
+        ]
+    )
+    logits = probs.log()
+    plain, confidence = pseudo_labels(logits, threshold=0.9, ignore_index=19)
+    assert plain.tolist() == [0, 0, 0, 0, 19, 19, 19, 19, 19]  # the global threshold: nothing of class 1
+    balanced, same_confidence = pseudo_labels(logits, threshold=0.9, ignore_index=19, class_share=0.5)
+    torch.testing.assert_close(same_confidence, confidence)
+    # class 0 keeps everything above 0.9 (more than half of its 5 points); class 1 keeps its top half (0.8, 0.7)
+    assert balanced.tolist() == [0, 0, 0, 0, 19, 1, 1, 19, 19]
+    # share 1 keeps every point; the confident class never drops below the global threshold's set
+    assert pseudo_labels(logits, 0.9, 19, class_share=1.0)[0].tolist() == [0, 0, 0, 0, 0, 1, 1, 1, 1]
+    assert (pseudo_labels(logits, 0.9, 19, class_share=0.01)[0][plain != 19] == 0).all()
+    with pytest.raises(ValueError, match="class_share"):
+        pseudo_labels(logits, 0.9, 19, class_share=0.0)
+    with pytest.raises(InputError, match="pseudo_class_share"):
+        load_config(SegTrainConfig, None, ["mode=semi", "semi.pseudo_class_share=1.5"])
 
 
 def test_consistency_loss_is_mse_of_softmaxes_and_only_trains_student():
