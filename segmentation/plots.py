@@ -62,7 +62,7 @@ def plot_reliability(bins: ReliabilityBins, path: str | os.PathLike, title: str 
     top.set_ylabel("accuracy")
     ece = bins.ece
     ece_text = "n/a" if math.isnan(ece) else f"{100 * ece:.2f}%"
-    top.set_title(f"{title}  (pooled ECE {ece_text})" if title else f"pooled ECE {ece_text}")
+    top.set_title(f"{title}\npooled ECE {ece_text}" if title else f"pooled ECE {ece_text}", fontsize=10)
     top.legend(loc="upper left", fontsize=8)
     bottom.bar(centres, bins.count / max(bins.total, 1), width=width, edgecolor="black", color="tab:gray")
     bottom.set_xlabel("confidence")
