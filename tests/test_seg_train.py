@@ -359,6 +359,9 @@ def test_global_batch_does_not_depend_on_the_number_of_ranks(toy_root):
 def test_seg_presets_load(path: Path) -> None:
     cfg = load_config(SegTrainConfig, path, [])
     assert cfg.optim.steps >= 1 and cfg.model.voxel_size > 0
-    if path.name.startswith("cpu_"):  # 30-minute presets: the held-out sequences never train
+    if path.name.startswith("cpu_"):  # CPU presets: the held-out sequences never train
         train, val = cfg.data.train_sequences, cfg.data.val_sequences
-        assert isinstance(val, (str, list)) and train != val and cfg.max_minutes > 0
+        assert isinstance(val, (str, list)) and train != val
+        # supervised 30-minute presets stop at their wall-clock budget; the experiment's semi base has none, so
+        # that every arm of `u4d experiment` trains the same number of steps
+        assert cfg.max_minutes > 0 if cfg.mode == "supervised" else cfg.max_minutes == 0
