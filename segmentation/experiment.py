@@ -143,8 +143,13 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True) -> dict:
         problem = bank_problem(arm)
         for backbone in cfg.backbones:
             bank = None if arm.bank is None else str(arm.bank)
-            entry: dict = {"arm": arm.name, "mode": arm.mode, "backbone": backbone, "bank": bank}
-            entry["overrides"] = list(arm.overrides)
+            entry: dict = {
+                "arm": arm.name,
+                "mode": arm.mode,
+                "backbone": backbone,
+                "bank": bank,
+                "overrides": list(arm.overrides),
+            }
             if problem is not None:
                 entry.update(status="missing", reason=problem)
                 results["arms"].append(entry)
