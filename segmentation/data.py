@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from dataclasses import dataclass, field
@@ -134,17 +135,23 @@ def make_split(
     return labeled, unlabeled
 
 
-def split_path(root: Path, fraction: float, seed: int, mode: str) -> Path:
-    """Where a split is stored beside the data: ROOT/splits/<mode>_<percent>pct_seed<seed>.json."""
+def frames_digest(frames: list[FrameId]) -> str:
+    """Eight hex digits naming a train set (sha1 of its sorted frame ids), so different train sets never share a split."""
+    text = "\n".join(f"{seq}/{frame}" for seq, frame in sorted(frames))
+    return hashlib.sha1(text.encode()).hexdigest()[:8]
+
+
+def split_path(root: Path, frames: list[FrameId], fraction: float, seed: int, mode: str) -> Path:
+    """Where a split is stored beside the data: ROOT/splits/<mode>_<percent>pct_seed<seed>_<frames digest>.json."""
     percent = f"{100.0 * fraction:g}".replace(".", "p")
-    return Path(root) / "splits" / f"{mode}_{percent}pct_seed{seed}.json"
+    return Path(root) / "splits" / f"{mode}_{percent}pct_seed{seed}_{frames_digest(frames)}.json"
 
 
 def load_or_make_split(
     root: Path, frames: list[FrameId], fraction: float, seed: int, mode: Literal["uniform", "sequence"]
 ) -> tuple[list[FrameId], list[FrameId]]:
     """Reuse the split file beside the data when it matches these frames, else draw it and write it."""
-    path = split_path(root, fraction, seed, mode)
+    path = split_path(root, frames, fraction, seed, mode)
     if path.is_file():
         try:
             data = json.loads(path.read_text())

@@ -35,8 +35,13 @@ def test_full_split_uses_everything_twice():
 def test_split_file_is_written_and_reused(tmp_path):
     first = load_or_make_split(tmp_path, FRAMES, 0.2, 3, "uniform")
     files = list((tmp_path / "splits").glob("*.json"))
-    assert [f.name for f in files] == ["uniform_20pct_seed3.json"]
+    assert len(files) == 1 and files[0].name.startswith("uniform_20pct_seed3_")
     # A re-read gives the same split even if the drawing code changed: the file wins.
+    assert load_or_make_split(tmp_path, FRAMES, 0.2, 3, "uniform") == first
+    # A smaller train set on the same root gets its own file; the first one is kept and still reused.
+    smaller = load_or_make_split(tmp_path, FRAMES[:40], 0.2, 3, "uniform")
+    assert set(smaller[0]) | set(smaller[1]) == set(FRAMES[:40])
+    assert len(list((tmp_path / "splits").glob("*.json"))) == 2
     assert load_or_make_split(tmp_path, FRAMES, 0.2, 3, "uniform") == first
 
 
