@@ -136,7 +136,7 @@ def make_split(
 
 
 def frames_digest(frames: list[FrameId]) -> str:
-    """Eight hex digits naming a train set (sha1 of its sorted frame ids), so different train sets never share a split."""
+    """Eight hex digits naming a train set (sha1 of its sorted frame ids): two train sets never share a split."""
     text = "\n".join(f"{seq}/{frame}" for seq, frame in sorted(frames))
     return hashlib.sha1(text.encode()).hexdigest()[:8]
 
