@@ -15,9 +15,10 @@ from u4d_aug.data.formats import read_calib, read_kitti_label, read_kitti_scan, 
 from u4d_aug.data.labels import SEMANTICKITTI_RAW_NAMES, map_semantickitti
 from u4d_aug.data.sensors import hdl64
 from u4d_aug.data.sim import objects
+from u4d_aug.data.sim.agents import _EgoLane
 from u4d_aug.data.sim.config import SimConfig
 from u4d_aug.data.sim.geometry import RAW, MeshBuilder, strip
-from u4d_aug.data.sim.streets import Bend, Warp, make_hills, make_network
+from u4d_aug.data.sim.streets import Bend, Warp, lane_path, make_hills, make_network
 from u4d_aug.data.sim.world import _add_mesh
 from u4d_aug.data.sim.writer import (
     add_simulate_arguments,
@@ -292,6 +293,28 @@ def test_ego_and_agents_drive_the_bent_streets() -> None:
         direction = np.arctan2(motion[moving, 1], motion[moving, 0])
         mid = np.angle(np.exp(1j * agent.yaw[1:]) + np.exp(1j * agent.yaw[:-1]))[moving]
         assert np.abs(np.angle(np.exp(1j * (direction - mid)))).max() < np.radians(8.0)
+
+
+def test_ego_keeps_clear_of_parked_cars_on_its_right() -> None:
+    net = make_network(np.random.default_rng(0), SimConfig().street, 200.0)
+    j = len(net.ys) // 2
+    line = net.ys[j]
+    line.lanes_per_direction, line.lane_width = 1, 4.0
+    nodes = [(0, j), (1, j), (2, j)]  # straight along +x: the negative side (index 0) is on the right
+    ego = _EgoLane(center_bias=0.4, parked_clearance=0.8)
+    offsets = {}
+    for parking in ((2.2, 0.0), (0.0, 2.2)):
+        line.parking = parking
+        path, turning = lane_path(net, nodes, ego)
+        assert not turning.any()
+        offsets[parking] = line.position - path[:, 1]  # metres right of the centre line
+    # rightmost lane centre 2.0 m, pulled 40 % towards the centre: 1.2 m; parked cars on the right: 0.8 m more
+    np.testing.assert_allclose(offsets[(0.0, 2.2)], 1.2, atol=1e-9)
+    np.testing.assert_allclose(offsets[(2.2, 0.0)], 0.4, atol=1e-9)
+    # main streets keep their inner lane; the pull never crosses the centre line
+    assert _EgoLane(0.4, 5.0)(line, 1) == 0.0
+    line.lanes_per_direction = 2
+    assert _EgoLane(0.4, 0.8)(line, 1) == 2.0
 
 
 @pytest.mark.slow

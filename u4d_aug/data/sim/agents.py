@@ -45,23 +45,28 @@ class EgoMotion:
     route_lattice: np.ndarray  # (K, 2) the same path on the straight lattice (for building the world around it)
 
 
-def _rightmost_lane(line: Line) -> float:
+def _rightmost_lane(line: Line, side: int) -> float:
     return line.half_road - line.lane_width / 2
 
 
 @dataclass
 class _EgoLane:
-    """Ego lane offset: rightmost lane, pulled towards the centre on one-lane-per-direction streets."""
+    """Ego lane offset: rightmost lane, pulled towards the centre on one-lane-per-direction streets, and by
+    `parked_clearance` more where a parking strip lines the right of the lane."""
 
     center_bias: float
+    parked_clearance: float
 
-    def __call__(self, line: Line) -> float:
+    def __call__(self, line: Line, side: int) -> float:
         if line.lanes_per_direction == 1:
-            return _rightmost_lane(line) * (1.0 - self.center_bias)
+            offset = _rightmost_lane(line, side) * (1.0 - self.center_bias)
+            if line.parking[side] > 0:
+                offset = max(offset - self.parked_clearance, 0.0)
+            return offset
         return line.lane_width / 2  # inner lane of a main street: parked cars stay a lane away
 
 
-def _bike_lane(line: Line) -> float:
+def _bike_lane(line: Line, side: int) -> float:
     return line.half_road - 0.75
 
 
@@ -101,7 +106,7 @@ def ego_motion(rng: np.random.Generator, net: Network, cfg: SimConfig, frames: i
     lattice, turning = lane_path(
         net,
         nodes,
-        _EgoLane(ac.ego_center_bias),
+        _EgoLane(ac.ego_center_bias, ac.ego_parked_clearance),
         start_fraction=float(rng.uniform(0.2, 0.6)),
     )
     path = net.warp.points(lattice)

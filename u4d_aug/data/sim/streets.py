@@ -278,13 +278,18 @@ def _right(heading: int) -> np.ndarray:
     return DIRECTIONS[(heading + 3) % 4]
 
 
+def right_side(heading: int) -> int:
+    """Side index (0 negative, 1 positive) of a street on the right of travel in direction `heading`."""
+    # right of +x is -y and right of -y is -x: the negative side 0; right of +y / -x is the positive side 1
+    return 0 if heading in (0, 3) else 1
+
+
 def _curb_distance(line: Line, heading: int, offset: float, turn_right: bool) -> float:
     """Distance from a lane at `offset` right of centre to the curb on the turning side."""
-    # right of +x is -y and right of -y is -x: the negative side 0; right of +y / -x is the positive side 1
-    right_side = 0 if heading in (0, 3) else 1
+    right_side_ = right_side(heading)
     if turn_right:
-        return line.curb(right_side) - offset
-    return line.curb(1 - right_side) + offset
+        return line.curb(right_side_) - offset
+    return line.curb(1 - right_side_) + offset
 
 
 def lane_path(
@@ -292,7 +297,8 @@ def lane_path(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Dense lane-following path over `nodes`: (K, 2) points `spacing` m apart and (K,) flags 1 on turn arcs.
 
-    `offset_fn(line)` gives the lane centre's distance right of the street centre. The path starts
+    `offset_fn(line, side)` gives the lane centre's distance right of the street centre, side the index of the
+    street side on the right of travel. The path starts
     `start_fraction` of the way along the first street segment and ends halfway along the last one.
     """
     pieces: list[np.ndarray] = []
@@ -300,11 +306,11 @@ def lane_path(
     first_heading = _heading_between(nodes[0], nodes[1])
     line0 = net.line_of(*nodes[0], first_heading)
     a, b = net.node(*nodes[0]), net.node(*nodes[1])
-    cursor = a + (b - a) * start_fraction + _right(first_heading) * offset_fn(line0)
+    cursor = a + (b - a) * start_fraction + _right(first_heading) * offset_fn(line0, right_side(first_heading))
     for k in range(1, len(nodes) - 1):
         h1, h2 = _heading_between(nodes[k - 1], nodes[k]), _heading_between(nodes[k], nodes[k + 1])
         line1, line2 = net.line_of(*nodes[k], h1), net.line_of(*nodes[k], h2)
-        o1, o2 = offset_fn(line1), offset_fn(line2)
+        o1, o2 = offset_fn(line1, right_side(h1)), offset_fn(line2, right_side(h2))
         node = net.node(*nodes[k])
         if h1 == h2:
             continue
@@ -333,7 +339,7 @@ def lane_path(
         cursor = t_out
     h_last = _heading_between(nodes[-2], nodes[-1])
     line_last = net.line_of(*nodes[-1], h_last)
-    end = (net.node(*nodes[-2]) + net.node(*nodes[-1])) / 2 + _right(h_last) * offset_fn(line_last)
+    end = (net.node(*nodes[-2]) + net.node(*nodes[-1])) / 2 + _right(h_last) * offset_fn(line_last, right_side(h_last))
     pieces.append(_segment(cursor, end, spacing, include_end=True))
     turning.append(np.zeros(len(pieces[-1])))
     return np.concatenate(pieces), np.concatenate(turning)
