@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import json
 import os
 import subprocess
 import sys
@@ -278,7 +279,14 @@ def test_paste_augmentation_adds_labelled_copies_in_the_batch(toy_root, tmp_path
 def test_label_fraction_trains_on_the_split(toy_root, tmp_path):
     cfg = tiny_config(toy_root, tmp_path / "run", "data.label_fraction=0.5", "optim.steps=1", "eval_every=1")
     train(cfg, progress=False)
-    assert (toy_root / "splits" / "uniform_50pct_seed0.json").is_file()
+    files = list((toy_root / "splits").glob("uniform_50pct_seed0_*.json"))
+    assert len(files) == 1  # named by the fraction, seed and a digest of the train set
+    split = json.loads(files[0].read_text())
+    assert (
+        split["labeled"]
+        and split["unlabeled"]
+        and not {tuple(x) for x in split["labeled"]} & {tuple(x) for x in split["unlabeled"]}
+    )
 
 
 def test_resume_in_a_fresh_process_is_bit_exact(toy_root, tmp_path):
