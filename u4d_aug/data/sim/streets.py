@@ -286,10 +286,10 @@ def right_side(heading: int) -> int:
 
 def _curb_distance(line: Line, heading: int, offset: float, turn_right: bool) -> float:
     """Distance from a lane at `offset` right of centre to the curb on the turning side."""
-    right_side_ = right_side(heading)
+    side = right_side(heading)
     if turn_right:
-        return line.curb(right_side_) - offset
-    return line.curb(1 - right_side_) + offset
+        return line.curb(side) - offset
+    return line.curb(1 - side) + offset
 
 
 def lane_path(
