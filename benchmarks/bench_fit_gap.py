@@ -21,47 +21,41 @@ from pathlib import Path
 import torch
 
 from segmentation.config import SegTrainConfig
-from segmentation.data import load_or_make_split
 from segmentation.evaluate import accumulate, evenly_spaced, summary_of
-from segmentation.models import build_model
-from segmentation.train import class_names
+from segmentation.predict import load_checkpoint, model_from_checkpoint
+from segmentation.semi import unlabeled_stream
+from segmentation.train import class_names, train_scans
 from u4d_aug.config import config_from_dict
 from u4d_aug.data.datasets import ScanDataset
+from u4d_aug.distributed import DistInfo
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_json
 
 REPO = Path(__file__).resolve().parents[1]
+CPU = torch.device("cpu")
 
 
 def load_run(path: Path, weights: str) -> tuple[SegTrainConfig, int, torch.nn.Module]:
     """(run config, step, net with the chosen weights) of a seg-train checkpoint."""
-    if not path.is_file():
-        raise InputError(f"{path}: checkpoint not found (expected RUN/checkpoints/step_*.pt or RUN/model.pt)")
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(ckpt, dict) or "config" not in ckpt:
-        raise InputError(f"{path}: not a seg-train checkpoint (no 'config')")
+    ckpt = load_checkpoint(path)
     if ckpt.get(weights) is None:
         raise InputError(f"{path}: no '{weights}' weights (ema exists only in checkpoints of mode 'semi' runs)")
     cfg = config_from_dict(SegTrainConfig, ckpt["config"], source=str(path))
-    net = build_model(cfg.model)
-    net.load_state_dict(ckpt[weights])
+    net = model_from_checkpoint({**ckpt, "model": ckpt[weights]}, CPU, source=str(path))
     return cfg, int(ckpt.get("step", -1)), net
 
 
 def scan_sets(cfg: SegTrainConfig, limit: int) -> dict[str, tuple[ScanDataset, list[int]]]:
-    """The three scan sets of a run: its labelled train scans, unseen scans of its places, held-out scans."""
-    train = ScanDataset(cfg.data.root, cfg.data.train_sequences)
-    labelled, unlabelled = load_or_make_split(
-        cfg.data.root, train.entries, cfg.data.label_fraction, cfg.data.split_seed, cfg.data.split_mode
-    )
-    position = {entry: i for i, entry in enumerate(train.entries)}
-    seen = [position[tuple(e)] for e in labelled]
-    unseen = [position[tuple(e)] for e in unlabelled]
+    """The three scan sets of a run, as its training drew them: its labelled scans, the labelled scans among its
+    unlabeled split (unseen scans of its places), and the held-out scans."""
+    labelled = train_scans(cfg, DistInfo(0, 1, 0, CPU))
+    with_labels = set(ScanDataset(cfg.data.root, cfg.data.train_sequences, labeled_only=True).entries)
+    unseen = unlabeled_stream(cfg).sources[0]  # the unlabeled part of the split
+    unseen.entries = [entry for entry in unseen.entries if entry in with_labels]
     held_out = ScanDataset(cfg.data.root, cfg.data.val_sequences, labeled_only=True)
     return {
-        "labelled": (train, [seen[i] for i in evenly_spaced(len(seen), limit)]),
-        "unseen_same_places": (train, [unseen[i] for i in evenly_spaced(len(unseen), limit)]),
-        "held_out_places": (held_out, evenly_spaced(len(held_out), limit)),
+        name: (dataset, evenly_spaced(len(dataset), limit))
+        for name, dataset in (("labelled", labelled), ("unseen_same_places", unseen), ("held_out_places", held_out))
     }
 
 
@@ -80,7 +74,7 @@ def main() -> int:
             cfg, step, net = load_run(path, args.weights)
             row = {"checkpoint": str(path), "weights": args.weights, "step": step, "mode": cfg.mode, "sets": {}}
             for name, (dataset, indices) in scan_sets(cfg, args.scans).items():
-                cm, calibration = accumulate(net, dataset, indices, torch.device("cpu"), cfg.model.num_classes)
+                cm, calibration = accumulate(net, dataset, indices, CPU, cfg.model.num_classes, progress=True)
                 summary = summary_of(cm, calibration, class_names(cfg))
                 row["sets"][name] = {
                     "scans": len(indices),
