@@ -44,6 +44,22 @@ def lovasz_softmax(probs: torch.Tensor, target: torch.Tensor, ignore_index: int 
     return torch.stack(losses).mean()
 
 
+def voxel_targets(target: torch.Tensor, inverse: torch.Tensor, num_voxels: int, ignore_index: int) -> torch.Tensor:
+    """(M,) majority train id of the points (N,) in each voxel (inverse (N,) point -> voxel), ignore id dropped.
+
+    A voxel whose points are all ignored gets the ignore id; ties go to the lower id. Training on one label per
+    voxel is what torchsparse / SPVNAS pipelines do (they keep one point per voxel; the majority is steadier).
+    """
+    if target.shape != inverse.shape:
+        raise ValueError(f"target {tuple(target.shape)} and inverse {tuple(inverse.shape)} must match")
+    valid = target != ignore_index
+    num_ids = int(target[valid].max()) + 1 if bool(valid.any()) else 1
+    votes = torch.bincount(inverse[valid] * num_ids + target[valid], minlength=num_voxels * num_ids)
+    votes = votes.view(num_voxels, num_ids)  # (M, ids)
+    count, label = votes.max(dim=1)
+    return label.masked_fill(count == 0, ignore_index)
+
+
 def class_weights(counts: torch.Tensor, cfg: LossConfig) -> torch.Tensor | None:
     """(K,) CE class weights from the training point counts (K,) per train id, or None for "none".
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import torch
 from torch import nn
@@ -174,6 +174,14 @@ def _batch(points: Sequence[torch.Tensor], device: torch.device) -> tuple[torch.
     return torch.cat([p.float() for p in points]).to(device), batch.to(device)
 
 
+class VoxelLogits(NamedTuple):
+    """Logits of the occupied finest-grid voxels of a batch, sorted by (batch, x, y, z)."""
+
+    logits: torch.Tensor  # (M, K)
+    inverse: torch.Tensor  # (N,) voxel row of every input point; point logits = logits[inverse]
+    batch: torch.Tensor  # (M,) int64 scan index of every voxel (non-decreasing)
+
+
 class MinkUNet(nn.Module):
     """MinkUNet-like voxel U-Net; each point reads the logits of its voxel (mmdet3d `point2voxel_map`)."""
 
@@ -183,15 +191,21 @@ class MinkUNet(nn.Module):
         self.unet = VoxelUNet(cfg)
         self.head = nn.Linear(self.unet.decoder_channels[-1], cfg.num_classes)
 
-    def forward(self, points: Sequence[torch.Tensor]) -> torch.Tensor:
-        """List of (N_b, >= 4) scans -> (sum N_b, K) logits, points in input order."""
+    def forward(self, points: Sequence[torch.Tensor], voxel_output: bool = False) -> torch.Tensor | VoxelLogits:
+        """List of (N_b, >= 4) scans -> (sum N_b, K) logits, points in input order.
+
+        voxel_output=True returns the voxels' logits with the point -> voxel map instead (loss.level "voxel").
+        """
         xyzi, batch = _batch(points, self.head.weight.device)
         x, inverse = voxelize(xyzi, self.cfg.voxel_size, batch, point_features(xyzi, self.cfg.in_features))
         x = self.unet.stem(x)
         x, skips = self.unet.encode(x)
         for i in range(self.unet.stages):
             x = self.unet.decode_stage(i, x, skips)
-        return self.head(x.features)[inverse]  # (N, K)
+        logits = self.head(x.features)  # (M, K)
+        if voxel_output:
+            return VoxelLogits(logits, inverse, x.coords[:, 0])
+        return logits[inverse]  # (N, K)
 
 
 class SPVCNN(nn.Module):

@@ -15,7 +15,7 @@ from torch import nn
 from segmentation.config import SegTrainConfig, SemiConfig
 from segmentation.data import augment, load_or_make_split
 from segmentation.lasermix import lasermix
-from segmentation.losses import segmentation_loss
+from segmentation.losses import segmentation_loss, voxel_targets
 from segmentation.mean_teacher import consistency_loss, copy_buffers, ema_update, pseudo_labels, total_loss
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
@@ -123,11 +123,17 @@ def semi_step(
     if len(labeled) != len(unlabeled):
         raise ValueError(f"semi batch needs as many unlabeled as labeled scans; got {len(unlabeled)} vs {len(labeled)}")
 
+    voxel = cfg.loss.level == "voxel"  # losses on voxel rows (majority labels) instead of points
     # teacher: pseudo-labels y_hat (sum M_b,) of the unlabeled scans, ignore id below the threshold
     with torch.no_grad():
-        teacher_logits = teacher(unlabeled)  # (sum M_b, K)
+        if voxel:
+            teacher_out = teacher(unlabeled, voxel_output=True)
+            teacher_logits = teacher_out.logits  # (V_u, K) voxels of the unlabeled scans
+            teacher_point_logits = teacher_logits[teacher_out.inverse]  # (sum M_b, K)
+        else:
+            teacher_logits = teacher_point_logits = teacher(unlabeled)  # (sum M_b, K)
     pseudo, _ = pseudo_labels(
-        teacher_logits, cfg.semi.pseudo_threshold, SEMANTICKITTI_IGNORE, cfg.semi.pseudo_class_share
+        teacher_point_logits, cfg.semi.pseudo_threshold, SEMANTICKITTI_IGNORE, cfg.semi.pseudo_class_share
     )
     pseudo_per_scan = pseudo.split([p.shape[0] for p in unlabeled])
 
@@ -141,12 +147,25 @@ def semi_step(
 
     # student: one forward over labeled (B), mixed (2B) and unlabeled (B) scans, logits split back
     scans = labeled + mixed + unlabeled
-    logits = student(scans)  # (sum of all points, K)
-    counts = [sum(p.shape[0] for p in group) for group in (labeled, mixed, unlabeled)]
-    sup_logits, mix_logits, unl_logits = logits.split(counts)
     ignore = SEMANTICKITTI_IGNORE
-    loss_sup = segmentation_loss(sup_logits, torch.cat(targets), cfg.loss, ignore, class_weight)["loss"]
-    loss_mix = segmentation_loss(mix_logits, torch.cat(mixed_targets), cfg.loss, ignore, class_weight)["loss"]
+    if voxel:
+        out = student(scans, voxel_output=True)  # voxel rows sorted by scan
+        unlabeled_target = torch.full((sum(p.shape[0] for p in unlabeled),), ignore, dtype=torch.int64, device=device)
+        target = voxel_targets(
+            torch.cat(targets + mixed_targets + [unlabeled_target]), out.inverse, len(out.logits), ignore
+        )
+        per_scan = torch.bincount(out.batch, minlength=len(scans)).tolist()  # voxels of each scan
+        b = len(labeled)
+        counts = [sum(per_scan[:b]), sum(per_scan[b : 3 * b]), sum(per_scan[3 * b :])]
+        sup_logits, mix_logits, unl_logits = out.logits.split(counts)  # unl rows match the teacher's voxels
+        sup_target, mix_target, _ = target.split(counts)
+    else:
+        logits = student(scans)  # (sum of all points, K)
+        counts = [sum(p.shape[0] for p in group) for group in (labeled, mixed, unlabeled)]
+        sup_logits, mix_logits, unl_logits = logits.split(counts)
+        sup_target, mix_target = torch.cat(targets), torch.cat(mixed_targets)
+    loss_sup = segmentation_loss(sup_logits, sup_target, cfg.loss, ignore, class_weight)["loss"]
+    loss_mix = segmentation_loss(mix_logits, mix_target, cfg.loss, ignore, class_weight)["loss"]
     loss_mt = consistency_loss(unl_logits, teacher_logits)
     return {
         "loss": total_loss(loss_sup, loss_mix, loss_mt, cfg.semi, step=int(batch["step"]) - cfg.semi.burn_in_steps),

@@ -38,7 +38,7 @@ from tqdm import tqdm
 from segmentation.config import OptimConfig, SegTrainConfig
 from segmentation.data import augment, load_or_make_split, paste_instances
 from segmentation.evaluate import accumulate, evenly_spaced, summary_of
-from segmentation.losses import class_weights, segmentation_loss
+from segmentation.losses import class_weights, segmentation_loss, voxel_targets
 from segmentation.mean_teacher import make_teacher, teacher_mode
 from segmentation.models import build_model
 from segmentation.plots import plot_learning_curve, plot_reliability
@@ -168,8 +168,13 @@ def supervised_step(
     model: nn.Module, batch: dict, cfg: SegTrainConfig, device: torch.device, class_weight: torch.Tensor | None = None
 ) -> dict:
     """Losses of one labeled batch: {"loss", "loss_ce", ["loss_lovasz"]} (the loop backpropagates "loss")."""
-    logits = model([p.to(device, non_blocking=True) for p in batch["points"]])  # (sum N_b, K)
+    points = [p.to(device, non_blocking=True) for p in batch["points"]]
     target = torch.cat(batch["labels"]).to(device)  # (sum N_b,)
+    if cfg.loss.level == "voxel":
+        out = model(points, voxel_output=True)  # logits (M, K) of the occupied voxels
+        logits, target = out.logits, voxel_targets(target, out.inverse, out.logits.shape[0], SEMANTICKITTI_IGNORE)
+    else:
+        logits = model(points)  # (sum N_b, K)
     return segmentation_loss(logits, target, cfg.loss, SEMANTICKITTI_IGNORE, class_weight)
 
 

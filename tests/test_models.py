@@ -74,6 +74,20 @@ def test_points_in_one_voxel_share_minkunet_logits(generator):
     torch.testing.assert_close(logits[0], logits[300])
 
 
+def test_minkunet_voxel_output_is_what_its_points_read(generator):
+    torch.manual_seed(0)
+    model = build_model(tiny_config("minkunet")).eval()
+    scans = random_scans(generator)
+    with torch.no_grad():
+        points = model(scans)
+        out = model(scans, voxel_output=True)
+    assert out.logits.shape[0] < 1100 and out.inverse.shape == (1100,)
+    torch.testing.assert_close(out.logits[out.inverse], points)
+    # voxel rows sorted by scan, and each point's voxel belongs to its own scan
+    assert bool((out.batch[1:] >= out.batch[:-1]).all())
+    assert out.batch[out.inverse].tolist() == [0] * 700 + [1] * 400
+
+
 def test_default_channels_follow_minkunet18_w32():
     model = build_model(SegModelConfig())
     assert isinstance(model, MinkUNet)

@@ -15,24 +15,30 @@ import pytest
 import torch
 
 from segmentation.config import LossConfig, OptimConfig, SegTrainConfig
-from segmentation.losses import class_weights, lovasz_softmax, segmentation_loss
+from segmentation.losses import class_weights, lovasz_softmax, segmentation_loss, voxel_targets
+from segmentation.models import build_model
 from segmentation.train import (
     TrainBatches,
     add_seg_train_arguments,
     batch_indices,
     learning_rate,
     run_seg_train,
+    supervised_step,
     train,
     train_class_counts,
+    train_scans,
 )
 from u4d_aug.config import load_config
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.formats import write_kitti_label, write_kitti_scan
+from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
+from u4d_aug.distributed import DistInfo
 from u4d_aug.errors import InputError
 from u4d_aug.io import read_jsonl
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = REPO / "configs" / "seg" / "tiny.yaml"
+CPU = DistInfo(0, 1, 0, torch.device("cpu"))
 
 # ------------------------------------------------------------------------------------- toy SemanticKITTI root
 
@@ -149,6 +155,20 @@ def test_segmentation_loss_weights_and_all_ignored():
     assert float(empty["loss"].detach()) == 0.0 and empty["loss"].requires_grad
 
 
+def test_voxel_targets_are_majority_labels_by_hand():
+    ignore = 19
+    # voxel 0: 2 x class 3 + 1 x class 5; voxel 1: only ignored points; voxel 2: tie 1 / 4 -> lower id;
+    # voxel 3: class 7 beats 2 ignored points
+    target = torch.tensor([3, 5, 3, ignore, ignore, 4, 1, 7, ignore, ignore])
+    inverse = torch.tensor([0, 0, 0, 1, 1, 2, 2, 3, 3, 3])
+    assert voxel_targets(target, inverse, 4, ignore).tolist() == [3, ignore, 1, 7]
+    # a voxel without any point (not produced by voxelize, but well defined) is ignored; all-ignored input too
+    assert voxel_targets(target, inverse, 5, ignore).tolist() == [3, ignore, 1, 7, ignore]
+    assert voxel_targets(torch.full((3,), ignore), torch.tensor([0, 1, 1]), 2, ignore).tolist() == [ignore] * 2
+    with pytest.raises(ValueError, match="must match"):
+        voxel_targets(target, inverse[:-1], 4, ignore)
+
+
 def test_inverse_sqrt_class_weights_by_hand():
     counts = torch.tensor([64, 16, 0, 4])  # shares 64/84, 16/84, -, 4/84
     share = counts.double() / 84
@@ -212,6 +232,10 @@ def test_config_rejects_bad_values(tmp_path):
         load_config(SegTrainConfig, TINY, ["data.label_fraction=0"])
     with pytest.raises(InputError, match="optim.step"):
         load_config(SegTrainConfig, TINY, ["optim.step=3"])
+    with pytest.raises(InputError, match="loss.level=voxel needs model.name=minkunet"):
+        load_config(SegTrainConfig, TINY, ["loss.level=voxel", "model.name=spvcnn"])
+    with pytest.raises(InputError, match="loss.level"):
+        load_config(SegTrainConfig, TINY, ["loss.level=cell"])
     cfg = load_config(SegTrainConfig, TINY, ["data.val_sequences=[8, '09']"])
     assert cfg.data.val_sequences == ["08", "09"]
 
@@ -251,6 +275,25 @@ def test_tiny_run_writes_outputs_and_learns(toy_root, tmp_path):
     # a second run into the same folder must not silently mix with the first
     with pytest.raises(InputError, match="--resume"):
         train(tiny_config(toy_root, out), progress=False)
+
+
+def test_voxel_level_loss_reads_majority_labels_and_learns(toy_root, tmp_path):
+    cfg = tiny_config(toy_root, tmp_path / "voxel", "loss.level=voxel", "loss.lovasz_weight=1.0")
+    torch.manual_seed(0)
+    model = build_model(cfg.model)
+    batch = TrainBatches(train_scans(cfg, CPU), cfg, 0, 1)[0]
+    losses = supervised_step(model, batch, cfg, torch.device("cpu"))
+    # the same losses by hand: voxel logits against the majority label of each voxel
+    out = model(batch["points"], voxel_output=True)
+    target = voxel_targets(torch.cat(batch["labels"]), out.inverse, len(out.logits), SEMANTICKITTI_IGNORE)
+    want = segmentation_loss(out.logits, target, cfg.loss, SEMANTICKITTI_IGNORE)
+    for key in ("loss", "loss_ce", "loss_lovasz"):
+        assert float(losses[key].detach()) == pytest.approx(float(want[key].detach()), rel=1e-5), key
+    assert len(out.logits) < sum(len(p) for p in batch["points"])  # fewer rows than points
+    out_dir = tmp_path / "voxel_run"
+    train(tiny_config(toy_root, out_dir, "loss.level=voxel", "optim.steps=12", "eval_every=12"), progress=False)
+    records = [r for r in read_jsonl(out_dir / "log.jsonl") if "loss" in r]
+    assert records[-1]["loss"] < records[0]["loss"]
 
 
 def test_class_weighted_run_logs_its_weights(toy_root, tmp_path):

@@ -136,6 +136,27 @@ def test_semi_step_runs_and_the_teacher_follows_by_ema(toy_root, tmp_path):
     assert changed > 0
 
 
+def test_voxel_level_semi_step_aligns_student_and_teacher_voxels(toy_root, tmp_path):
+    cfg = semi_config(toy_root, tmp_path, "data.max_points=500", "loss.level=voxel")
+    torch.manual_seed(0)
+    student = build_model(cfg.model)
+    batch = TrainBatches(train_scans(cfg, CPU), cfg, 0, 1, unlabeled_stream(cfg))[0]
+    # both in eval mode and equal: the student's rows of the unlabeled scans must be the teacher's, row for row
+    teacher = make_teacher(student).eval()
+    student.eval()
+    losses = semi_step(student, teacher, batch, cfg, torch.device("cpu"))
+    assert all(torch.isfinite(v) for v in losses.values())
+    assert float(losses["loss_mt"]) < 1e-10
+    # and in training modes the step backpropagates into the student only
+    student.train()
+    teacher = teacher_mode(make_teacher(student), cfg.semi.bn_mode)
+    losses = semi_step(student, teacher, batch, cfg, torch.device("cpu"))
+    assert float(losses["loss_mt"]) > 0
+    losses["loss"].backward()
+    assert all(p.grad is None for p in teacher.parameters())
+    assert sum(float(p.grad.abs().sum()) for p in student.parameters() if p.grad is not None) > 0
+
+
 class FixedTeacher(nn.Module):
     """Teacher stub: confident (p = 0.99) class 0 on points with x > 0, unsure (p ~ 1/K) elsewhere."""
 

@@ -1,0 +1,131 @@
+"""Training-step time of a seg-train preset under config variants, measured side by side in one process.
+
+    python benchmarks/bench_seg_step.py                      # cpu_minkunet preset: loss on points vs on voxels
+    python benchmarks/bench_seg_step.py --steps 4 --threads 1
+    python benchmarks/bench_seg_step.py --variant "" --variant "loss.level=voxel data.max_points=30000"
+
+Every variant gets its own net (same seed, so the same initial weights), its own AdamW and the batches the
+training loop would draw (`segmentation.train.TrainBatches`: the preset's scans, point subsets and
+augmentation, step for step). The steps interleave - variant A step s, variant B step s, ... - so that load
+changes on the machine hit every variant alike; one warm-up step each, then the median over --steps timed
+steps of the whole `supervised_step` + backward + optimiser step. Also reports how many rows the losses read
+per step (points, or voxels with loss.level=voxel). Writes benchmarks/results/seg_step.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import shlex
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from segmentation.config import SegTrainConfig
+from segmentation.losses import class_weights
+from segmentation.models import build_model
+from segmentation.sparse import voxelize
+from segmentation.train import TrainBatches, make_optimizer, supervised_step, train_class_counts, train_scans
+from u4d_aug.config import load_config
+from u4d_aug.distributed import DistInfo
+from u4d_aug.io import atomic_write_json
+
+REPO = Path(__file__).resolve().parents[1]
+CPU = DistInfo(0, 1, 0, torch.device("cpu"))
+
+
+def loss_rows(cfg: SegTrainConfig, batch: dict) -> int:
+    """Rows the training losses read in this batch: points, or occupied voxels with loss.level=voxel."""
+    if cfg.loss.level == "point":
+        return sum(int(p.shape[0]) for p in batch["points"])
+    return voxelize(list(batch["points"]), cfg.model.voxel_size)[0].num_voxels
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", type=Path, default=REPO / "configs" / "seg" / "cpu_minkunet.yaml")
+    parser.add_argument(
+        "--variant",
+        action="append",
+        help='space-separated key=value overrides of one variant ("" = the preset); default: point vs voxel loss',
+    )
+    parser.add_argument("--steps", type=int, default=6, help="timed steps per variant (after one warm-up step)")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "seg_step.json")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    variants = args.variant if args.variant is not None else ["", "loss.level=voxel"]
+
+    runs = []
+    for text in variants:
+        cfg = load_config(SegTrainConfig, args.config, shlex.split(text))
+        scans = train_scans(cfg, CPU)
+        weight = class_weights(train_class_counts(scans), cfg.loss) if cfg.loss.class_weighting != "none" else None
+        torch.manual_seed(cfg.seed)
+        model = build_model(cfg.model).train()
+        runs.append(
+            {
+                "variant": text or "(preset)",
+                "cfg": cfg,
+                "batches": TrainBatches(scans, cfg, 0, 1),
+                "model": model,
+                "optimizer": make_optimizer(model, cfg.optim),
+                "weight": weight,
+                "times": [],
+                "rows": [],
+            }
+        )
+    for step in range(args.steps + 1):
+        for run in runs:
+            batch = run["batches"][step]
+            start = time.perf_counter()
+            losses = supervised_step(run["model"], batch, run["cfg"], torch.device("cpu"), run["weight"])
+            run["optimizer"].zero_grad(set_to_none=True)
+            losses["loss"].backward()
+            run["optimizer"].step()
+            if step:
+                run["times"].append(time.perf_counter() - start)
+                run["rows"].append(loss_rows(run["cfg"], batch))
+        print(f"step {step}/{args.steps}", file=sys.stderr, flush=True)
+
+    base = statistics.median(runs[0]["times"])
+    rows = []
+    for run in runs:
+        median = statistics.median(run["times"])
+        rows.append(
+            {
+                "variant": run["variant"],
+                "step_seconds": median,
+                "steps_per_second": 1.0 / median,
+                "speedup_vs_first": base / median,
+                "loss_rows_per_step": statistics.median(run["rows"]),
+                "step_times": run["times"],
+            }
+        )
+    print(f"\n{args.config.name}, {args.threads} thread(s), median of {args.steps} steps (batch as in the preset)")
+    print(f"{'variant':<48} {'s/step':>7} {'steps/s':>8} {'speed-up':>8} {'loss rows':>10}")
+    for row in rows:
+        print(
+            f"{row['variant']:<48} {row['step_seconds']:7.3f} {row['steps_per_second']:8.3f} "
+            f"{row['speedup_vs_first']:7.2f}x {row['loss_rows_per_step']:10.0f}"
+        )
+    atomic_write_json(
+        args.out,
+        {
+            "command": "python benchmarks/bench_seg_step.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+            "config": str(args.config),
+            "threads": args.threads,
+            "steps": args.steps,
+            "machine": {"platform": platform.platform(), "torch": torch.__version__, "cpus": torch.get_num_threads()},
+            "rows": rows,
+        },
+    )
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
