@@ -57,7 +57,7 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "seg_step.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    variants = args.variant if args.variant is not None else ["", "loss.level=voxel"]
+    variants = args.variant if args.variant is not None else ["loss.level=point", "loss.level=voxel"]
 
     runs = []
     for text in variants:

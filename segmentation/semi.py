@@ -116,6 +116,8 @@ def semi_step(
     """Losses of one labeled + unlabeled batch: {"loss", "loss_sup", "loss_mix", "loss_mt", "pseudo_kept"}.
 
     class_weight (K,) weights the CE of the supervised and the LaserMix-mixed losses (loss.class_weighting).
+    With loss.level "voxel" the three losses read the occupied voxels of each scan (majority labels of the GT /
+    pseudo-labelled points; L_mt between the student's and the teacher's voxels of the unlabeled scans).
     """
     labeled = [p.to(device) for p in batch["points"]]  # B x (N_b, 4)
     targets = [t.to(device) for t in batch["labels"]]  # B x (N_b,) train ids
