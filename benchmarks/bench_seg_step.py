@@ -31,6 +31,7 @@ from segmentation.sparse import voxelize
 from segmentation.train import TrainBatches, make_optimizer, supervised_step, train_class_counts, train_scans
 from u4d_aug.config import load_config
 from u4d_aug.distributed import DistInfo
+from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_json
 
 REPO = Path(__file__).resolve().parents[1]
@@ -42,6 +43,30 @@ def loss_rows(cfg: SegTrainConfig, batch: dict) -> int:
     if cfg.loss.level == "point":
         return sum(int(p.shape[0]) for p in batch["points"])
     return voxelize(list(batch["points"]), cfg.model.voxel_size)[0].num_voxels
+
+
+def set_up(config: Path, variants: list[str]) -> list[dict]:
+    """Per variant: its config, batches, net (seeded, the same initial weights), AdamW and class weights."""
+    runs = []
+    for text in variants:
+        cfg = load_config(SegTrainConfig, config, shlex.split(text))
+        scans = train_scans(cfg, CPU)
+        weight = class_weights(train_class_counts(scans), cfg.loss) if cfg.loss.class_weighting != "none" else None
+        torch.manual_seed(cfg.seed)
+        model = build_model(cfg.model).train()
+        runs.append(
+            {
+                "variant": text or "(preset)",
+                "cfg": cfg,
+                "batches": TrainBatches(scans, cfg, 0, 1),
+                "model": model,
+                "optimizer": make_optimizer(model, cfg.optim),
+                "weight": weight,
+                "times": [],
+                "rows": [],
+            }
+        )
+    return runs
 
 
 def main() -> int:
@@ -59,25 +84,11 @@ def main() -> int:
     torch.set_num_threads(args.threads)
     variants = args.variant if args.variant is not None else ["loss.level=point", "loss.level=voxel"]
 
-    runs = []
-    for text in variants:
-        cfg = load_config(SegTrainConfig, args.config, shlex.split(text))
-        scans = train_scans(cfg, CPU)
-        weight = class_weights(train_class_counts(scans), cfg.loss) if cfg.loss.class_weighting != "none" else None
-        torch.manual_seed(cfg.seed)
-        model = build_model(cfg.model).train()
-        runs.append(
-            {
-                "variant": text or "(preset)",
-                "cfg": cfg,
-                "batches": TrainBatches(scans, cfg, 0, 1),
-                "model": model,
-                "optimizer": make_optimizer(model, cfg.optim),
-                "weight": weight,
-                "times": [],
-                "rows": [],
-            }
-        )
+    try:
+        runs = set_up(args.config, variants)
+    except InputError as err:  # a bad override, a missing data root or no labelled scan
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     for step in range(args.steps + 1):
         for run in runs:
             batch = run["batches"][step]

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_seg_train import toy_scan, write_toy_root
+from test_seg_train import CPU, toy_scan, write_toy_root
 from torch import nn
 
 import segmentation.semi as semi
@@ -23,13 +23,11 @@ from u4d_aug.config import load_config
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
 from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
-from u4d_aug.distributed import DistInfo
 from u4d_aug.errors import InputError
 from u4d_aug.io import read_jsonl
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_SEMI = REPO / "configs" / "seg" / "tiny_semi.yaml"
-CPU = DistInfo(0, 1, 0, torch.device("cpu"))
 
 
 @pytest.fixture(autouse=True)
@@ -253,12 +251,14 @@ def test_burn_in_trains_supervised_then_switches_to_the_mean_teacher(toy_root, t
 
 
 @pytest.mark.slow
-def test_two_process_semi_training(toy_root, tmp_path):
+@pytest.mark.parametrize("level", ["point", "voxel"])
+def test_two_process_semi_training(toy_root, tmp_path, level):
     """torchrun with 2 processes (gloo): one log record per step, the teacher evaluated and saved."""
     out = tmp_path / "ddp"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--standalone"]
     cmd += ["-m", "segmentation.train", str(TINY_SEMI), f"data.root={toy_root}", "optim.steps=2", "eval_every=2"]
+    cmd += [f"loss.level={level}"]
     result = subprocess.run(
         [*cmd, "--out", str(out), "--no-progress"], cwd=REPO, env=env, capture_output=True, text=True, timeout=240
     )
