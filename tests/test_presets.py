@@ -1,0 +1,64 @@
+"""Every shipped yaml under configs/ loads into its dataclass: a typo in a preset fails here, not mid-run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from segmentation.config import SegTrainConfig
+from segmentation.experiment import ExperimentConfig, run_config
+from u4d_aug.config import load_config
+from u4d_aug.data.sensors import get_sensor
+from u4d_aug.data.sim.config import SimConfig
+from u4d_aug.generate import GenerateConfig
+from u4d_aug.metrics.extractors import ExtractorConfig
+from u4d_aug.train import DiffusionTrainConfig
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+PRESETS = sorted(CONFIGS.glob("*/*.yaml"))
+
+
+def config_class(path: Path) -> type:
+    """The dataclass a preset is read with, from its folder (and name, for configs/u4d/generate_*)."""
+    folder = path.parent.name
+    if folder == "seg":
+        return SegTrainConfig
+    elif folder == "experiment":
+        return ExperimentConfig
+    elif folder == "sim":
+        return SimConfig
+    elif folder == "extractor":
+        return ExtractorConfig
+    elif folder == "u4d":
+        return GenerateConfig if path.stem.startswith("generate") else DiffusionTrainConfig
+    raise AssertionError(f"{path}: no config class known for folder {folder!r}; add it to config_class")
+
+
+def test_presets_are_found():
+    assert {p.parent.name for p in PRESETS} >= {"seg", "experiment", "sim", "extractor", "u4d", "sensors"}
+
+
+@pytest.mark.parametrize("path", PRESETS, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_preset_loads(path: Path):
+    if path.parent.name == "sensors":
+        sensor = get_sensor(path)
+        assert sensor.height == len(sensor.elevations_deg)
+        return
+    cfg = load_config(config_class(path), path)
+    if isinstance(cfg, ExperimentConfig):  # every run of the experiment resolves (base + overrides + arm)
+        for arm in cfg.arms:
+            for backbone in cfg.backbones:
+                run = run_config(cfg, arm, backbone, cfg.seeds[0])
+                assert run.mode == arm.mode and run.model.name == backbone
+
+
+def test_fewlabel_fit_changes_only_lr_and_loss_level():
+    """cpu_fewlabel_fit is cpu_fewlabel with optim.lr=0.01 and loss.level=voxel, nothing else."""
+    base = load_config(ExperimentConfig, CONFIGS / "experiment" / "cpu_fewlabel.yaml")
+    fit = load_config(ExperimentConfig, CONFIGS / "experiment" / "cpu_fewlabel_fit.yaml")
+    for arm_base, arm_fit in zip(base.arms, fit.arms):
+        a, b = run_config(base, arm_base, "minkunet", 0), run_config(fit, arm_fit, "minkunet", 0)
+        assert (b.optim.lr, b.loss.level) == (0.01, "voxel")
+        b.optim.lr, b.loss.level, b.out_dir = a.optim.lr, a.loss.level, a.out_dir
+        assert a == b
