@@ -58,8 +58,14 @@ class OptimConfig:
     steps: int = 2000
     batch_size: int = 2  # scans per step over all ranks (each rank takes batch_size / world_size)
     grad_clip: float = 10.0  # max global grad norm; 0 = off
+    # what the cosine decays over: "steps" = optim.steps; "budget" = whichever ends first of optim.steps and the
+    # wall-clock budget max_minutes (progress = max(step share, time share)), so a slower or busier machine still
+    # anneals to min_lr inside the budget instead of being cut at a high lr (budgeted training, Li et al. 2020)
+    anneal_to: Literal["steps", "budget"] = "steps"
 
     def __post_init__(self) -> None:
+        if self.anneal_to not in ("steps", "budget"):
+            raise ValueError(f"optim.anneal_to must be 'steps' or 'budget'; got {self.anneal_to!r}")
         if self.steps < 1 or self.batch_size < 1 or self.warmup_steps < 0:
             raise ValueError("optim.steps and optim.batch_size must be >= 1 and optim.warmup_steps >= 0")
         if self.lr <= 0 or not 0.0 <= self.min_lr_ratio <= 1.0:
@@ -123,6 +129,10 @@ class SemiConfig(MeanTeacherConfig):
                 "semi.consistency_rampup_steps and semi.burn_in_steps must be >= 0, got "
                 f"{self.consistency_rampup_steps} and {self.burn_in_steps}"
             )
+        if not 1 <= self.teacher_views <= 4:
+            raise ValueError(f"semi.teacher_views must be in 1..4; got {self.teacher_views}")
+        if self.burn_in_teacher not in ("copy", "ema"):
+            raise ValueError(f"semi.burn_in_teacher must be 'copy' or 'ema'; got {self.burn_in_teacher!r}")
         if self.pseudo_class_share is not None and not 0.0 < self.pseudo_class_share <= 1.0:
             raise ValueError(f"semi.pseudo_class_share must be in (0, 1] or null; got {self.pseudo_class_share}")
 
@@ -155,6 +165,8 @@ class SegTrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if min(self.keep_checkpoints, self.num_workers, self.threads, self.max_minutes) < 0:
             raise ValueError("keep_checkpoints, num_workers, threads and max_minutes must be >= 0")
+        if self.optim.anneal_to == "budget" and self.max_minutes <= 0:
+            raise ValueError("optim.anneal_to=budget needs a wall-clock budget: set max_minutes > 0")
         if self.loss.level == "voxel" and self.model.name != "minkunet":
             raise ValueError(
                 f"loss.level=voxel needs model.name=minkunet (the {self.model.name} head reads points); use point"

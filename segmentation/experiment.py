@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+import torch
 
 from segmentation.config import BankConfig, SegTrainConfig
 from segmentation.metrics import ReliabilityBins
@@ -31,7 +32,7 @@ from segmentation.train import train
 from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.errors import InputError
-from u4d_aug.io import atomic_write_json, atomic_write_text, read_jsonl
+from u4d_aug.io import atomic_torch_save, atomic_write_json, atomic_write_text, read_jsonl
 
 
 @dataclass
@@ -66,6 +67,9 @@ class ExperimentConfig:
     backbones: list[Literal["minkunet", "spvcnn"]] = field(default_factory=lambda: ["minkunet", "spvcnn"])
     seeds: list[int] = field(default_factory=lambda: [0, 1, 2])
     out_dir: Path = Path("runs/experiment")
+    # a run whose first semi.burn_in_steps steps equal another run's (same backbone, seed and config but for the mode
+    # and the semi keys read after burn-in) starts from that run's OUT/burn_in.pt instead of repeating them
+    share_burn_in: bool = True
 
     def __post_init__(self) -> None:
         names = [arm.name for arm in self.arms]
@@ -97,6 +101,50 @@ def run_config(cfg: ExperimentConfig, arm: ArmConfig, backbone: str, seed: int) 
     run.out_dir = out
     run.semi.banks = [BankConfig(Path(arm.bank), arm.bank_ratio)] if arm.bank is not None else []
     return run
+
+
+def burn_in_signature(run: SegTrainConfig) -> str | None:
+    """What fixes a run's first semi.burn_in_steps steps, as text; None when it has none to share.
+
+    The config without mode, out_dir and the semi keys that act only after burn-in: a supervised run and a
+    mean-teacher run with the same signature take the same first steps bit for bit (tests/test_semi.py). A
+    mean teacher whose burn-in teacher is an EMA (burn_in_teacher "ema") has its own teacher state: not shared.
+    """
+    if run.semi.burn_in_steps <= 0 or (run.mode == "semi" and run.semi.burn_in_teacher != "copy"):
+        return None
+    fixed = config_to_dict(run)
+    for key in ("mode", "out_dir"):
+        fixed.pop(key)
+    fixed["semi"] = {"burn_in_steps": run.semi.burn_in_steps}
+    return json.dumps(fixed, sort_keys=True, default=str)
+
+
+def start_from_burn_in(run: SegTrainConfig, donors: list[SegTrainConfig]) -> Path | None:
+    """Seed a run that has not started with a donor's OUT/burn_in.pt (same signature); returns the donor file.
+
+    The donor's checkpoint becomes the run's step-B checkpoint (its teacher = the student, as burn_in_teacher
+    "copy" makes it) and the donor's log records up to step B its log, so the run resumes at step B.
+    """
+    out = Path(run.out_dir)
+    signature = burn_in_signature(run)
+    if signature is None or (out / "metrics.json").is_file() or any((out / "checkpoints").glob("step_*.pt")):
+        return None
+    for donor in donors:
+        source = Path(donor.out_dir) / "burn_in.pt"
+        if Path(donor.out_dir) == out or not source.is_file() or burn_in_signature(donor) != signature:
+            continue
+        state = torch.load(source, map_location="cpu", weights_only=False)
+        steps = run.semi.burn_in_steps
+        if int(state.get("step", -1)) != steps:
+            continue
+        if state.get("ema") is None:  # a supervised donor: the teacher starts as a copy of the student
+            state["ema"] = {key: value.clone() for key, value in state["model"].items()}
+        state["config"] = config_to_dict(run)
+        atomic_torch_save(out / "checkpoints" / f"step_{steps:07d}.pt", state)
+        records = [r for r in read_jsonl(Path(donor.out_dir) / "log.jsonl") if r.get("step", 0) <= steps]
+        atomic_write_text(out / "log.jsonl", "".join(json.dumps(r) + "\n" for r in records))
+        return source
+    return None
 
 
 def run_one(run: SegTrainConfig, progress: bool) -> dict:
@@ -139,6 +187,13 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "experiment.yaml")
     results: dict = {"config": config_to_dict(cfg), "arms": []}
+    every_run = [
+        run_config(cfg, arm, backbone, seed)
+        for arm in cfg.arms
+        if bank_problem(arm) is None
+        for backbone in cfg.backbones
+        for seed in cfg.seeds
+    ]
     for arm in cfg.arms:
         problem = bank_problem(arm)
         for backbone in cfg.backbones:
@@ -159,6 +214,9 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True) -> dict:
             for seed in cfg.seeds:
                 run = run_config(cfg, arm, backbone, seed)
                 print(f"{arm.name} / {backbone} / seed {seed} -> {run.out_dir}", file=sys.stderr)
+                donor = start_from_burn_in(run, every_run) if cfg.share_burn_in else None
+                if donor is not None:
+                    print(f"  starts at step {run.semi.burn_in_steps} from {donor} (the same burn-in)", file=sys.stderr)
                 t0 = time.perf_counter()
                 metrics = run_one(run, progress)
                 runs.append({"seed": seed, "out_dir": str(run.out_dir), **metrics})

@@ -49,12 +49,20 @@ class MeanTeacherConfig:
     # the teacher follows as an EMA with the student's BatchNorm statistics; LaserMix, pseudo-labels and L_mt
     # start after it (the ramp-up counts from there). 0 = mean teacher from step 0 (LaserMix upstream).
     burn_in_steps: int = 0
+    # the teacher during burn-in: "copy" = the student's weights exactly (decay 0), so the first pseudo-labels come
+    # from the burnt-in student, as Unbiased Teacher copies it; "ema" = the EMA of the burn-in students (a teacher
+    # ~1 / (1 - ema_decay) steps behind the student when pseudo-labelling starts)
+    burn_in_teacher: Literal["copy", "ema"] = "copy"
     sup_weight: float = 1.0  # weight of L_sup (labeled scans)
     mix_weight: float = 1.0  # weight of L_mix (LaserMix scans with GT / pseudo-labels)
     num_areas_choices: tuple[int, ...] = (3, 4, 5, 6)  # LaserMix MinkUNet18 config
     # (down, up) pitch range in degrees; None = the sensor's (fov_down_deg, fov_up_deg)
     pitch_range_deg: tuple[float, float] | None = None
     bn_mode: Literal["batch", "copy_student"] = "batch"
+    # pseudo-labels from the teacher's mean softmax over this many mirror views of each unlabeled scan (identity,
+    # x -> -x, y -> -y, both; symmetries of the training augmentation): test-time augmentation, 1 = the scan only
+    # (LaserMix). L_mt still compares with the teacher on the scan itself.
+    teacher_views: int = 1
 
 
 def make_teacher(student: nn.Module) -> nn.Module:
@@ -122,6 +130,26 @@ def pseudo_labels(
             per_class[c] = torch.minimum(per_class[c], kth)
         keep = confidence >= per_class[labels]
     return labels.masked_fill(~keep, ignore_index), confidence
+
+
+def mirror_views(points: torch.Tensor, views: int) -> list[torch.Tensor]:
+    """The first `views` of [scan, x mirrored, y mirrored, both] of one (N, C >= 3) scan; point order kept."""
+    if not 1 <= views <= 4:
+        raise ValueError(f"views must be in 1..4; got {views}")
+    signs = [(1.0, 1.0), (-1.0, 1.0), (1.0, -1.0), (-1.0, -1.0)][:views]
+    out = []
+    for sx, sy in signs:
+        view = points.clone()
+        view[:, 0] *= sx
+        view[:, 1] *= sy
+        out.append(view)
+    return out
+
+
+def mean_view_logits(view_logits: list[torch.Tensor]) -> torch.Tensor:
+    """log of the mean softmax over views, (N, K) each -> (N, K): its softmax is the averaged distribution."""
+    probs = torch.stack([F.softmax(logits.float(), dim=1) for logits in view_logits]).mean(dim=0)  # (N, K)
+    return probs.clamp_min(1e-12).log()
 
 
 def consistency_loss(student_logits: torch.Tensor, teacher_logits: torch.Tensor) -> torch.Tensor:

@@ -16,7 +16,15 @@ from segmentation.config import SegTrainConfig, SemiConfig
 from segmentation.data import augment, load_or_make_split
 from segmentation.lasermix import lasermix
 from segmentation.losses import segmentation_loss, voxel_targets
-from segmentation.mean_teacher import consistency_loss, copy_buffers, ema_update, pseudo_labels, total_loss
+from segmentation.mean_teacher import (
+    consistency_loss,
+    copy_buffers,
+    ema_update,
+    mean_view_logits,
+    mirror_views,
+    pseudo_labels,
+    total_loss,
+)
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
 from u4d_aug.data.sensors import get_sensor
@@ -126,14 +134,22 @@ def semi_step(
         raise ValueError(f"semi batch needs as many unlabeled as labeled scans; got {len(unlabeled)} vs {len(labeled)}")
 
     voxel = cfg.loss.level == "voxel"  # losses on voxel rows (majority labels) instead of points
-    # teacher: pseudo-labels y_hat (sum M_b,) of the unlabeled scans, ignore id below the threshold
+    # teacher: pseudo-labels y_hat (sum M_b,) of the unlabeled scans, ignore id below the threshold; with
+    # teacher_views > 1 one forward over the scans and their mirror views, pseudo-labels from the mean softmax
+    b, num_views = len(unlabeled), cfg.semi.teacher_views
+    views = [view for scan in unlabeled for view in mirror_views(scan, num_views)]  # scan-major: b * num_views
+    order = [i * num_views + v for v in range(num_views) for i in range(b)]  # view-major: the scans themselves first
     with torch.no_grad():
         if voxel:
-            teacher_out = teacher(unlabeled, voxel_output=True)
-            teacher_logits = teacher_out.logits  # (V_u, K) voxels of the unlabeled scans
-            teacher_point_logits = teacher_logits[teacher_out.inverse]  # (sum M_b, K)
+            teacher_out = teacher([views[i] for i in order], voxel_output=True)
+            point_logits = teacher_out.logits[teacher_out.inverse]  # (num_views * sum M_b, K)
+            teacher_logits = teacher_out.logits[teacher_out.batch < b]  # (V_u, K) voxels of the scans themselves
         else:
-            teacher_logits = teacher_point_logits = teacher(unlabeled)  # (sum M_b, K)
+            point_logits = teacher([views[i] for i in order])  # (num_views * sum M_b, K)
+            teacher_logits = point_logits[: sum(p.shape[0] for p in unlabeled)]  # (sum M_b, K)
+        teacher_point_logits = (
+            mean_view_logits(list(point_logits.chunk(num_views))) if num_views > 1 else point_logits
+        )  # (sum M_b, K)
     pseudo, _ = pseudo_labels(
         teacher_point_logits, cfg.semi.pseudo_threshold, SEMANTICKITTI_IGNORE, cfg.semi.pseudo_class_share
     )
@@ -188,8 +204,12 @@ def update_teacher(teacher: nn.Module, student: nn.Module, cfg: SemiConfig, step
     """EMA of the parameters after optimiser step `step`; BatchNorm buffers copied when bn_mode == copy_student.
 
     During burn-in the teacher never runs forward, so its BatchNorm statistics are copied from the student too
-    (otherwise they would stay at their initial values until the first mean-teacher step).
+    (otherwise they would stay at their initial values until the first mean-teacher step), and with
+    burn_in_teacher "copy" its parameters as well (Unbiased Teacher: the burnt-in student becomes the teacher).
     """
-    ema_update(teacher, student, cfg.ema_decay)
-    if cfg.bn_mode == "copy_student" or in_burn_in(cfg, step):
+    burn_in = in_burn_in(cfg, step)
+    if cfg.burn_in_teacher not in ("copy", "ema"):
+        raise ValueError(f"semi.burn_in_teacher must be 'copy' or 'ema'; got {cfg.burn_in_teacher!r}")
+    ema_update(teacher, student, 0.0 if burn_in and cfg.burn_in_teacher == "copy" else cfg.ema_decay)
+    if cfg.bn_mode == "copy_student" or burn_in:
         copy_buffers(teacher, student)

@@ -55,7 +55,15 @@ from u4d_aug.config import add_run_arguments, config_to_dict, load_config, save_
 from u4d_aug.data.datasets import ScanDataset, scan_path
 from u4d_aug.data.formats import label_path_for, read_kitti_label
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE, map_semantickitti
-from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, budget_used, cleanup, init_distributed
+from u4d_aug.distributed import (
+    DistInfo,
+    all_reduce_mean,
+    barrier,
+    budget_fraction,
+    budget_used,
+    cleanup,
+    init_distributed,
+)
 from u4d_aug.errors import InputError
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_json, atomic_write_text, read_jsonl
 
@@ -88,12 +96,16 @@ def batch_indices(step: int, num_scans: int, batch_size: int, seed: int) -> list
     return out
 
 
-def learning_rate(step: int, cfg: OptimConfig) -> float:
-    """Linear warm-up over warmup_steps, then cosine from lr down to min_lr_ratio * lr (nanoGPT get_lr)."""
+def learning_rate(step: int, cfg: OptimConfig, time_fraction: float = 0.0) -> float:
+    """Linear warm-up over warmup_steps, then cosine from lr down to min_lr_ratio * lr (nanoGPT get_lr).
+
+    time_fraction (share of the wall-clock budget used, optim.anneal_to "budget") moves the cosine on when the
+    budget runs out before the steps do: progress = max(step progress, time_fraction).
+    """
     if step < cfg.warmup_steps:
         return cfg.lr * (step + 1) / cfg.warmup_steps
     decay_steps = max(1, cfg.steps - cfg.warmup_steps)
-    progress = min(1.0, (step - cfg.warmup_steps) / decay_steps)
+    progress = min(1.0, max((step - cfg.warmup_steps) / decay_steps, time_fraction))
     min_lr = cfg.lr * cfg.min_lr_ratio
     return min_lr + 0.5 * (1.0 + math.cos(math.pi * progress)) * (cfg.lr - min_lr)
 
@@ -358,7 +370,9 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
     # ---- loop: after the body of step s, done = s + 1 steps are finished
     for batch in loader:
         step = int(batch["step"])
-        lr = learning_rate(step, cfg.optim)
+        used = elapsed_before + time.perf_counter() - t0
+        time_fraction = budget_fraction(used, cfg.max_minutes) if cfg.optim.anneal_to == "budget" else 0.0
+        lr = learning_rate(step, cfg.optim, time_fraction)
         for group in optimizer.param_groups:
             group["lr"] = lr
         torch.manual_seed(derived_seed(cfg.seed, _STEP, step, info.rank))  # dropout of this step only
@@ -422,7 +436,9 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
             if info.is_main:
                 plot_learning_curve(read_jsonl(log_path), out_dir / "learning_curve.png", "step", CURVE_KEYS)
 
-        if done % cfg.checkpoint_every == 0 or last:
+        periodic = done % cfg.checkpoint_every == 0 or last
+        burn_in_end = 0 < cfg.semi.burn_in_steps == done  # also in mode "supervised": the same first steps
+        if periodic or burn_in_end:
             if info.is_main:
                 state = {
                     "format": CHECKPOINT_FORMAT,
@@ -438,7 +454,10 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
                     "class_names": class_names(cfg),
                     "class_weight": class_weight,
                 }
-                save_checkpoint(out_dir / "checkpoints" / f"step_{done:07d}.pt", state, cfg.keep_checkpoints)
+                if periodic:
+                    save_checkpoint(out_dir / "checkpoints" / f"step_{done:07d}.pt", state, cfg.keep_checkpoints)
+                if burn_in_end:  # kept whatever the rotation: `u4d experiment` starts the other arms from it
+                    atomic_torch_save(out_dir / "burn_in.pt", state)
             barrier()
         if out_of_time:
             if info.is_main:

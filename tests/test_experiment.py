@@ -20,6 +20,7 @@ from segmentation.experiment import (
 )
 from u4d_aug.config import load_config
 from u4d_aug.errors import InputError
+from u4d_aug.io import read_jsonl
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = REPO / "configs" / "experiment" / "tiny.yaml"
@@ -121,3 +122,42 @@ def test_tiny_experiment_with_a_missing_bank_is_resumable(tmp_path):
     assert run_experiment(parser.parse_args(argv)) == 0
     assert json.loads((run_dir / "metrics.json").read_text())["step"] == 3
     assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == ["step_0000003.pt"]
+
+
+def test_arms_share_their_burn_in_and_end_as_if_trained_alone(tmp_path):
+    """mt arms start from sup-only's burn_in.pt at step 2 and end with the weights of a run from scratch."""
+    root = write_toy_root(tmp_path / "toy")
+    parser = argparse.ArgumentParser()
+    add_experiment_arguments(parser)
+    arms = (
+        "arms=[{name: sup-only, mode: supervised}, {name: mt, mode: semi}, "
+        "{name: mt-ema, mode: semi, overrides: [semi.burn_in_teacher=ema]}]"
+    )
+    common = [f"base={TINY_SEMI}", f"overrides=[data.root={root}, optim.steps=4, eval_every=4, semi.burn_in_steps=2]"]
+    shared, alone = tmp_path / "shared", tmp_path / "alone"
+    argv = [str(TINY), *common, arms]
+    assert run_experiment(parser.parse_args([*argv, "--no-progress", "--out", str(shared)])) == 0
+    assert run_experiment(parser.parse_args([*argv, "share_burn_in=false", "--no-progress", "--out", str(alone)])) == 0
+
+    def run_dir(out: Path, arm: str) -> Path:
+        return out / "runs" / arm / "minkunet" / "seed0"
+
+    # every run that trains its burn-in keeps that checkpoint beside its rotated ones; the shared mt run did not
+    assert all((run_dir(alone, arm) / "burn_in.pt").is_file() for arm in ("sup-only", "mt", "mt-ema"))
+    assert [(run_dir(shared, arm) / "burn_in.pt").is_file() for arm in ("sup-only", "mt", "mt-ema")] == [
+        True,
+        False,
+        True,
+    ]
+    # the shared mt run resumed at step 2: its log holds sup-only's first two records, then its own
+    sup_log = [r for r in read_jsonl(run_dir(shared, "sup-only") / "log.jsonl") if "loss" in r]
+    mt_log = [r for r in read_jsonl(run_dir(shared, "mt") / "log.jsonl") if "loss" in r]
+    assert mt_log[:2] == sup_log[:2] and [r["step"] for r in mt_log] == [1, 2, 3, 4] and "loss_mt" in mt_log[2]
+    for arm in ("mt", "mt-ema"):  # shared or not, the same final teacher
+        a = torch.load(run_dir(shared, arm) / "model.pt", weights_only=True)["model"]
+        b = torch.load(run_dir(alone, arm) / "model.pt", weights_only=True)["model"]
+        for key in a:
+            assert torch.equal(a[key], b[key]), (arm, key)
+    # the EMA burn-in teacher is the run's own: never seeded from another run (it trained its own first steps)
+    ema_log = [r for r in read_jsonl(run_dir(shared, "mt-ema") / "log.jsonl") if "loss" in r]
+    assert ema_log[0]["time"] != sup_log[0]["time"]

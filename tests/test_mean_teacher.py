@@ -16,6 +16,8 @@ from segmentation.mean_teacher import (
     copy_buffers,
     ema_update,
     make_teacher,
+    mean_view_logits,
+    mirror_views,
     pseudo_labels,
     teacher_mode,
     total_loss,
@@ -107,6 +109,28 @@ def test_pseudo_labels_below_threshold_get_ignore_id():
     labels, _ = pseudo_labels(logits, threshold=0.95, ignore_index=16)
     assert labels.tolist() == [0, 16, 16, 16]
     assert pseudo_labels(logits, threshold=0.0)[0].tolist() == [0, 1, 2, 1]
+
+
+def test_mirror_views_and_their_mean_softmax():
+    scan = torch.tensor([[1.0, 2.0, 3.0, 0.5], [-4.0, 5.0, -6.0, 0.25]])
+    views = mirror_views(scan, 4)
+    assert [v[:, :2].tolist() for v in views] == [
+        [[1.0, 2.0], [-4.0, 5.0]],
+        [[-1.0, 2.0], [4.0, 5.0]],
+        [[1.0, -2.0], [-4.0, -5.0]],
+        [[-1.0, -2.0], [4.0, -5.0]],
+    ]
+    assert all(torch.equal(v[:, 2:], scan[:, 2:]) for v in views)  # z and intensity untouched
+    assert len(mirror_views(scan, 1)) == 1 and torch.equal(mirror_views(scan, 1)[0], scan)
+    with pytest.raises(ValueError, match="views"):
+        mirror_views(scan, 5)
+    a = torch.tensor([[4.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    b = torch.tensor([[0.0, 4.0, 0.0], [0.0, 0.0, 2.0]])
+    mean = torch.softmax(mean_view_logits([a, b]), dim=1)
+    torch.testing.assert_close(mean, (torch.softmax(a, 1) + torch.softmax(b, 1)) / 2)
+    # two views that disagree give a less confident pseudo-label than either alone
+    assert pseudo_labels(mean_view_logits([a, b]), threshold=0.9)[0].tolist() == [19, 19]
+    assert pseudo_labels(mean_view_logits([a, a]), threshold=0.9)[0].tolist() == [0, 19]
 
 
 def test_class_balanced_pseudo_labels_keep_a_share_of_every_predicted_class():

@@ -219,6 +219,28 @@ def test_learning_rate_warmup_then_cosine():
     assert all(a >= b for a, b in itertools.pairwise(lrs))
 
 
+def test_learning_rate_annealed_to_the_budget_follows_the_larger_progress():
+    cfg = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1, anneal_to="budget")
+    assert learning_rate(60, cfg, 0.0) == learning_rate(60, cfg) == pytest.approx(0.55)  # steps ahead of time
+    assert learning_rate(60, cfg, 0.25) == pytest.approx(0.55)
+    assert learning_rate(20, cfg, 0.5) == pytest.approx(0.55)  # time ahead of steps: half-way down anyway
+    assert learning_rate(20, cfg, 1.0) == pytest.approx(0.1)  # budget used: min lr
+    assert learning_rate(5, cfg, 1.0) == pytest.approx(0.6)  # warm-up is counted in steps only
+    with pytest.raises(InputError, match="anneal_to=budget needs a wall-clock budget"):
+        load_config(SegTrainConfig, TINY, ["optim.anneal_to=budget"])
+    with pytest.raises(InputError, match="anneal_to"):
+        load_config(SegTrainConfig, TINY, ["optim.anneal_to=time", "max_minutes=1"])
+
+
+def test_budget_annealed_run_reaches_min_lr_when_the_budget_is_gone(toy_root, tmp_path):
+    """A budget used up before the first step: that step already runs at min lr, and the run stops after it."""
+    cfg = tiny_config(toy_root, tmp_path / "run", "optim.anneal_to=budget", "max_minutes=1e-9", "optim.warmup_steps=0")
+    train(cfg, progress=False)
+    records = [r for r in read_jsonl(tmp_path / "run" / "log.jsonl") if "loss" in r]
+    assert [r["step"] for r in records] == [1]
+    assert records[0]["lr"] == pytest.approx(cfg.optim.lr * cfg.optim.min_lr_ratio)
+
+
 def test_batch_indices_are_epochs_of_permutations_and_depend_on_seed_and_step_only():
     order = [i for step in range(6) for i in batch_indices(step, 5, 3, seed=7)]  # 18 draws = 3 epochs + 3
     for epoch in range(3):

@@ -89,6 +89,16 @@ def budget_used(elapsed_seconds: float, max_minutes: float) -> bool:
     return bool(flag)
 
 
+def budget_fraction(elapsed_seconds: float, max_minutes: float) -> float:
+    """Share of the wall-clock budget used, in [0, 1] (0 without a budget), rank 0's value on every rank."""
+    if max_minutes <= 0:
+        return 0.0
+    fraction = torch.tensor(min(1.0, elapsed_seconds / (60.0 * max_minutes)), dtype=torch.float64)
+    if dist.is_available() and dist.is_initialized():
+        dist.broadcast(fraction, src=0)
+    return float(fraction)
+
+
 def cleanup() -> None:
     """Leave the process group if one was joined."""
     if dist.is_available() and dist.is_initialized():
