@@ -208,8 +208,6 @@ def update_teacher(teacher: nn.Module, student: nn.Module, cfg: SemiConfig, step
     burn_in_teacher "copy" its parameters as well (Unbiased Teacher: the burnt-in student becomes the teacher).
     """
     burn_in = in_burn_in(cfg, step)
-    if cfg.burn_in_teacher not in ("copy", "ema"):
-        raise ValueError(f"semi.burn_in_teacher must be 'copy' or 'ema'; got {cfg.burn_in_teacher!r}")
     ema_update(teacher, student, 0.0 if burn_in and cfg.burn_in_teacher == "copy" else cfg.ema_decay)
     if cfg.bn_mode == "copy_student" or burn_in:
         copy_buffers(teacher, student)

@@ -81,12 +81,7 @@ def shard(items: list, rank: int, world_size: int) -> list:
 
 def budget_used(elapsed_seconds: float, max_minutes: float) -> bool:
     """Wall-clock budget check (max_minutes <= 0: none), decided by rank 0 so every rank stops at the same step."""
-    if max_minutes <= 0:
-        return False
-    flag = torch.tensor(float(elapsed_seconds > 60.0 * max_minutes))
-    if dist.is_available() and dist.is_initialized():
-        dist.broadcast(flag, src=0)
-    return bool(flag)
+    return max_minutes > 0 and budget_fraction(elapsed_seconds, max_minutes) >= 1.0
 
 
 def budget_fraction(elapsed_seconds: float, max_minutes: float) -> float:
