@@ -147,6 +147,16 @@ def start_from_burn_in(run: SegTrainConfig, donors: list[SegTrainConfig]) -> Pat
     return None
 
 
+def donors_on_disk(out_dir: Path) -> list[SegTrainConfig]:
+    """Runs under OUT/runs/ that hold a burn_in.pt, read from their config.yaml: donors for a run of an arm
+    that another `u4d experiment` process (e.g. one restricted to other arms, on another core) trains."""
+    donors = []
+    for path in sorted(Path(out_dir).glob("runs/*/*/*/config.yaml")):
+        if (path.parent / "burn_in.pt").is_file():
+            donors.append(load_config(SegTrainConfig, path))
+    return donors
+
+
 def run_one(run: SegTrainConfig, progress: bool) -> dict:
     """Train (or resume, or skip when finished) one run; returns its metrics plus the wall-clock seconds."""
     out = Path(run.out_dir)
@@ -214,7 +224,8 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True) -> dict:
             for seed in cfg.seeds:
                 run = run_config(cfg, arm, backbone, seed)
                 print(f"{arm.name} / {backbone} / seed {seed} -> {run.out_dir}", file=sys.stderr)
-                donor = start_from_burn_in(run, every_run) if cfg.share_burn_in else None
+                donors = [*every_run, *donors_on_disk(out)] if cfg.share_burn_in else []
+                donor = start_from_burn_in(run, donors) if donors else None
                 if donor is not None:
                     print(f"  starts at step {run.semi.burn_in_steps} from {donor} (the same burn-in)", file=sys.stderr)
                 t0 = time.perf_counter()

@@ -161,3 +161,23 @@ def test_arms_share_their_burn_in_and_end_as_if_trained_alone(tmp_path):
     # the EMA burn-in teacher is the run's own: never seeded from another run (it trained its own first steps)
     ema_log = [r for r in read_jsonl(run_dir(shared, "mt-ema") / "log.jsonl") if "loss" in r]
     assert ema_log[0]["time"] != sup_log[0]["time"]
+
+
+def test_an_arm_run_by_another_process_donates_its_burn_in(tmp_path):
+    """`arms=[mt]` in a second invocation starts from the burn_in.pt of sup-only, trained by the first one."""
+    root = write_toy_root(tmp_path / "toy")
+    parser = argparse.ArgumentParser()
+    add_experiment_arguments(parser)
+    common = [
+        str(TINY),
+        f"base={TINY_SEMI}",
+        f"overrides=[data.root={root}, optim.steps=4, eval_every=4, semi.burn_in_steps=2]",
+    ]
+    flags = ["--no-progress", "--out", str(tmp_path / "out")]
+    assert run_experiment(parser.parse_args([*common, "arms=[{name: sup-only, mode: supervised}]", *flags])) == 0
+    assert run_experiment(parser.parse_args([*common, "arms=[{name: mt, mode: semi}]", *flags])) == 0
+    runs = tmp_path / "out" / "runs"
+    sup_log = [r for r in read_jsonl(runs / "sup-only" / "minkunet" / "seed0" / "log.jsonl") if "loss" in r]
+    mt_log = [r for r in read_jsonl(runs / "mt" / "minkunet" / "seed0" / "log.jsonl") if "loss" in r]
+    assert mt_log[:2] == sup_log[:2] and "loss_mt" in mt_log[2]
+    assert not (runs / "mt" / "minkunet" / "seed0" / "burn_in.pt").is_file()
