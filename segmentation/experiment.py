@@ -148,8 +148,8 @@ def start_from_burn_in(run: SegTrainConfig, donors: list[SegTrainConfig]) -> Pat
 
 
 def donors_on_disk(out_dir: Path) -> list[SegTrainConfig]:
-    """Runs under OUT/runs/ that hold a burn_in.pt, read from their config.yaml: donors for a run of an arm
-    that another `u4d experiment` process (e.g. one restricted to other arms, on another core) trains."""
+    """Runs under OUT/runs/ that hold a burn_in.pt, read from their config.yaml: burn-in donors, whether this
+    `u4d experiment` process trained them or another one did (e.g. one restricted to other arms, on another core)."""
     donors = []
     for path in sorted(Path(out_dir).glob("runs/*/*/*/config.yaml")):
         if (path.parent / "burn_in.pt").is_file():
@@ -197,13 +197,6 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "experiment.yaml")
     results: dict = {"config": config_to_dict(cfg), "arms": []}
-    every_run = [
-        run_config(cfg, arm, backbone, seed)
-        for arm in cfg.arms
-        if bank_problem(arm) is None
-        for backbone in cfg.backbones
-        for seed in cfg.seeds
-    ]
     for arm in cfg.arms:
         problem = bank_problem(arm)
         for backbone in cfg.backbones:
@@ -224,8 +217,7 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True) -> dict:
             for seed in cfg.seeds:
                 run = run_config(cfg, arm, backbone, seed)
                 print(f"{arm.name} / {backbone} / seed {seed} -> {run.out_dir}", file=sys.stderr)
-                donors = [*every_run, *donors_on_disk(out)] if cfg.share_burn_in else []
-                donor = start_from_burn_in(run, donors) if donors else None
+                donor = start_from_burn_in(run, donors_on_disk(out)) if cfg.share_burn_in else None
                 if donor is not None:
                     print(f"  starts at step {run.semi.burn_in_steps} from {donor} (the same burn-in)", file=sys.stderr)
                 t0 = time.perf_counter()
