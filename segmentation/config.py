@@ -29,7 +29,10 @@ class SegDataConfig:
     label_fraction: float = 1.0
     split_mode: Literal["uniform", "sequence"] = "uniform"
     split_seed: int = 0
-    max_points: int | None = None  # random subset of each training scan (CPU presets); eval keeps all
+    # training part of each scan (CPU presets; evaluation keeps every point): a random azimuth sector of this many
+    # degrees (None = the whole scan; keeps the point density), then at most max_points of it at random
+    sector_deg: float | None = None
+    max_points: int | None = None
     val_max_scans: int | None = None  # evenly spaced subset of the val scans for the periodic evaluation
 
     def __post_init__(self) -> None:
@@ -40,6 +43,8 @@ class SegDataConfig:
                 setattr(self, name, [f"{v:02d}" if isinstance(v, int) else str(v) for v in value])
         if not 0.0 < self.label_fraction <= 1.0:
             raise ValueError(f"data.label_fraction must be in (0, 1], got {self.label_fraction}")
+        if self.sector_deg is not None and not 0.0 < self.sector_deg <= 360.0:
+            raise ValueError(f"data.sector_deg must be in (0, 360] or null, got {self.sector_deg}")
         if self.max_points is not None and self.max_points < 1:
             raise ValueError(f"data.max_points must be >= 1 or null, got {self.max_points}")
         if self.val_max_scans is not None and self.val_max_scans < 1:

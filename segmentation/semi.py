@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from segmentation.config import SegTrainConfig, SemiConfig
-from segmentation.data import augment, load_or_make_split
+from segmentation.data import augment, load_or_make_split, training_subset
 from segmentation.lasermix import lasermix
 from segmentation.losses import segmentation_loss, voxel_targets
 from segmentation.mean_teacher import (
@@ -99,8 +99,7 @@ def load_unlabeled(stream: UnlabeledStream, cfg: SegTrainConfig, step: int, slot
     for slot in slots:
         scan = torch.from_numpy(stream.load(cfg.seed, step, slot)["points"])  # (N, 4)
         generator = torch.Generator().manual_seed(_seed(cfg.seed, _UNLABELED, step, slot))
-        if cfg.data.max_points is not None and scan.shape[0] > cfg.data.max_points:
-            scan = scan[torch.randperm(scan.shape[0], generator=generator)[: cfg.data.max_points]]
+        scan = scan[training_subset(scan, cfg.data.sector_deg, cfg.data.max_points, generator)]
         out.append(augment(scan, generator, cfg.augment))
     return out
 

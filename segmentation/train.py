@@ -36,7 +36,7 @@ from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
 from segmentation.config import OptimConfig, SegTrainConfig
-from segmentation.data import augment, load_or_make_split, paste_instances
+from segmentation.data import augment, load_or_make_split, paste_instances, training_subset
 from segmentation.evaluate import accumulate, evenly_spaced, summary_of
 from segmentation.losses import class_weights, segmentation_loss, voxel_targets
 from segmentation.mean_teacher import make_teacher, teacher_mode
@@ -154,9 +154,8 @@ class TrainBatches(Dataset):
             generator = torch.Generator().manual_seed(derived_seed(cfg.seed, _SCAN, step, slot))
             scan = torch.from_numpy(item["points"])  # (N, 4)
             target = torch.from_numpy(item["labels"])  # (N,) train ids
-            if cfg.data.max_points is not None and scan.shape[0] > cfg.data.max_points:
-                keep = torch.randperm(scan.shape[0], generator=generator)[: cfg.data.max_points]
-                scan, target = scan[keep], target[keep]
+            keep = training_subset(scan, cfg.data.sector_deg, cfg.data.max_points, generator)
+            scan, target = scan[keep], target[keep]
             if cfg.augment.paste_prob > 0 and float(torch.rand((), generator=generator)) < cfg.augment.paste_prob:
                 source = self.scans[int(torch.randint(len(self.scans), (), generator=generator))]
                 scan, target = paste_instances(

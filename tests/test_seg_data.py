@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from segmentation.data import AugmentConfig, augment, load_or_make_split, make_split, paste_instances
+from segmentation.config import SegDataConfig
+from segmentation.data import AugmentConfig, augment, load_or_make_split, make_split, paste_instances, training_subset
 from u4d_aug.errors import InputError
 
 FRAMES = [(seq, f"{i:06d}") for seq in ("00", "01", "02", "03") for i in range(25)]
@@ -92,3 +93,47 @@ def test_paste_config_is_validated():
         AugmentConfig(paste_prob=1.5)
     with pytest.raises(ValueError, match="paste_copies"):
         AugmentConfig(paste_copies=0)
+
+
+def ring_scan(n: int = 3600) -> torch.Tensor:
+    """(n, 4) points at azimuths 0.05, 0.15, ... degrees on a 10 m circle (one every 0.1 degree)."""
+    azimuth = torch.deg2rad(torch.arange(n, dtype=torch.float64) * 360.0 / n + 0.05)
+    return torch.stack([10 * azimuth.cos(), 10 * azimuth.sin(), torch.zeros(n), torch.ones(n)], 1).float()
+
+
+def test_training_subset_sector_keeps_one_contiguous_arc_at_full_density():
+    points = ring_scan()
+    keep = training_subset(points, 90.0, None, torch.Generator().manual_seed(3))
+    assert keep.numel() == 900  # a quarter of the points, none thinned inside the sector
+    azimuth = torch.rad2deg(torch.atan2(points[keep, 1], points[keep, 0])).double() % 360.0
+    gaps = (azimuth.sort().values.diff() > 0.2).sum()
+    assert int(gaps) <= 1  # one arc (it may wrap past 360 degrees once)
+    again = training_subset(points, 90.0, None, torch.Generator().manual_seed(3))
+    other = training_subset(points, 90.0, None, torch.Generator().manual_seed(4))
+    assert torch.equal(keep, again) and not torch.equal(keep, other)
+
+
+def test_training_subset_thins_after_the_sector_and_matches_plain_thinning_without_one():
+    points = ring_scan()
+    keep = training_subset(points, 180.0, 500, torch.Generator().manual_seed(0))
+    assert keep.numel() == 500 and keep.unique().numel() == 500
+    half = training_subset(points, 180.0, None, torch.Generator().manual_seed(0))
+    assert set(keep.tolist()) <= set(half.tolist())
+    # without a sector: the random subset training drew before sectors existed (same generator draws)
+    expected = torch.randperm(3600, generator=torch.Generator().manual_seed(7))[:500]
+    assert torch.equal(training_subset(points, None, 500, torch.Generator().manual_seed(7)), expected)
+    assert torch.equal(training_subset(points, 360.0, None, torch.Generator()), torch.arange(3600))
+
+
+def test_training_subset_keeps_a_scan_whose_sector_is_empty():
+    points = ring_scan()[:10]  # all within the first degree
+    counts = [training_subset(points, 30.0, None, torch.Generator().manual_seed(s)).numel() for s in range(20)]
+    assert min(counts) > 0  # never an empty scan
+    assert counts.count(10) >= 10  # most 30-degree sectors miss that degree: then the whole scan is kept
+
+
+def test_sector_deg_is_validated():
+    with pytest.raises(ValueError, match="data.sector_deg"):
+        SegDataConfig(sector_deg=0.0)
+    with pytest.raises(ValueError, match="data.sector_deg"):
+        SegDataConfig(sector_deg=400.0)

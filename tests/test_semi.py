@@ -337,3 +337,21 @@ def test_two_process_semi_training(toy_root, tmp_path, level):
     final = torch.load(out / "model.pt", weights_only=True)
     assert final["metrics"]["num_scans"] == 3
     assert all(torch.equal(ckpt["ema"][k], final["model"][k]) for k in final["model"])
+
+
+def largest_azimuth_gap_deg(points: torch.Tensor) -> float:
+    """Largest circular gap (degrees) between the sorted azimuths of (N, >=2) points."""
+    azimuth = torch.rad2deg(torch.atan2(points[:, 1], points[:, 0]).double()).sort().values
+    gaps = torch.cat([azimuth.diff(), (azimuth[:1] + 360.0) - azimuth[-1:]])
+    return float(gaps.max())
+
+
+def test_labeled_and_unlabeled_scans_are_cut_to_a_sector(toy_root, tmp_path):
+    still = ["augment.rotate=false", "augment.flip=false", "augment.jitter_std=0", "augment.scale_min=1"]
+    cfg = semi_config(toy_root, tmp_path, "data.sector_deg=90", "data.max_points=null", *still, "augment.scale_max=1")
+    batch = TrainBatches(train_scans(cfg, CPU), cfg, 0, 1, unlabeled_stream(cfg))[3]
+    for scan in batch["points"] + batch["unlabeled"]:
+        assert scan.shape[0] > 0 and largest_azimuth_gap_deg(scan) >= 270.0 - 1e-6  # all points in one 90-degree arc
+    full = semi_config(toy_root, tmp_path, "data.max_points=null", *still, "augment.scale_max=1")
+    whole = TrainBatches(train_scans(full, CPU), full, 0, 1, unlabeled_stream(full))[3]
+    assert all(largest_azimuth_gap_deg(scan) < 90.0 for scan in whole["points"] + whole["unlabeled"])
