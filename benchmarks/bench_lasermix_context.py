@@ -31,17 +31,12 @@ from segmentation.semi import pitch_range
 from segmentation.train import train_scans
 from u4d_aug.config import config_from_dict
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
+from u4d_aug.distributed import DistInfo
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_json
 
 REPO = Path(__file__).resolve().parents[1]
 K = len(SEMANTICKITTI_CLASSES)
-
-
-class _MainRank:
-    """train_scans' view of a single process (it writes the split file on the main rank)."""
-
-    is_main, rank, world_size = True, 0, 1
 
 
 def scores(logits: torch.Tensor, target: torch.Tensor) -> dict:
@@ -82,7 +77,7 @@ def main() -> int:
     try:
         ckpt = load_checkpoint(args.checkpoint)
         cfg = config_from_dict(SegTrainConfig, ckpt["config"], source=str(args.checkpoint))
-        scans = train_scans(cfg, _MainRank())
+        scans = train_scans(cfg, DistInfo(rank=0, world_size=1, local_rank=0, device=torch.device("cpu")))
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
