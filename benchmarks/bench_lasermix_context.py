@@ -25,8 +25,7 @@ from segmentation.config import SegTrainConfig
 from segmentation.data import training_subset
 from segmentation.lasermix import lasermix
 from segmentation.metrics import confusion_matrix, mean_iou
-from segmentation.models import build_model
-from segmentation.predict import load_checkpoint
+from segmentation.predict import load_checkpoint, model_from_checkpoint
 from segmentation.semi import pitch_range
 from segmentation.train import train_scans
 from u4d_aug.config import config_from_dict
@@ -72,18 +71,22 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch's default)")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "lasermix_context.json")
     args = parser.parse_args()
+    if args.pairs < 1 or min(args.areas) < 1:
+        parser.error(f"--pairs and --areas must be >= 1; got --pairs {args.pairs}, --areas {args.areas}")
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     try:
         ckpt = load_checkpoint(args.checkpoint)
         cfg = config_from_dict(SegTrainConfig, ckpt["config"], source=str(args.checkpoint))
         scans = train_scans(cfg, DistInfo(rank=0, world_size=1, local_rank=0, device=torch.device("cpu")))
+        if len(scans) < 2 * args.pairs:
+            raise InputError(
+                f"{cfg.data.root}: {len(scans)} labelled training scans, --pairs {args.pairs} needs {2 * args.pairs}"
+            )
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    model = build_model(cfg.model)
-    model.load_state_dict(ckpt["model"])
-    model.eval()
+    model = model_from_checkpoint(ckpt, torch.device("cpu"), source=str(args.checkpoint))
     generator = torch.Generator().manual_seed(args.seed)
     picks = torch.randperm(len(scans), generator=generator)[: 2 * args.pairs].tolist()
     loaded = []
