@@ -122,6 +122,10 @@ class SemiConfig(MeanTeacherConfig):
     """
 
     banks: list[BankConfig] = field(default_factory=list)
+    # diagnostic upper bound: the unlabeled scans' own label files replace the teacher's pseudo-labels in L_mix
+    # (every point, no threshold), so a run measures what the loop gives with perfect pseudo-labels; the scans
+    # still count as unlabeled for L_mt and the split. Needs a label file for every unlabeled scan (no banks).
+    oracle_labels: bool = False
 
     def __post_init__(self) -> None:
         ratios = [bank.ratio for bank in self.banks]
@@ -140,6 +144,8 @@ class SemiConfig(MeanTeacherConfig):
             raise ValueError(f"semi.burn_in_teacher must be 'copy' or 'ema'; got {self.burn_in_teacher!r}")
         if self.pseudo_class_share is not None and not 0.0 < self.pseudo_class_share <= 1.0:
             raise ValueError(f"semi.pseudo_class_share must be in (0, 1] or null; got {self.pseudo_class_share}")
+        if self.oracle_labels and self.banks:
+            raise ValueError("semi.oracle_labels needs label files for every unlabeled scan; banks have none")
 
 
 @dataclass

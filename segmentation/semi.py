@@ -65,11 +65,22 @@ class UnlabeledStream:
         index = int(torch.randint(len(self.sources[source]), (1,), generator=generator))
         return source, index
 
-    def load(self, seed: int, step: int, slot: int) -> dict:
-        """The picked scan: dict(points (N, 4) float32 numpy, source name, seq, frame); labels dropped."""
+    def load(self, seed: int, step: int, slot: int, with_labels: bool = False) -> dict:
+        """The picked scan: dict(points (N, 4) float32 numpy, source name, seq, frame[, labels (N,) int64]).
+
+        Labels are dropped unless with_labels (the oracle diagnostic), which then requires them.
+        """
         source, index = self.pick(seed, step, slot)
         item = self.sources[source][index]
-        return {"points": item["points"], "source": self.names[source], "seq": item["seq"], "frame": item["frame"]}
+        out = {"points": item["points"], "source": self.names[source], "seq": item["seq"], "frame": item["frame"]}
+        if with_labels:
+            if item["labels"] is None:
+                raise InputError(
+                    f"{self.names[source]}: sequence {item['seq']} frame {item['frame']} has no label file; "
+                    "semi.oracle_labels needs one for every unlabeled scan"
+                )
+            out["labels"] = item["labels"]
+        return out
 
 
 def unlabeled_stream(cfg: SegTrainConfig) -> UnlabeledStream:
@@ -93,15 +104,21 @@ def unlabeled_stream(cfg: SegTrainConfig) -> UnlabeledStream:
     return UnlabeledStream(sources, ratios, names)
 
 
-def load_unlabeled(stream: UnlabeledStream, cfg: SegTrainConfig, step: int, slots: range) -> list[torch.Tensor]:
-    """Loaded, subsampled, augmented unlabeled scans of `step` for these slots of the global batch."""
-    out = []
+def load_unlabeled(
+    stream: UnlabeledStream, cfg: SegTrainConfig, step: int, slots: range
+) -> tuple[list[torch.Tensor], list[torch.Tensor] | None]:
+    """Loaded, subsampled, augmented unlabeled scans (N_j, 4) of `step` for these slots of the global batch,
+    and with semi.oracle_labels their own labels (N_j,) (else None)."""
+    scans, labels = [], []
     for slot in slots:
-        scan = torch.from_numpy(stream.load(cfg.seed, step, slot)["points"])  # (N, 4)
+        item = stream.load(cfg.seed, step, slot, with_labels=cfg.semi.oracle_labels)
+        scan = torch.from_numpy(item["points"])  # (N, 4)
         generator = torch.Generator().manual_seed(_seed(cfg.seed, _UNLABELED, step, slot))
-        scan = scan[training_subset(scan, cfg.data.sector_deg, cfg.data.max_points, generator)]
-        out.append(augment(scan, generator, cfg.augment))
-    return out
+        keep = training_subset(scan, cfg.data.sector_deg, cfg.data.max_points, generator)
+        scans.append(augment(scan[keep], generator, cfg.augment))
+        if cfg.semi.oracle_labels:
+            labels.append(torch.from_numpy(item["labels"])[keep])
+    return scans, (labels if cfg.semi.oracle_labels else None)
 
 
 def pitch_range(cfg: SegTrainConfig) -> tuple[float, float]:
@@ -153,6 +170,17 @@ def semi_step(
         teacher_point_logits, cfg.semi.pseudo_threshold, SEMANTICKITTI_IGNORE, cfg.semi.pseudo_class_share
     )
     pseudo_per_scan = pseudo.split([p.shape[0] for p in unlabeled])
+    extra = {}
+    if cfg.semi.oracle_labels:  # diagnostic: the scans' own labels instead of the teacher's
+        pseudo_per_scan = [y.to(device) for y in batch["unlabeled_labels"]]
+        truth, kept = torch.cat(pseudo_per_scan), pseudo != SEMANTICKITTI_IGNORE
+        scored = kept & (truth != SEMANTICKITTI_IGNORE)
+        # accuracy of the teacher's confident pseudo-labels the oracle replaced (logged, not trained on)
+        extra["pseudo_accuracy"] = (
+            (pseudo[scored] == truth[scored]).float().mean()
+            if scored.any()
+            else pseudo.new_ones((), dtype=torch.float32)
+        )
 
     # LaserMix: 2 mixed scans per (labeled, unlabeled) pair, area count seeded by (seed, step, slot)
     mixed, mixed_targets = [], []
@@ -190,6 +218,7 @@ def semi_step(
         "loss_mix": loss_mix,
         "loss_mt": loss_mt,
         "pseudo_kept": (pseudo != SEMANTICKITTI_IGNORE).float().mean(),  # share of confident pseudo-labels
+        **extra,
     }
 
 

@@ -171,7 +171,9 @@ class TrainBatches(Dataset):
             labels.append(target)
         batch = {"step": step, "slots": list(slots), "points": points, "labels": labels}
         if self.unlabeled is not None and not in_burn_in(cfg.semi, step):
-            batch["unlabeled"] = load_unlabeled(self.unlabeled, cfg, step, slots)
+            batch["unlabeled"], unlabeled_labels = load_unlabeled(self.unlabeled, cfg, step, slots)
+            if unlabeled_labels is not None:
+                batch["unlabeled_labels"] = unlabeled_labels
         return batch
 
 

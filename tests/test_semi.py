@@ -189,6 +189,35 @@ def test_pseudo_labels_below_threshold_are_ignored(toy_root, tmp_path, monkeypat
     assert float(losses["pseudo_kept"]) == pytest.approx(float(kept))
 
 
+def test_oracle_labels_replace_the_pseudo_labels_with_the_scans_own(toy_root, bank_root, tmp_path, monkeypatch):
+    cfg = semi_config(toy_root, tmp_path, "data.max_points=300", "semi.oracle_labels=true")
+    stream = unlabeled_stream(cfg)
+    batch = TrainBatches(train_scans(cfg, CPU), cfg, 0, 1, stream)[1]
+    assert [y.shape for y in batch["unlabeled_labels"]] == [(p.shape[0],) for p in batch["unlabeled"]]
+    for slot, labels in zip(batch["slots"], batch["unlabeled_labels"]):
+        own = stream.load(cfg.seed, 1, slot, with_labels=True)["labels"]  # (N,) the whole scan's labels
+        assert np.isin(labels.numpy(), own).all()  # a subset of the scan's own train ids
+        assert len(set(labels.tolist())) > 1  # not the stub teacher's single class
+    seen = []
+    real_lasermix = semi.lasermix
+
+    def spy(points_a, labels_a, points_b, labels_b, *args, **kwargs):
+        seen.append(labels_b)
+        return real_lasermix(points_a, labels_a, points_b, labels_b, *args, **kwargs)
+
+    monkeypatch.setattr(semi, "lasermix", spy)
+    torch.manual_seed(0)
+    losses = semi_step(build_model(cfg.model), FixedTeacher(), batch, cfg, torch.device("cpu"))
+    for labels_b, truth in zip(seen, batch["unlabeled_labels"]):
+        assert torch.equal(labels_b, truth)  # every point, no threshold
+    # the stub's confident class-0 (car) pseudo-labels are right only on the toy scene's car points
+    truth = torch.cat(batch["unlabeled_labels"])
+    confident = torch.cat([p[:, 0] > 0 for p in batch["unlabeled"]]) & (truth != SEMANTICKITTI_IGNORE)
+    assert float(losses["pseudo_accuracy"]) == pytest.approx(float((truth[confident] == 0).float().mean()))
+    with pytest.raises(InputError, match="oracle_labels"):
+        semi_config(toy_root, tmp_path, "semi.oracle_labels=true", f"semi.banks=[{{path: {bank_root}, ratio: 0.5}}]")
+
+
 # -------------------------------------------------------------------------------------------------- training
 
 
