@@ -14,6 +14,7 @@ from segmentation.experiment import (
     ArmConfig,
     ExperimentConfig,
     add_experiment_arguments,
+    burn_in_signature,
     mean_std,
     run_config,
     run_experiment,
@@ -181,3 +182,19 @@ def test_an_arm_run_by_another_process_donates_its_burn_in(tmp_path):
     mt_log = [r for r in read_jsonl(runs / "mt" / "minkunet" / "seed0" / "log.jsonl") if "loss" in r]
     assert mt_log[:2] == sup_log[:2] and "loss_mt" in mt_log[2]
     assert not (runs / "mt" / "minkunet" / "seed0" / "burn_in.pt").is_file()
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "configs" / "experiment").glob("*.yaml")), ids=lambda p: p.name)
+def test_experiment_configs_expand_into_valid_runs(path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(REPO)  # base presets are relative to the checkout
+    cfg = load_config(ExperimentConfig, path, [])
+    for backbone in cfg.backbones:
+        runs = {
+            arm.name: run_config(cfg, arm, backbone, cfg.seeds[0]) for arm in cfg.arms
+        }  # each arm's overrides parse
+        assert len({run.out_dir for run in runs.values()}) == len(runs)
+        # each semi arm with a copied burn-in teacher can start from a supervised arm's burn_in.pt
+        supervised = {burn_in_signature(run) for run in runs.values() if run.mode == "supervised"}
+        for name, run in runs.items():
+            signature = burn_in_signature(run) if run.mode == "semi" else None
+            assert signature is None or signature in supervised, f"{name} shares no supervised arm's burn-in"
