@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from segmentation.config import SegTrainConfig
 from segmentation.data import training_subset
 from segmentation.lasermix import lasermix
-from segmentation.metrics import confusion_matrix, mean_iou
+from segmentation.metrics import confusion_matrix, iou_per_class, mean_iou
 from segmentation.predict import load_checkpoint, model_from_checkpoint
 from segmentation.semi import pitch_range
 from segmentation.train import train_scans
@@ -51,14 +51,21 @@ def scores(logits: torch.Tensor, target: torch.Tensor) -> dict:
 
 
 def merge(parts: list[dict]) -> dict:
-    """Accuracy %, CE and mIoU % (classes present) of summed per-batch scores."""
+    """Accuracy %, CE, mIoU % (classes present) and IoU % per class present of summed per-batch scores."""
     points = sum(p["points"] for p in parts)
     confusion = sum(p["confusion"] for p in parts)
+    present = confusion.sum(axis=1) > 0  # (K,) classes with ground-truth points
     return {
         "points": points,
         "accuracy": 100.0 * sum(p["correct"] for p in parts) / points,
         "ce": sum(p["ce_sum"] for p in parts) / points,
         "miou": 100.0 * mean_iou(confusion),
+        "iou": {
+            name: 100.0 * float(iou)
+            for name, iou, kept in zip(SEMANTICKITTI_CLASSES, iou_per_class(confusion), present)
+            if kept
+        },
+        "class_points": {name: int(n) for name, n in zip(SEMANTICKITTI_CLASSES, confusion.sum(axis=1)) if n > 0},
     }
 
 
@@ -115,6 +122,11 @@ def main() -> int:
     for row in rows:
         name = "alone" if row["areas"] is None else f"mixed, {row['areas']} areas"
         print(f"{name:>14} {row['points']:>8} {row['accuracy']:>10.1f} {row['ce']:>6.3f} {row['miou']:>7.1f}")
+    print(f"\nIoU % per class present ({len(rows[0]['iou'])} classes)")
+    heads = ["alone" if r["areas"] is None else f"{r['areas']} areas" for r in rows]
+    print(f"{'class':>14} {'points':>8} " + " ".join(f"{head:>8}" for head in heads))
+    for name, count in rows[0]["class_points"].items():
+        print(f"{name:>14} {count:>8} " + " ".join(f"{r['iou'][name]:>8.1f}" for r in rows))
     atomic_write_json(args.out, {
         "command": "python benchmarks/bench_lasermix_context.py " + " ".join(sys.argv[1:]),
         "checkpoint": str(args.checkpoint),
