@@ -175,12 +175,9 @@ def semi_step(
         pseudo_per_scan = [y.to(device) for y in batch["unlabeled_labels"]]
         truth, kept = torch.cat(pseudo_per_scan), pseudo != SEMANTICKITTI_IGNORE
         scored = kept & (truth != SEMANTICKITTI_IGNORE)
-        # accuracy of the teacher's confident pseudo-labels the oracle replaced (logged, not trained on)
-        extra["pseudo_accuracy"] = (
-            (pseudo[scored] == truth[scored]).float().mean()
-            if scored.any()
-            else pseudo.new_ones((), dtype=torch.float32)
-        )
+        # accuracy of the teacher's confident pseudo-labels the oracle replaced (logged, not trained on); NaN when
+        # the teacher is confident on no labelled point (the mean of an empty set; the log window then reads NaN)
+        extra["pseudo_accuracy"] = (pseudo[scored] == truth[scored]).float().mean()
 
     # LaserMix: 2 mixed scans per (labeled, unlabeled) pair, area count seeded by (seed, step, slot)
     mixed, mixed_targets = [], []

@@ -165,6 +165,13 @@ class FixedTeacher(nn.Module):
         return logits
 
 
+class UnsureTeacher(nn.Module):
+    """Teacher stub: uniform softmax (p = 1/K) everywhere, so no pseudo-label passes the threshold."""
+
+    def forward(self, points: list[torch.Tensor]) -> torch.Tensor:
+        return torch.zeros(sum(p.shape[0] for p in points), 19)
+
+
 def test_pseudo_labels_below_threshold_are_ignored(toy_root, tmp_path, monkeypatch):
     cfg = semi_config(toy_root, tmp_path, "data.max_points=300")
     batch = TrainBatches(train_scans(cfg, CPU), cfg, 0, 1, unlabeled_stream(cfg))[1]
@@ -214,6 +221,9 @@ def test_oracle_labels_replace_the_pseudo_labels_with_the_scans_own(toy_root, ba
     truth = torch.cat(batch["unlabeled_labels"])
     confident = torch.cat([p[:, 0] > 0 for p in batch["unlabeled"]]) & (truth != SEMANTICKITTI_IGNORE)
     assert float(losses["pseudo_accuracy"]) == pytest.approx(float((truth[confident] == 0).float().mean()))
+    # a teacher confident nowhere has no accuracy to report: NaN, not a made-up value
+    unsure = semi_step(build_model(cfg.model), UnsureTeacher(), batch, cfg, torch.device("cpu"))
+    assert torch.isnan(unsure["pseudo_accuracy"]) and torch.isfinite(unsure["loss"])
     with pytest.raises(InputError, match="oracle_labels"):
         semi_config(toy_root, tmp_path, "semi.oracle_labels=true", f"semi.banks=[{{path: {bank_root}, ratio: 0.5}}]")
 
