@@ -125,7 +125,7 @@ def test_tiny_experiment_with_a_missing_bank_is_resumable(tmp_path):
     assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == ["step_0000003.pt"]
 
 
-def test_arms_share_their_burn_in_and_end_as_if_trained_alone(tmp_path):
+def test_arms_share_their_burn_in_and_end_as_if_trained_alone(tmp_path, capsys):
     """mt arms start from sup-only's burn_in.pt at step 2 and end with the weights of a run from scratch."""
     root = write_toy_root(tmp_path / "toy")
     parser = argparse.ArgumentParser()
@@ -138,6 +138,7 @@ def test_arms_share_their_burn_in_and_end_as_if_trained_alone(tmp_path):
     shared, alone = tmp_path / "shared", tmp_path / "alone"
     argv = [str(TINY), *common, arms]
     assert run_experiment(parser.parse_args([*argv, "--no-progress", "--out", str(shared)])) == 0
+    shared_stderr = capsys.readouterr().err
     assert run_experiment(parser.parse_args([*argv, "share_burn_in=false", "--no-progress", "--out", str(alone)])) == 0
 
     def run_dir(out: Path, arm: str) -> Path:
@@ -160,8 +161,12 @@ def test_arms_share_their_burn_in_and_end_as_if_trained_alone(tmp_path):
         for key in a:
             assert torch.equal(a[key], b[key]), (arm, key)
     # the EMA burn-in teacher is the run's own: never seeded from another run (it trained its own first steps)
+    started = [line.split(" -> ")[0] for line in shared_stderr.splitlines() if " -> " in line]
+    announced = [line for line in shared_stderr.splitlines() if "(the same burn-in)" in line]
+    assert started == ["sup-only / minkunet / seed 0", "mt / minkunet / seed 0", "mt-ema / minkunet / seed 0"]
+    assert len(announced) == 1 and str(run_dir(shared, "sup-only") / "burn_in.pt") in announced[0]
     ema_log = [r for r in read_jsonl(run_dir(shared, "mt-ema") / "log.jsonl") if "loss" in r]
-    assert ema_log[0]["time"] != sup_log[0]["time"]
+    assert [r["step"] for r in ema_log] == [1, 2, 3, 4] and "loss_mt" in ema_log[2]
 
 
 def test_an_arm_run_by_another_process_donates_its_burn_in(tmp_path):
