@@ -7,7 +7,9 @@ scans (the label split is fixed by data.split_seed; the seed changes initialisat
 Each run trains into OUT/runs/ARM/BACKBONE/seedS: skipped once its metrics.json exists, resumed from its
 last checkpoint when it was interrupted. An arm whose bank is missing is reported "missing" with the reason,
 never with numbers. Writes OUT/results.json, OUT/results.md and OUT/reliability_ARM_BACKBONE.png (bins
-pooled over seeds).
+pooled over seeds), with every arm's mIoU and ECE paired by seed against a reference arm (sup-only by default):
+the difference per seed, its mean ± std, the seeds won and a paired t-test. `--report-only` trains nothing and
+reports the finished runs, so arms with different numbers of finished seeds share one table.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from typing import Literal
 
 import numpy as np
 import torch
+from scipy import stats
 
 from segmentation.config import BankConfig, SegTrainConfig
 from segmentation.metrics import ReliabilityBins
@@ -70,11 +73,15 @@ class ExperimentConfig:
     # a run whose first semi.burn_in_steps steps equal another run's (same backbone, seed and config but for the mode
     # and the semi keys read after burn-in) starts from that run's OUT/burn_in.pt instead of repeating them
     share_burn_in: bool = True
+    # the arm every other arm is paired with, seed by seed, in results.md; None = the first supervised arm
+    reference_arm: str | None = None
 
     def __post_init__(self) -> None:
         names = [arm.name for arm in self.arms]
         if not names or len(set(names)) != len(names):
             raise ValueError(f"arms must be a non-empty list with distinct names; got {names}")
+        if self.reference_arm is not None and self.reference_arm not in names:
+            raise ValueError(f"reference_arm {self.reference_arm!r} is not one of the arms {names}")
         if not self.backbones or not self.seeds:
             raise ValueError("backbones and seeds must not be empty")
 
@@ -168,8 +175,16 @@ def run_one(run: SegTrainConfig, progress: bool) -> dict:
             if (out / "checkpoints").is_dir():
                 shutil.rmtree(out / "checkpoints")  # no step_*.pt in it (at most a partial temp file)
         train(run, resume=resume, progress=progress)
+    return finished_metrics(out)
+
+
+def finished_metrics(out: Path) -> dict | None:
+    """A finished run's metrics.json plus its wall-clock seconds (from its log), or None when it has not finished."""
+    metrics_path = out / "metrics.json"
+    if not metrics_path.is_file():
+        return None
     metrics = json.loads(metrics_path.read_text())
-    times = [r["time"] for r in read_jsonl(out / "log.jsonl") if "time" in r]
+    times = [r["time"] for r in read_jsonl(out / "log.jsonl") if "time" in r] if (out / "log.jsonl").is_file() else []
     metrics["wall_clock_s"] = max(times) if times else None  # training time incl. resumes, from the log
     return metrics
 
@@ -191,8 +206,39 @@ def bins_from_dict(data: dict) -> ReliabilityBins:
     return ReliabilityBins(count, confidence * count, accuracy * count, int(data["total"]))
 
 
-def run_experiment_config(cfg: ExperimentConfig, progress: bool = True) -> dict:
-    """Every run (skipping finished ones), then results.json, results.md and the reliability PNGs."""
+def paired_differences(reference: dict[int, float], other: dict[int, float]) -> dict:
+    """Seed-paired other - reference (seeds finished in both): per seed, mean ± std, seeds won, paired t-test p.
+
+    p is two-sided (scipy.stats.ttest_rel); None with fewer than 2 pairs or when every difference is the same.
+    """
+    seeds = sorted(set(reference) & set(other))
+    diffs = [float(other[s] - reference[s]) for s in seeds]
+    summary = {"seeds": seeds, "per_seed": diffs, **mean_std(diffs), "wins": sum(d > 0 for d in diffs), "p": None}
+    if len(diffs) > 1 and np.ptp(diffs) > 0:
+        summary["p"] = float(stats.ttest_rel([other[s] for s in seeds], [reference[s] for s in seeds]).pvalue)
+    return summary
+
+
+def compare_to_reference(arms: list[dict], reference: str) -> None:
+    """Add "vs_reference" (paired mIoU and ECE-per-scan differences) to every finished arm but the reference."""
+    for backbone in dict.fromkeys(e["backbone"] for e in arms):
+        ref = next((e for e in arms if e["arm"] == reference and e["backbone"] == backbone and e.get("runs")), None)
+        if ref is None:
+            continue
+        for e in arms:
+            if e is ref or e["backbone"] != backbone or not e.get("runs"):
+                continue
+            e["vs_reference"] = {"arm": reference}
+            for key in ("miou", "ece_per_scan"):
+                values = [{r["seed"]: r[key] for r in entry["runs"] if r.get(key) is not None} for entry in (ref, e)]
+                e["vs_reference"][key] = paired_differences(*values)
+
+
+def run_experiment_config(cfg: ExperimentConfig, progress: bool = True, report_only: bool = False) -> dict:
+    """Every run (skipping finished ones), then results.json, results.md and the reliability PNGs.
+
+    report_only: train nothing; report the runs that have finished (an arm with some seeds finished is "partial").
+    """
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "experiment.yaml")
@@ -216,6 +262,11 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True) -> dict:
             runs = []
             for seed in cfg.seeds:
                 run = run_config(cfg, arm, backbone, seed)
+                if report_only:
+                    metrics = finished_metrics(Path(run.out_dir))
+                    if metrics is not None:
+                        runs.append({"seed": seed, "out_dir": str(run.out_dir), **metrics})
+                    continue
                 print(f"{arm.name} / {backbone} / seed {seed} -> {run.out_dir}", file=sys.stderr)
                 donor = start_from_burn_in(run, donors_on_disk(out)) if cfg.share_burn_in else None
                 if donor is not None:
@@ -224,7 +275,12 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True) -> dict:
                 metrics = run_one(run, progress)
                 runs.append({"seed": seed, "out_dir": str(run.out_dir), **metrics})
                 print(f"  done in {time.perf_counter() - t0:.1f} s (mIoU {metrics.get('miou')})", file=sys.stderr)
-            entry.update(status="done", **aggregate(runs))
+            if not runs:
+                entry.update(status="not run", reason="no finished run")
+                results["arms"].append(entry)
+                continue
+            status = "done" if len(runs) == len(cfg.seeds) else "partial"
+            entry.update(status=status, **aggregate(runs))
             entry["runs"] = [{k: v for k, v in r.items() if k != "bins"} for r in runs]
             pooled = None
             for r in runs:
@@ -236,6 +292,10 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True) -> dict:
                 plot_reliability(pooled, png, title=f"{arm.name} / {backbone} ({len(runs)} seeds)")
                 entry["reliability_png"] = png.name
             results["arms"].append(entry)
+    supervised = [arm.name for arm in cfg.arms if arm.mode == "supervised"]
+    reference = cfg.reference_arm or (supervised[0] if supervised else None)
+    if reference is not None:
+        compare_to_reference(results["arms"], reference)
     atomic_write_json(out / "results.json", results)
     atomic_write_text(out / "results.md", results_markdown(results))
     return results
@@ -272,16 +332,36 @@ def results_markdown(results: dict) -> str:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for e in results["arms"]:
-        if e["status"] != "done":
-            lines.append(f"| {e['arm']} | {e['backbone']} | missing: {e['reason']} | 0 | - | - | - | - | - |")
+        if e["status"] not in ("done", "partial"):
+            lines.append(f"| {e['arm']} | {e['backbone']} | {e['status']}: {e['reason']} | 0 | - | - | - | - | - |")
             continue
         wall = e["wall_clock_s"]
         wall_text = "n/a" if wall["mean"] is None else f"{wall['mean']:.1f} ± {wall['std']:.1f}"
+        seeds = ", ".join(str(r["seed"]) for r in e["runs"])
         lines.append(
-            f"| {e['arm']} | {e['backbone']} | done | {e['miou']['n']} | {pct(e['miou'])} | {pct(e['miou_present'])} | "
+            f"| {e['arm']} | {e['backbone']} | {e['status']} | {seeds} | {pct(e['miou'])} | {pct(e['miou_present'])} | "
             f"{pct(e['ece_per_scan'])} | {pct(e['ece_pooled'])} | {wall_text} |"
         )
-    done = [e for e in results["arms"] if e["status"] == "done"]
+    paired = [e for e in results["arms"] if "vs_reference" in e]
+    if paired:
+        lines += [
+            "",
+            f"## Paired by seed against {paired[0]['vs_reference']['arm']} (points)",
+            "",
+            "arm - reference on the seeds both finished; p: two-sided paired t-test (n/a below 2 seeds).",
+            "",
+            "| arm | backbone | seeds | mIoU difference per seed | mean ± std | seeds won | p | ECE per scan diff. |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for e in paired:
+            miou, ece = e["vs_reference"]["miou"], e["vs_reference"]["ece_per_scan"]
+            per_seed = ", ".join(f"{100 * d:+.2f}" for d in miou["per_seed"])
+            p_text = "n/a" if miou["p"] is None else f"{miou['p']:.2f}"
+            lines.append(
+                f"| {e['arm']} | {e['backbone']} | {len(miou['seeds'])} | {per_seed} | {pct(miou)} | "
+                f"{miou['wins']} of {miou['n']} | {p_text} | {pct(ece)} |"
+            )
+    done = [e for e in results["arms"] if e["status"] in ("done", "partial")]
     if done:
         classes = list(done[0]["iou"])
         lines += ["", "## Per-class IoU (%)", "", "| arm | backbone | " + " | ".join(classes) + " |"]
@@ -301,6 +381,9 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("overrides", nargs="*", help="key=value overrides, e.g. 'seeds=[0]' 'backbones=[minkunet]'")
     parser.add_argument("--out", type=Path, default=None, help="output folder (overrides out_dir)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument(
+        "--report-only", action="store_true", help="train nothing: results.json / results.md of the finished runs"
+    )
 
 
 def run_experiment(args: argparse.Namespace) -> int:
@@ -308,7 +391,7 @@ def run_experiment(args: argparse.Namespace) -> int:
     cfg = load_config(ExperimentConfig, args.config, args.overrides)
     if args.out is not None:
         cfg.out_dir = args.out
-    results = run_experiment_config(cfg, progress=not args.no_progress)
+    results = run_experiment_config(cfg, progress=not args.no_progress, report_only=args.report_only)
     print((Path(cfg.out_dir) / "results.md").read_text())
     return 0 if results["arms"] else 1
 

@@ -16,6 +16,7 @@ from segmentation.experiment import (
     add_experiment_arguments,
     burn_in_signature,
     mean_std,
+    paired_differences,
     run_config,
     run_experiment,
 )
@@ -41,6 +42,19 @@ def test_mean_std_over_seeds():
     stat = mean_std([0.2, 0.4, None])
     assert stat["n"] == 2 and stat["mean"] == pytest.approx(0.3) and stat["std"] == pytest.approx(0.1414213562)
     assert mean_std([None]) == {"mean": None, "std": None, "n": 0}
+
+
+def test_paired_differences_by_seed():
+    """Only seeds both arms finished are paired; p is the paired t-test: t = 2 / (1 / sqrt 3), 2 dof -> p = 0.0742."""
+    reference = {0: 0.40, 1: 0.50, 2: 0.45, 7: 0.9}
+    other = {0: 0.41, 1: 0.52, 2: 0.48, 5: 0.1}
+    paired = paired_differences(reference, other)
+    assert paired["seeds"] == [0, 1, 2] and paired["per_seed"] == pytest.approx([0.01, 0.02, 0.03])
+    assert paired["mean"] == pytest.approx(0.02) and paired["std"] == pytest.approx(0.01) and paired["n"] == 3
+    assert paired["wins"] == 3 and paired["p"] == pytest.approx(0.07418, abs=1e-4)
+    # one pair, or the same difference in every seed: no test
+    assert paired_differences({0: 0.4}, {0: 0.3})["p"] is None and paired_differences({0: 0.4}, {0: 0.3})["wins"] == 0
+    assert paired_differences({0: 0.4, 1: 0.5}, {0: 0.5, 1: 0.6})["p"] is None
 
 
 def test_config_rejects_duplicate_arms():
@@ -167,6 +181,39 @@ def test_arms_share_their_burn_in_and_end_as_if_trained_alone(tmp_path, capsys):
     assert len(announced) == 1 and str(run_dir(shared, "sup-only") / "burn_in.pt") in announced[0]
     ema_log = [r for r in read_jsonl(run_dir(shared, "mt-ema") / "log.jsonl") if "loss" in r]
     assert [r["step"] for r in ema_log] == [1, 2, 3, 4] and "loss_mt" in ema_log[2]
+
+
+def test_report_only_trains_nothing_and_pairs_the_seeds_both_arms_finished(tmp_path):
+    """sup-only has seeds 0 and 1, mt seed 0: --report-only over seeds 0-2 reports both as partial, paired on seed 0."""
+    root = write_toy_root(tmp_path / "toy")
+    parser = argparse.ArgumentParser()
+    add_experiment_arguments(parser)
+    common = [
+        str(TINY),
+        f"base={TINY_SEMI}",
+        f"overrides=[data.root={root}, optim.steps=2, eval_every=2, semi.burn_in_steps=1]",
+    ]
+    arms = "arms=[{name: sup-only, mode: supervised}, {name: mt, mode: semi}, {name: mt-b, mode: semi}]"
+    flags = ["--no-progress", "--out", str(tmp_path / "out")]
+    assert run_experiment(parser.parse_args([*common, "arms=[{name: sup-only}]", "seeds=[0, 1]", *flags])) == 0
+    assert run_experiment(parser.parse_args([*common, "arms=[{name: mt, mode: semi}]", "seeds=[0]", *flags])) == 0
+    before = sorted(p.relative_to(tmp_path) for p in (tmp_path / "out" / "runs").rglob("*"))
+    assert run_experiment(parser.parse_args([*common, arms, "seeds=[0, 1, 2]", "--report-only", *flags])) == 0
+    assert sorted(p.relative_to(tmp_path) for p in (tmp_path / "out" / "runs").rglob("*")) == before  # trained nothing
+
+    results = json.loads((tmp_path / "out" / "results.json").read_text())
+    sup, mt, mt_b = results["arms"]
+    assert (sup["status"], mt["status"], mt_b["status"]) == ("partial", "partial", "not run")
+    assert [r["seed"] for r in sup["runs"]] == [0, 1] and sup["miou"]["n"] == 2 and "vs_reference" not in sup
+    paired = mt["vs_reference"]
+    assert paired["arm"] == "sup-only" and paired["miou"]["seeds"] == [0] and paired["miou"]["p"] is None
+    assert paired["miou"]["per_seed"] == pytest.approx([mt["runs"][0]["miou"] - sup["runs"][0]["miou"]])
+    markdown = (tmp_path / "out" / "results.md").read_text()
+    assert "| sup-only | minkunet | partial | 0, 1 |" in markdown and "| mt-b | minkunet | not run: " in markdown
+    assert "## Paired by seed against sup-only" in markdown and "| mt | minkunet | 1 | " in markdown
+
+    with pytest.raises(InputError, match="reference_arm 'nope'"):
+        load_config(ExperimentConfig, TINY, [arms, "reference_arm=nope"])
 
 
 def test_an_arm_run_by_another_process_donates_its_burn_in(tmp_path):
