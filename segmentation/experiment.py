@@ -29,6 +29,7 @@ import torch
 from scipy import stats
 
 from segmentation.config import BankConfig, SegTrainConfig
+from segmentation.evaluate import evaluate
 from segmentation.metrics import ReliabilityBins
 from segmentation.plots import plot_reliability
 from segmentation.train import train
@@ -75,6 +76,9 @@ class ExperimentConfig:
     share_burn_in: bool = True
     # the arm every other arm is paired with, seed by seed, in results.md; None = the first supervised arm
     reference_arm: str | None = None
+    # evaluate each finished run's model.pt once on every labelled scan of its data.val_sequences (RUN/eval_full.json,
+    # reused) and report those figures instead of the periodic evaluation's (data.val_max_scans scans)
+    final_eval: bool = False
 
     def __post_init__(self) -> None:
         names = [arm.name for arm in self.arms]
@@ -164,6 +168,28 @@ def donors_on_disk(out_dir: Path) -> list[SegTrainConfig]:
     return donors
 
 
+def full_evaluation(run: SegTrainConfig, progress: bool) -> dict:
+    """The run's model.pt on every labelled scan of its validation sequences; written once to RUN/eval_full.json."""
+    path = Path(run.out_dir) / "eval_full.json"
+    if not path.is_file():
+        summary = evaluate(
+            Path(run.out_dir) / "model.pt", run.data.root, run.data.val_sequences, device=run.device, progress=progress
+        )
+        atomic_write_json(path, summary)
+    return json.loads(path.read_text())
+
+
+def run_metrics(run: SegTrainConfig, final_eval: bool, progress: bool) -> dict | None:
+    """What the tables report for one finished run (None when unfinished): metrics.json or, with final_eval, the
+    full evaluation (then "periodic_miou" keeps metrics.json's), plus the wall-clock seconds."""
+    metrics = finished_metrics(Path(run.out_dir))
+    if metrics is None or not final_eval:
+        return metrics
+    keys = ("miou", "miou_present", "iou", "ece_per_scan", "ece_pooled", "bins", "num_scans", "num_points")
+    full = full_evaluation(run, progress)
+    return {**metrics, "periodic_miou": metrics["miou"], **{key: full.get(key) for key in keys}}
+
+
 def run_one(run: SegTrainConfig, progress: bool) -> dict:
     """Train (or resume, or skip when finished) one run; returns its metrics plus the wall-clock seconds."""
     out = Path(run.out_dir)
@@ -237,7 +263,8 @@ def compare_to_reference(arms: list[dict], reference: str) -> None:
 def run_experiment_config(cfg: ExperimentConfig, progress: bool = True, report_only: bool = False) -> dict:
     """Every run (skipping finished ones), then results.json, results.md and the reliability PNGs.
 
-    report_only: train nothing; report the runs that have finished (an arm with some seeds finished is "partial").
+    report_only: train nothing; report the runs that have finished (an arm with some seeds finished is "partial"),
+    evaluating those whose full evaluation is missing when final_eval is set.
     """
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -263,7 +290,7 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True, report_o
             for seed in cfg.seeds:
                 run = run_config(cfg, arm, backbone, seed)
                 if report_only:
-                    metrics = finished_metrics(Path(run.out_dir))
+                    metrics = run_metrics(run, cfg.final_eval, progress)
                     if metrics is not None:
                         runs.append({"seed": seed, "out_dir": str(run.out_dir), **metrics})
                     continue
@@ -272,7 +299,8 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True, report_o
                 if donor is not None:
                     print(f"  starts at step {run.semi.burn_in_steps} from {donor} (the same burn-in)", file=sys.stderr)
                 t0 = time.perf_counter()
-                metrics = run_one(run, progress)
+                run_one(run, progress)
+                metrics = run_metrics(run, cfg.final_eval, progress)
                 runs.append({"seed": seed, "out_dir": str(run.out_dir), **metrics})
                 print(f"  done in {time.perf_counter() - t0:.1f} s (mIoU {metrics.get('miou')})", file=sys.stderr)
             if not runs:
@@ -322,11 +350,18 @@ def results_markdown(results: dict) -> str:
             return "n/a"
         return f"{100 * stat['mean']:.2f} ± {100 * stat['std']:.2f}"
 
+    scans = sorted({r.get("num_scans") for e in results["arms"] for r in e.get("runs", [])} - {None})
+    scans_text = "/".join(str(n) for n in scans) or "?"
+    if results["config"].get("final_eval"):
+        evaluated = f"final evaluation of each model.pt on all {scans_text} labelled validation scans"
+    else:
+        evaluated = f"the last periodic evaluation ({scans_text} validation scans)"
     lines = [
         "# Augmentation comparison",
         "",
         "mean ± std over seeds, in %: mIoU over all classes and over the classes with ground-truth points (present);"
         " ECE per scan = mean of per-scan ECEs, pooled = over all points.",
+        f"Figures: {evaluated}.",
         "",
         "| arm | backbone | status | seeds | mIoU | mIoU present | ECE per scan | ECE pooled | wall-clock per run s |",
         "|---|---|---|---|---|---|---|---|---|",

@@ -10,6 +10,7 @@ import pytest
 import torch
 from test_seg_train import write_toy_root
 
+from segmentation.evaluate import evaluate
 from segmentation.experiment import (
     ArmConfig,
     ExperimentConfig,
@@ -191,7 +192,7 @@ def test_report_only_trains_nothing_and_pairs_the_seeds_both_arms_finished(tmp_p
     common = [
         str(TINY),
         f"base={TINY_SEMI}",
-        f"overrides=[data.root={root}, optim.steps=2, eval_every=2, semi.burn_in_steps=1]",
+        f"overrides=[data.root={root}, optim.steps=2, eval_every=2, semi.burn_in_steps=1, data.val_max_scans=2]",
     ]
     arms = "arms=[{name: sup-only, mode: supervised}, {name: mt, mode: semi}, {name: mt-b, mode: semi}]"
     flags = ["--no-progress", "--out", str(tmp_path / "out")]
@@ -211,6 +212,24 @@ def test_report_only_trains_nothing_and_pairs_the_seeds_both_arms_finished(tmp_p
     markdown = (tmp_path / "out" / "results.md").read_text()
     assert "| sup-only | minkunet | partial | 0, 1 |" in markdown and "| mt-b | minkunet | not run: " in markdown
     assert "## Paired by seed against sup-only" in markdown and "| mt | minkunet | 1 | " in markdown
+
+    assert "the last periodic evaluation (2 validation scans)" in markdown
+
+    # final_eval: each finished model.pt on all 3 validation scans, once (eval_full.json), reported instead
+    assert (
+        run_experiment(
+            parser.parse_args([*common, arms, "seeds=[0, 1, 2]", "final_eval=true", "--report-only", *flags])
+        )
+        == 0
+    )
+    full = json.loads((tmp_path / "out" / "results.json").read_text())["arms"][0]["runs"][0]
+    run_dir = tmp_path / "out" / "runs" / "sup-only" / "minkunet" / "seed0"
+    expected = evaluate(run_dir / "model.pt", root, ["01"], device="cpu")
+    assert full["num_scans"] == 3 and full["miou"] == pytest.approx(expected["miou"])
+    assert full["ece_per_scan"] == pytest.approx(expected["ece_per_scan"])
+    assert full["periodic_miou"] == json.loads((run_dir / "metrics.json").read_text())["miou"] == sup["runs"][0]["miou"]
+    assert len(list((tmp_path / "out" / "runs").rglob("eval_full.json"))) == 3  # the finished runs only
+    assert "final evaluation of each model.pt on all 3 labelled" in (tmp_path / "out" / "results.md").read_text()
 
     with pytest.raises(InputError, match="reference_arm 'nope'"):
         load_config(ExperimentConfig, TINY, [arms, "reference_arm=nope"])
