@@ -6,10 +6,11 @@ changes only mode / bank / backbone / seed, so the arms get the same number of s
 scans (the label split is fixed by data.split_seed; the seed changes initialisation, scan order and mixing).
 Each run trains into OUT/runs/ARM/BACKBONE/seedS: skipped once its metrics.json exists, resumed from its
 last checkpoint when it was interrupted. An arm whose bank is missing is reported "missing" with the reason,
-never with numbers. Writes OUT/results.json, OUT/results.md and OUT/reliability_ARM_BACKBONE.png (bins
-pooled over seeds), with every arm's mIoU and ECE paired by seed against a reference arm (sup-only by default):
-the difference per seed, its mean ± std, the seeds won and a paired t-test. `--report-only` trains nothing and
-reports the finished runs, so arms with different numbers of finished seeds share one table.
+never with numbers. Writes OUT/results.json, OUT/results.md, OUT/reliability_ARM_BACKBONE.png (bins pooled
+over seeds) and OUT/paired_BACKBONE.png, with every arm's mIoU and ECE paired by seed against a reference arm
+(sup-only by default): the difference per seed, its mean ± std, the seeds won and a paired t-test.
+`--report-only` trains nothing and reports the finished runs, so arms with different numbers of finished seeds
+share one table.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from scipy import stats
 from segmentation.config import BankConfig, SegTrainConfig
 from segmentation.evaluate import evaluate
 from segmentation.metrics import ReliabilityBins
-from segmentation.plots import plot_reliability
+from segmentation.plots import plot_paired, plot_reliability
 from segmentation.train import train
 from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.datasets import ScanDataset
@@ -324,6 +325,16 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True, report_o
     reference = cfg.reference_arm or (supervised[0] if supervised else None)
     if reference is not None:
         compare_to_reference(results["arms"], reference)
+        for backbone in cfg.backbones:
+            paired = {
+                e["arm"]: e["vs_reference"]
+                for e in results["arms"]
+                if e["backbone"] == backbone and "vs_reference" in e
+            }
+            if paired:
+                png = out / f"paired_{backbone}.png"
+                plot_paired(paired, png, reference)
+                results[f"paired_png_{backbone}"] = png.name
     atomic_write_json(out / "results.json", results)
     atomic_write_text(out / "results.md", results_markdown(results))
     return results
@@ -349,6 +360,9 @@ def results_markdown(results: dict) -> str:
         if stat["mean"] is None:
             return "n/a"
         return f"{100 * stat['mean']:.2f} ± {100 * stat['std']:.2f}"
+
+    def signed(stat: dict) -> str:
+        return pct(stat) if stat["mean"] is None else "+" * (stat["mean"] >= 0) + pct(stat)
 
     scans = sorted({r.get("num_scans") for e in results["arms"] for r in e.get("runs", [])} - {None})
     scans_text = "/".join(str(n) for n in scans) or "?"
@@ -393,8 +407,8 @@ def results_markdown(results: dict) -> str:
             per_seed = ", ".join(f"{100 * d:+.2f}" for d in miou["per_seed"])
             p_text = "n/a" if miou["p"] is None else f"{miou['p']:.2f}"
             lines.append(
-                f"| {e['arm']} | {e['backbone']} | {len(miou['seeds'])} | {per_seed} | {pct(miou)} | "
-                f"{miou['wins']} of {miou['n']} | {p_text} | {pct(ece)} |"
+                f"| {e['arm']} | {e['backbone']} | {len(miou['seeds'])} | {per_seed} | {signed(miou)} | "
+                f"{miou['wins']} of {miou['n']} | {p_text} | {signed(ece)} |"
             )
     done = [e for e in results["arms"] if e["status"] in ("done", "partial")]
     if done:

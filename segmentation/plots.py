@@ -1,4 +1,4 @@
-"""PNG figures for the segmentation reports: reliability diagram (Guo et al. 2017) and learning curves.
+"""PNG figures for the segmentation reports: reliability diagram (Guo et al. 2017), learning curves, paired seeds.
 
 Figures are built with `matplotlib.figure.Figure` (Agg canvas, no pyplot global state) and written atomically.
 """
@@ -122,5 +122,38 @@ def plot_learning_curve(
             ax.legend(fontsize=8)
         else:
             ax.text(0.5, 0.5, "no data", ha="center", va="center", transform=ax.transAxes)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def plot_paired(
+    paired: dict[str, dict], path: str | os.PathLike, reference: str, metrics: Sequence[str] = ("miou", "ece_per_scan")
+) -> None:
+    """Arm - reference per seed (points), one panel per metric: a dot per seed (labelled), mean ± std bar, zero line.
+
+    `paired[arm][metric]` is `segmentation.experiment.paired_differences` output (seeds, per_seed, mean, std, p).
+    """
+    arms = list(paired)
+    fig = Figure(figsize=(3.6 * len(metrics), 1.0 + 0.85 * max(len(arms), 1)))
+    axes = np.atleast_1d(fig.subplots(1, len(metrics), sharey=True))
+    for ax, metric in zip(axes, metrics):
+        for row, arm in enumerate(arms):
+            stat = paired[arm][metric]
+            diffs = 100 * np.asarray(stat["per_seed"], dtype=np.float64)
+            ax.scatter(diffs, np.full(len(diffs), row), color="tab:blue", s=18, zorder=3)
+            for seed, d in zip(stat["seeds"], diffs):
+                ax.annotate(str(seed), (d, row), textcoords="offset points", xytext=(0, -9), ha="center", fontsize=6)
+            if stat["mean"] is not None:
+                mean, std = 100 * stat["mean"], 100 * stat["std"]
+                ax.errorbar(mean, row - 0.3, xerr=std, fmt="D", color="black", markersize=4, capsize=3)
+                p_text = "" if stat.get("p") is None else f", p {stat['p']:.2f}"
+                ax.annotate(f"{mean:+.2f}{p_text}", (mean, row - 0.3), textcoords="offset points", xytext=(0, 5),
+                            ha="center", fontsize=7)  # fmt: skip
+        ax.axvline(0.0, color="tab:red", linewidth=1)
+        ax.set_xlabel(f"{metric} - {reference} (points)")
+        ax.grid(axis="x", alpha=0.3)
+    axes[0].set_yticks(range(len(arms)), arms)
+    axes[0].set_ylim(len(arms) - 0.4, -0.85)
+    fig.suptitle(f"paired by seed against {reference}: dots = seeds, diamond = mean ± std", fontsize=9)
     fig.tight_layout()
     _save(fig, path)

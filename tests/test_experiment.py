@@ -214,6 +214,8 @@ def test_report_only_trains_nothing_and_pairs_the_seeds_both_arms_finished(tmp_p
     assert "## Paired by seed against sup-only" in markdown and "| mt | minkunet | 1 | " in markdown
 
     assert "the last periodic evaluation (2 validation scans)" in markdown
+    png = tmp_path / "out" / "paired_minkunet.png"
+    assert results["paired_png_minkunet"] == png.name and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     # final_eval: each finished model.pt on all 3 validation scans, once (eval_full.json), reported instead
     assert (
