@@ -405,7 +405,7 @@ def results_markdown(results: dict) -> str:
         for e in paired:
             miou, ece = e["vs_reference"]["miou"], e["vs_reference"]["ece_per_scan"]
             per_seed = ", ".join(f"{100 * d:+.2f}" for d in miou["per_seed"])
-            p_text = "n/a" if miou["p"] is None else f"{miou['p']:.2f}"
+            p_text = "n/a" if miou["p"] is None else f"{miou['p']:.2g}"
             lines.append(
                 f"| {e['arm']} | {e['backbone']} | {len(miou['seeds'])} | {per_seed} | {signed(miou)} | "
                 f"{miou['wins']} of {miou['n']} | {p_text} | {signed(ece)} |"

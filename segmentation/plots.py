@@ -146,7 +146,7 @@ def plot_paired(
             if stat["mean"] is not None:
                 mean, std = 100 * stat["mean"], 100 * stat["std"]
                 ax.errorbar(mean, row - 0.3, xerr=std, fmt="D", color="black", markersize=4, capsize=3)
-                p_text = "" if stat.get("p") is None else f", p {stat['p']:.2f}"
+                p_text = "" if stat.get("p") is None else f", p {stat['p']:.2g}"
                 ax.annotate(f"{mean:+.2f}{p_text}", (mean, row - 0.3), textcoords="offset points", xytext=(0, 5),
                             ha="center", fontsize=7)  # fmt: skip
         ax.axvline(0.0, color="tab:red", linewidth=1)
