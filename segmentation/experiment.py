@@ -8,7 +8,7 @@ Each run trains into OUT/runs/ARM/BACKBONE/seedS: skipped once its metrics.json 
 last checkpoint when it was interrupted. An arm whose bank is missing is reported "missing" with the reason,
 never with numbers. Writes OUT/results.json, OUT/results.md, OUT/reliability_ARM_BACKBONE.png (bins pooled
 over seeds) and OUT/paired_BACKBONE.png, with every arm's mIoU and ECE paired by seed against a reference arm
-(sup-only by default): the difference per seed, its mean ± std, the seeds won and a paired t-test.
+(sup-only by default): the difference per seed, its mean ± std, the seeds where it is above 0 and a paired t-test.
 `--report-only` trains nothing and reports the finished runs, so arms with different numbers of finished seeds
 share one table.
 """
@@ -191,8 +191,8 @@ def run_metrics(run: SegTrainConfig, final_eval: bool, progress: bool) -> dict |
     return {**metrics, "periodic_miou": metrics["miou"], **{key: full.get(key) for key in keys}}
 
 
-def run_one(run: SegTrainConfig, progress: bool) -> dict:
-    """Train (or resume, or skip when finished) one run; returns its metrics plus the wall-clock seconds."""
+def run_one(run: SegTrainConfig, progress: bool) -> None:
+    """Train (or resume, or skip when finished) one run: afterwards RUN/metrics.json exists."""
     out = Path(run.out_dir)
     metrics_path = out / "metrics.json"
     if not metrics_path.is_file():
@@ -202,7 +202,6 @@ def run_one(run: SegTrainConfig, progress: bool) -> dict:
             if (out / "checkpoints").is_dir():
                 shutil.rmtree(out / "checkpoints")  # no step_*.pt in it (at most a partial temp file)
         train(run, resume=resume, progress=progress)
-    return finished_metrics(out)
 
 
 def finished_metrics(out: Path) -> dict | None:
@@ -234,13 +233,13 @@ def bins_from_dict(data: dict) -> ReliabilityBins:
 
 
 def paired_differences(reference: dict[int, float], other: dict[int, float]) -> dict:
-    """Seed-paired other - reference (seeds finished in both): per seed, mean ± std, seeds won, paired t-test p.
+    """Seed-paired other - reference (seeds finished in both): per seed, mean ± std, seeds above 0, paired t-test p.
 
     p is two-sided (scipy.stats.ttest_rel); None with fewer than 2 pairs or when every difference is the same.
     """
     seeds = sorted(set(reference) & set(other))
     diffs = [float(other[s] - reference[s]) for s in seeds]
-    summary = {"seeds": seeds, "per_seed": diffs, **mean_std(diffs), "wins": sum(d > 0 for d in diffs), "p": None}
+    summary = {"seeds": seeds, "per_seed": diffs, **mean_std(diffs), "above": sum(d > 0 for d in diffs), "p": None}
     if len(diffs) > 1 and np.ptp(diffs) > 0:
         summary["p"] = float(stats.ttest_rel([other[s] for s in seeds], [reference[s] for s in seeds]).pvalue)
     return summary
@@ -290,20 +289,22 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True, report_o
             runs = []
             for seed in cfg.seeds:
                 run = run_config(cfg, arm, backbone, seed)
-                if report_only:
-                    metrics = run_metrics(run, cfg.final_eval, progress)
-                    if metrics is not None:
-                        runs.append({"seed": seed, "out_dir": str(run.out_dir), **metrics})
-                    continue
-                print(f"{arm.name} / {backbone} / seed {seed} -> {run.out_dir}", file=sys.stderr)
-                donor = start_from_burn_in(run, donors_on_disk(out)) if cfg.share_burn_in else None
-                if donor is not None:
-                    print(f"  starts at step {run.semi.burn_in_steps} from {donor} (the same burn-in)", file=sys.stderr)
                 t0 = time.perf_counter()
-                run_one(run, progress)
+                if not report_only:
+                    print(f"{arm.name} / {backbone} / seed {seed} -> {run.out_dir}", file=sys.stderr)
+                    donor = start_from_burn_in(run, donors_on_disk(out)) if cfg.share_burn_in else None
+                    if donor is not None:
+                        print(
+                            f"  starts at step {run.semi.burn_in_steps} from {donor} (the same burn-in)",
+                            file=sys.stderr,
+                        )
+                    run_one(run, progress)
                 metrics = run_metrics(run, cfg.final_eval, progress)
+                if metrics is None:  # report_only: not finished
+                    continue
                 runs.append({"seed": seed, "out_dir": str(run.out_dir), **metrics})
-                print(f"  done in {time.perf_counter() - t0:.1f} s (mIoU {metrics.get('miou')})", file=sys.stderr)
+                if not report_only:
+                    print(f"  done in {time.perf_counter() - t0:.1f} s (mIoU {metrics.get('miou')})", file=sys.stderr)
             if not runs:
                 entry.update(status="not run", reason="no finished run")
                 results["arms"].append(entry)
@@ -408,7 +409,7 @@ def results_markdown(results: dict) -> str:
             p_text = "n/a" if miou["p"] is None else f"{miou['p']:.2g}"
             lines.append(
                 f"| {e['arm']} | {e['backbone']} | {len(miou['seeds'])} | {per_seed} | {signed(miou)} | "
-                f"{miou['wins']} of {miou['n']} | {p_text} | {signed(ece)} |"
+                f"{miou['above']} of {miou['n']} | {p_text} | {signed(ece)} |"
             )
     done = [e for e in results["arms"] if e["status"] in ("done", "partial")]
     if done:

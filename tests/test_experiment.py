@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -52,9 +53,9 @@ def test_paired_differences_by_seed():
     paired = paired_differences(reference, other)
     assert paired["seeds"] == [0, 1, 2] and paired["per_seed"] == pytest.approx([0.01, 0.02, 0.03])
     assert paired["mean"] == pytest.approx(0.02) and paired["std"] == pytest.approx(0.01) and paired["n"] == 3
-    assert paired["wins"] == 3 and paired["p"] == pytest.approx(0.07418, abs=1e-4)
+    assert paired["above"] == 3 and paired["p"] == pytest.approx(0.07418, abs=1e-4)
     # one pair, or the same difference in every seed: no test
-    assert paired_differences({0: 0.4}, {0: 0.3})["p"] is None and paired_differences({0: 0.4}, {0: 0.3})["wins"] == 0
+    assert paired_differences({0: 0.4}, {0: 0.3})["p"] is None and paired_differences({0: 0.4}, {0: 0.3})["above"] == 0
     assert paired_differences({0: 0.4, 1: 0.5}, {0: 0.5, 1: 0.6})["p"] is None
 
 
@@ -184,22 +185,24 @@ def test_arms_share_their_burn_in_and_end_as_if_trained_alone(tmp_path, capsys):
     assert [r["step"] for r in ema_log] == [1, 2, 3, 4] and "loss_mt" in ema_log[2]
 
 
-def test_report_only_trains_nothing_and_pairs_the_seeds_both_arms_finished(tmp_path):
-    """sup-only has seeds 0 and 1, mt seed 0: --report-only over seeds 0-2 reports both as partial, paired on seed 0."""
+def tiny_experiment(tmp_path: Path, overrides: str) -> tuple[Callable[..., int], Path]:
+    """`u4d experiment` on the tiny preset and a toy root, writing to tmp_path/out: (run(*args) -> exit code, root)."""
     root = write_toy_root(tmp_path / "toy")
     parser = argparse.ArgumentParser()
     add_experiment_arguments(parser)
-    common = [
-        str(TINY),
-        f"base={TINY_SEMI}",
-        f"overrides=[data.root={root}, optim.steps=2, eval_every=2, semi.burn_in_steps=1, data.val_max_scans=2]",
-    ]
-    arms = "arms=[{name: sup-only, mode: supervised}, {name: mt, mode: semi}, {name: mt-b, mode: semi}]"
+    common = [str(TINY), f"base={TINY_SEMI}", f"overrides=[data.root={root}, {overrides}]"]
     flags = ["--no-progress", "--out", str(tmp_path / "out")]
-    assert run_experiment(parser.parse_args([*common, "arms=[{name: sup-only}]", "seeds=[0, 1]", *flags])) == 0
-    assert run_experiment(parser.parse_args([*common, "arms=[{name: mt, mode: semi}]", "seeds=[0]", *flags])) == 0
+    return (lambda *args: run_experiment(parser.parse_args([*common, *args, *flags]))), root
+
+
+def test_report_only_trains_nothing_and_pairs_the_seeds_both_arms_finished(tmp_path):
+    """sup-only has seeds 0 and 1, mt seed 0: --report-only over seeds 0-2 reports both as partial, paired on seed 0."""
+    run, root = tiny_experiment(tmp_path, "optim.steps=2, eval_every=2, semi.burn_in_steps=1, data.val_max_scans=2")
+    arms = "arms=[{name: sup-only, mode: supervised}, {name: mt, mode: semi}, {name: mt-b, mode: semi}]"
+    assert run("arms=[{name: sup-only}]", "seeds=[0, 1]") == 0
+    assert run("arms=[{name: mt, mode: semi}]", "seeds=[0]") == 0
     before = sorted(p.relative_to(tmp_path) for p in (tmp_path / "out" / "runs").rglob("*"))
-    assert run_experiment(parser.parse_args([*common, arms, "seeds=[0, 1, 2]", "--report-only", *flags])) == 0
+    assert run(arms, "seeds=[0, 1, 2]", "--report-only") == 0
     assert sorted(p.relative_to(tmp_path) for p in (tmp_path / "out" / "runs").rglob("*")) == before  # trained nothing
 
     results = json.loads((tmp_path / "out" / "results.json").read_text())
@@ -218,12 +221,7 @@ def test_report_only_trains_nothing_and_pairs_the_seeds_both_arms_finished(tmp_p
     assert results["paired_png_minkunet"] == png.name and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     # final_eval: each finished model.pt on all 3 validation scans, once (eval_full.json), reported instead
-    assert (
-        run_experiment(
-            parser.parse_args([*common, arms, "seeds=[0, 1, 2]", "final_eval=true", "--report-only", *flags])
-        )
-        == 0
-    )
+    assert run(arms, "seeds=[0, 1, 2]", "final_eval=true", "--report-only") == 0
     full = json.loads((tmp_path / "out" / "results.json").read_text())["arms"][0]["runs"][0]
     run_dir = tmp_path / "out" / "runs" / "sup-only" / "minkunet" / "seed0"
     expected = evaluate(run_dir / "model.pt", root, ["01"], device="cpu")
@@ -239,17 +237,9 @@ def test_report_only_trains_nothing_and_pairs_the_seeds_both_arms_finished(tmp_p
 
 def test_an_arm_run_by_another_process_donates_its_burn_in(tmp_path):
     """`arms=[mt]` in a second invocation starts from the burn_in.pt of sup-only, trained by the first one."""
-    root = write_toy_root(tmp_path / "toy")
-    parser = argparse.ArgumentParser()
-    add_experiment_arguments(parser)
-    common = [
-        str(TINY),
-        f"base={TINY_SEMI}",
-        f"overrides=[data.root={root}, optim.steps=4, eval_every=4, semi.burn_in_steps=2]",
-    ]
-    flags = ["--no-progress", "--out", str(tmp_path / "out")]
-    assert run_experiment(parser.parse_args([*common, "arms=[{name: sup-only, mode: supervised}]", *flags])) == 0
-    assert run_experiment(parser.parse_args([*common, "arms=[{name: mt, mode: semi}]", *flags])) == 0
+    run, _ = tiny_experiment(tmp_path, "optim.steps=4, eval_every=4, semi.burn_in_steps=2")
+    assert run("arms=[{name: sup-only, mode: supervised}]") == 0
+    assert run("arms=[{name: mt, mode: semi}]") == 0
     runs = tmp_path / "out" / "runs"
     sup_log = [r for r in read_jsonl(runs / "sup-only" / "minkunet" / "seed0" / "log.jsonl") if "loss" in r]
     mt_log = [r for r in read_jsonl(runs / "mt" / "minkunet" / "seed0" / "log.jsonl") if "loss" in r]
