@@ -67,10 +67,25 @@ class OptimConfig:
     # wall-clock budget max_minutes (progress = max(step share, time share)), so a slower or busier machine still
     # anneals to min_lr inside the budget instead of being cut at a high lr (budgeted training, Li et al. 2020)
     anneal_to: Literal["steps", "budget"] = "steps"
+    # warm restart (SGDR, Loshchilov & Hutter 2017): the steps before restart_step keep the one schedule (cut there),
+    # then warm-up and cosine over the remaining steps from restart_lr (null = lr) down to min_lr_ratio of it; 0 =
+    # no restart. At semi.burn_in_steps it gives the mean-teacher phase a learning rate of its own instead of the
+    # tail of the burn-in's cosine, and the burn-in stays the same as sup-only's (shared through burn_in.pt).
+    restart_step: int = 0
+    restart_lr: float | None = None
 
     def __post_init__(self) -> None:
         if self.anneal_to not in ("steps", "budget"):
             raise ValueError(f"optim.anneal_to must be 'steps' or 'budget'; got {self.anneal_to!r}")
+        if self.restart_step and not self.warmup_steps <= self.restart_step < self.steps:
+            raise ValueError(
+                f"optim.restart_step must be 0 or in [warmup_steps, steps) = [{self.warmup_steps}, {self.steps}); "
+                f"got {self.restart_step}"
+            )
+        if self.restart_step and self.anneal_to == "budget":
+            raise ValueError("optim.restart_step needs optim.anneal_to=steps (a restart is placed in steps)")
+        if self.restart_lr is not None and self.restart_lr <= 0:
+            raise ValueError(f"optim.restart_lr must be positive or null; got {self.restart_lr}")
         if self.steps < 1 or self.batch_size < 1 or self.warmup_steps < 0:
             raise ValueError("optim.steps and optim.batch_size must be >= 1 and optim.warmup_steps >= 0")
         if self.lr <= 0 or not 0.0 <= self.min_lr_ratio <= 1.0:

@@ -128,6 +128,8 @@ def burn_in_signature(run: SegTrainConfig) -> str | None:
     for key in ("mode", "out_dir"):
         fixed.pop(key)
     fixed["semi"] = {"burn_in_steps": run.semi.burn_in_steps}
+    if run.optim.restart_step >= run.semi.burn_in_steps:  # a restart at or after the burn-in does not act in it
+        fixed["optim"].update(restart_step=0, restart_lr=None)
     return json.dumps(fixed, sort_keys=True, default=str)
 
 

@@ -100,14 +100,24 @@ def learning_rate(step: int, cfg: OptimConfig, time_fraction: float = 0.0) -> fl
     """Linear warm-up over warmup_steps, then cosine from lr down to min_lr_ratio * lr (nanoGPT get_lr).
 
     time_fraction (share of the wall-clock budget used, optim.anneal_to "budget") moves the cosine on when the
-    budget runs out before the steps do: progress = max(step progress, time_fraction).
+    budget runs out before the steps do: progress = max(step progress, time_fraction). With optim.restart_step the
+    steps before it keep this schedule (cut there, so a burn-in is unchanged) and a new warm-up and cosine over the
+    remaining steps start there from optim.restart_lr (a warm restart, SGDR: Loshchilov & Hutter 2017).
     """
+    if cfg.restart_step and step >= cfg.restart_step:
+        peak = cfg.lr if cfg.restart_lr is None else cfg.restart_lr
+        return _warmup_cosine(step - cfg.restart_step, cfg.steps - cfg.restart_step, peak, cfg, 0.0)
+    return _warmup_cosine(step, cfg.steps, cfg.lr, cfg, time_fraction)
+
+
+def _warmup_cosine(step: int, steps: int, peak: float, cfg: OptimConfig, time_fraction: float) -> float:
+    """One cycle of `steps` steps: linear warm-up to `peak`, cosine down to min_lr_ratio * peak."""
     if step < cfg.warmup_steps:
-        return cfg.lr * (step + 1) / cfg.warmup_steps
-    decay_steps = max(1, cfg.steps - cfg.warmup_steps)
+        return peak * (step + 1) / cfg.warmup_steps
+    decay_steps = max(1, steps - cfg.warmup_steps)
     progress = min(1.0, max((step - cfg.warmup_steps) / decay_steps, time_fraction))
-    min_lr = cfg.lr * cfg.min_lr_ratio
-    return min_lr + 0.5 * (1.0 + math.cos(math.pi * progress)) * (cfg.lr - min_lr)
+    min_lr = peak * cfg.min_lr_ratio
+    return min_lr + 0.5 * (1.0 + math.cos(math.pi * progress)) * (peak - min_lr)
 
 
 def make_optimizer(model: nn.Module, cfg: OptimConfig) -> torch.optim.AdamW:

@@ -247,6 +247,28 @@ def test_an_arm_run_by_another_process_donates_its_burn_in(tmp_path):
     assert not (runs / "mt" / "minkunet" / "seed0" / "burn_in.pt").is_file()
 
 
+def test_a_warm_restart_at_the_burn_in_still_shares_it(tmp_path):
+    """optim.restart_step = burn-in: the same first steps as sup-only (burn_in.pt shared), a new lr cycle after."""
+    run, _ = tiny_experiment(tmp_path, "optim.steps=4, optim.warmup_steps=1, eval_every=4, semi.burn_in_steps=2")
+    restart = "overrides: [optim.restart_step=2, optim.restart_lr=0.5]"
+    arms = f"arms=[{{name: sup-only, mode: supervised}}, {{name: mt-restart, mode: semi, {restart}}}]"
+    assert run(arms) == 0
+    runs = tmp_path / "out" / "runs"
+    sup_log = [r for r in read_jsonl(runs / "sup-only" / "minkunet" / "seed0" / "log.jsonl") if "loss" in r]
+    mt_log = [r for r in read_jsonl(runs / "mt-restart" / "minkunet" / "seed0" / "log.jsonl") if "loss" in r]
+    assert mt_log[:2] == sup_log[:2] and not (runs / "mt-restart" / "minkunet" / "seed0" / "burn_in.pt").is_file()
+    assert mt_log[2]["lr"] == pytest.approx(0.5) and mt_log[2]["lr"] > 2 * sup_log[2]["lr"]
+    cfg = load_config(ExperimentConfig, TINY, ["overrides=[semi.burn_in_steps=4]"])
+
+    def signature(*overrides: str) -> str | None:
+        return burn_in_signature(
+            run_config(cfg, ArmConfig(name="x", mode="semi", overrides=list(overrides)), "minkunet", 0)
+        )
+
+    assert signature("optim.restart_step=4", "optim.restart_lr=0.5") == signature()
+    assert signature("optim.restart_step=2") != signature()  # a restart inside the burn-in changes it
+
+
 @pytest.mark.parametrize("path", sorted((REPO / "configs" / "experiment").glob("*.yaml")), ids=lambda p: p.name)
 def test_experiment_configs_expand_into_valid_runs(path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(REPO)  # base presets are relative to the checkout

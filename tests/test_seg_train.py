@@ -219,6 +219,19 @@ def test_learning_rate_warmup_then_cosine():
     assert all(a >= b for a, b in itertools.pairwise(lrs))
 
 
+def test_learning_rate_warm_restart_keeps_the_steps_before_it():
+    one = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1)
+    cfg = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1, restart_step=60, restart_lr=0.5)
+    assert [learning_rate(s, cfg) for s in range(60)] == [learning_rate(s, one) for s in range(60)]
+    assert learning_rate(60, cfg) == pytest.approx(0.05)  # warm-up again, to restart_lr
+    assert learning_rate(69, cfg) == pytest.approx(0.5)
+    assert learning_rate(90, cfg) == pytest.approx(0.05 + 0.5 * 0.45)  # half-way down the second cosine
+    assert learning_rate(110, cfg) == pytest.approx(0.05)  # min_lr_ratio of restart_lr
+    assert learning_rate(69, OptimConfig(lr=1.0, warmup_steps=10, steps=110, restart_step=60)) == pytest.approx(1.0)
+    with pytest.raises(InputError, match="optim.restart_step must be 0 or in"):
+        load_config(SegTrainConfig, TINY, ["optim.restart_step=100000"])
+
+
 def test_learning_rate_annealed_to_the_budget_follows_the_larger_progress():
     cfg = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1, anneal_to="budget")
     assert learning_rate(60, cfg, 0.0) == learning_rate(60, cfg) == pytest.approx(0.55)  # steps ahead of time
