@@ -84,8 +84,8 @@ class OptimConfig:
             )
         if self.restart_step and self.anneal_to == "budget":
             raise ValueError("optim.restart_step needs optim.anneal_to=steps (a restart is placed in steps)")
-        if self.restart_lr is not None and self.restart_lr <= 0:
-            raise ValueError(f"optim.restart_lr must be positive or null; got {self.restart_lr}")
+        if self.restart_lr is not None and (self.restart_lr <= 0 or not self.restart_step):
+            raise ValueError(f"optim.restart_lr must be positive and needs optim.restart_step; got {self.restart_lr}")
         if self.steps < 1 or self.batch_size < 1 or self.warmup_steps < 0:
             raise ValueError("optim.steps and optim.batch_size must be >= 1 and optim.warmup_steps >= 0")
         if self.lr <= 0 or not 0.0 <= self.min_lr_ratio <= 1.0:

@@ -230,6 +230,8 @@ def test_learning_rate_warm_restart_keeps_the_steps_before_it():
     assert learning_rate(69, OptimConfig(lr=1.0, warmup_steps=10, steps=110, restart_step=60)) == pytest.approx(1.0)
     with pytest.raises(InputError, match="optim.restart_step must be 0 or in"):
         load_config(SegTrainConfig, TINY, ["optim.restart_step=100000"])
+    with pytest.raises(InputError, match="optim.restart_lr must be positive and needs optim.restart_step"):
+        load_config(SegTrainConfig, TINY, ["optim.restart_lr=0.5"])  # would be ignored without a restart step
 
 
 def test_learning_rate_annealed_to_the_budget_follows_the_larger_progress():
