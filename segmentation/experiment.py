@@ -8,7 +8,8 @@ Each run trains into OUT/runs/ARM/BACKBONE/seedS: skipped once its metrics.json 
 last checkpoint when it was interrupted. An arm whose bank is missing is reported "missing" with the reason,
 never with numbers. Writes OUT/results.json, OUT/results.md, OUT/reliability_ARM_BACKBONE.png (bins pooled
 over seeds) and OUT/paired_BACKBONE.png, with every arm's mIoU and ECE paired by seed against a reference arm
-(sup-only by default): the difference per seed, its mean ± std, the seeds where it is above 0 and a paired t-test.
+(sup-only by default): the difference per seed, its mean ± std, the seeds where it is above 0 and a paired t-test;
+`contrasts` adds the same comparison for any [arm, reference] pair (an ablation against its parent arm).
 `--report-only` trains nothing and reports the finished runs, so arms with different numbers of finished seeds
 share one table.
 """
@@ -77,6 +78,9 @@ class ExperimentConfig:
     share_burn_in: bool = True
     # the arm every other arm is paired with, seed by seed, in results.md; None = the first supervised arm
     reference_arm: str | None = None
+    # further seed-paired comparisons [arm, reference] between any two arms (an ablation against its parent arm,
+    # a treatment against its own control), reported as "arm - reference" beside the comparisons with reference_arm
+    contrasts: list[tuple[str, str]] = field(default_factory=list)
     # evaluate each finished run's model.pt once on every labelled scan of its data.val_sequences (RUN/eval_full.json,
     # reused) and report those figures instead of the periodic evaluation's (data.val_max_scans scans)
     final_eval: bool = False
@@ -87,6 +91,12 @@ class ExperimentConfig:
             raise ValueError(f"arms must be a non-empty list with distinct names; got {names}")
         if self.reference_arm is not None and self.reference_arm not in names:
             raise ValueError(f"reference_arm {self.reference_arm!r} is not one of the arms {names}")
+        for i, pair in enumerate(self.contrasts):
+            if len(pair) != 2 or pair[0] == pair[1]:
+                raise ValueError(f"contrasts[{i}] must be [arm, reference] with two different arms; got {list(pair)}")
+            unknown = [name for name in pair if name not in names]
+            if unknown:
+                raise ValueError(f"contrasts[{i}] names {unknown[0]!r}, which is not one of the arms {names}")
         if not self.backbones or not self.seeds:
             raise ValueError("backbones and seeds must not be empty")
 
@@ -247,6 +257,15 @@ def paired_differences(reference: dict[int, float], other: dict[int, float]) -> 
     return summary
 
 
+def paired_arms(reference: dict, other: dict) -> dict:
+    """Seed-paired mIoU and ECE-per-scan differences other - reference of two finished arm entries."""
+    paired = {"arm": reference["arm"]}
+    for key in ("miou", "ece_per_scan"):
+        values = [{r["seed"]: r[key] for r in entry["runs"] if r.get(key) is not None} for entry in (reference, other)]
+        paired[key] = paired_differences(*values)
+    return paired
+
+
 def compare_to_reference(arms: list[dict], reference: str) -> None:
     """Add "vs_reference" (paired mIoU and ECE-per-scan differences) to every finished arm but the reference."""
     for backbone in dict.fromkeys(e["backbone"] for e in arms):
@@ -256,10 +275,19 @@ def compare_to_reference(arms: list[dict], reference: str) -> None:
         for e in arms:
             if e is ref or e["backbone"] != backbone or not e.get("runs"):
                 continue
-            e["vs_reference"] = {"arm": reference}
-            for key in ("miou", "ece_per_scan"):
-                values = [{r["seed"]: r[key] for r in entry["runs"] if r.get(key) is not None} for entry in (ref, e)]
-                e["vs_reference"][key] = paired_differences(*values)
+            e["vs_reference"] = paired_arms(ref, e)
+
+
+def contrast_arms(arms: list[dict], contrasts: list[tuple[str, str]]) -> list[dict]:
+    """Per backbone and [arm, reference] pair with both finished: {"arm", "reference", "backbone", "miou", ...}."""
+    rows = []
+    for backbone in dict.fromkeys(e["backbone"] for e in arms):
+        finished = {e["arm"]: e for e in arms if e["backbone"] == backbone and e.get("runs")}
+        for name, reference in contrasts:
+            if name in finished and reference in finished:
+                paired = paired_arms(finished[reference], finished[name])
+                rows.append({**paired, "arm": name, "reference": reference, "backbone": backbone})
+    return rows
 
 
 def run_experiment_config(cfg: ExperimentConfig, progress: bool = True, report_only: bool = False) -> dict:
@@ -338,6 +366,7 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True, report_o
                 png = out / f"paired_{backbone}.png"
                 plot_paired(paired, png, reference)
                 results[f"paired_png_{backbone}"] = png.name
+    results["contrasts"] = contrast_arms(results["arms"], [tuple(pair) for pair in cfg.contrasts])
     atomic_write_json(out / "results.json", results)
     atomic_write_text(out / "results.md", results_markdown(results))
     return results
@@ -366,6 +395,12 @@ def results_markdown(results: dict) -> str:
 
     def signed(stat: dict) -> str:
         return pct(stat) if stat["mean"] is None else "+" * (stat["mean"] >= 0) + pct(stat)
+
+    def paired_cells(paired: dict) -> str:
+        miou, ece = paired["miou"], paired["ece_per_scan"]
+        per_seed = ", ".join(f"{100 * d:+.2f}" for d in miou["per_seed"])
+        p_text = "n/a" if miou["p"] is None else f"{miou['p']:.2g}"
+        return f"{per_seed} | {signed(miou)} | {miou['above']} of {miou['n']} | {p_text} | {signed(ece)}"
 
     scans = sorted({r.get("num_scans") for e in results["arms"] for r in e.get("runs", [])} - {None})
     scans_text = "/".join(str(n) for n in scans) or "?"
@@ -406,13 +441,21 @@ def results_markdown(results: dict) -> str:
             "|---|---|---|---|---|---|---|---|",
         ]
         for e in paired:
-            miou, ece = e["vs_reference"]["miou"], e["vs_reference"]["ece_per_scan"]
-            per_seed = ", ".join(f"{100 * d:+.2f}" for d in miou["per_seed"])
-            p_text = "n/a" if miou["p"] is None else f"{miou['p']:.2g}"
-            lines.append(
-                f"| {e['arm']} | {e['backbone']} | {len(miou['seeds'])} | {per_seed} | {signed(miou)} | "
-                f"{miou['above']} of {miou['n']} | {p_text} | {signed(ece)} |"
-            )
+            seeds = len(e["vs_reference"]["miou"]["seeds"])
+            lines.append(f"| {e['arm']} | {e['backbone']} | {seeds} | " + paired_cells(e["vs_reference"]) + " |")
+    if results.get("contrasts"):
+        lines += [
+            "",
+            "## Contrasts (points)",
+            "",
+            "arm - reference, paired by seed on the seeds both finished; p: two-sided paired t-test.",
+            "",
+            "| arm | reference | backbone | mIoU difference per seed | mean ± std | seeds won | p "
+            "| ECE per scan diff. |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for c in results["contrasts"]:
+            lines.append(f"| {c['arm']} | {c['reference']} | {c['backbone']} | " + paired_cells(c) + " |")
     done = [e for e in results["arms"] if e["status"] in ("done", "partial")]
     if done:
         classes = list(done[0]["iou"])

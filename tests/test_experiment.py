@@ -234,6 +234,23 @@ def test_report_only_trains_nothing_and_pairs_the_seeds_both_arms_finished(tmp_p
     with pytest.raises(InputError, match="reference_arm 'nope'"):
         load_config(ExperimentConfig, TINY, [arms, "reference_arm=nope"])
 
+    # contrasts: mt - sup-only (as vs_reference), sup-only - mt (negated); mt-b - mt left out (no finished run)
+    contrasts = "contrasts=[[mt, sup-only], [sup-only, mt], [mt-b, mt]]"
+    assert run(arms, "seeds=[0, 1, 2]", contrasts, "--report-only") == 0
+    results = json.loads((tmp_path / "out" / "results.json").read_text())
+    row, back = results["contrasts"]
+    assert (row["arm"], row["reference"], row["backbone"]) == ("mt", "sup-only", "minkunet")
+    assert row["miou"] == results["arms"][1]["vs_reference"]["miou"]
+    assert row["ece_per_scan"]["per_seed"] == results["arms"][1]["vs_reference"]["ece_per_scan"]["per_seed"]
+    assert (back["arm"], back["reference"]) == ("sup-only", "mt") and back["miou"]["seeds"] == [0]
+    assert back["miou"]["per_seed"] == pytest.approx([-d for d in row["miou"]["per_seed"]])
+    markdown = (tmp_path / "out" / "results.md").read_text()
+    assert "## Contrasts (points)" in markdown and "| mt | sup-only | minkunet | " in markdown
+    with pytest.raises(InputError, match=r"contrasts\[1\] names 'nope'"):
+        load_config(ExperimentConfig, TINY, [arms, "contrasts=[[mt, sup-only], [mt, nope]]"])
+    with pytest.raises(InputError, match=r"contrasts\[0\] must be \[arm, reference\] with two different arms"):
+        load_config(ExperimentConfig, TINY, [arms, "contrasts=[[mt, mt]]"])
+
 
 def test_an_arm_run_by_another_process_donates_its_burn_in(tmp_path):
     """`arms=[mt]` in a second invocation starts from the burn_in.pt of sup-only, trained by the first one."""
