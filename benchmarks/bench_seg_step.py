@@ -3,6 +3,7 @@
     python benchmarks/bench_seg_step.py                      # cpu_minkunet preset: loss on points vs on voxels
     python benchmarks/bench_seg_step.py --steps 4 --threads 1
     python benchmarks/bench_seg_step.py --variant "" --variant "loss.level=voxel data.max_points=30000"
+    python benchmarks/bench_seg_step.py --steps 2 --threads 1 --variant "" --profile   # where a step's time goes
 
 Every variant gets its own net (same seed, so the same initial weights), its own AdamW and the batches the
 training loop would draw (`segmentation.train.TrainBatches`: the preset's scans, point subsets and
@@ -10,11 +11,16 @@ augmentation, step for step). The steps interleave - variant A step s, variant B
 changes on the machine hit every variant alike; one warm-up step each, then the median over --steps timed
 steps of the whole `supervised_step` + backward + optimiser step. Also reports how many rows the losses read
 per step (points, or voxels with loss.level=voxel). Writes benchmarks/results/seg_step.json.
+
+--profile: the timed steps run under torch.profiler; per variant the operators with the most self time (share of
+the profiled time) and the rate of the matrix products (aten::mm FLOPs / its self time) against the profiled
+steps, which tells whether a step is bound by arithmetic (fewer FLOPs help) or by gathers and scatters.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import platform
 import shlex
 import statistics
@@ -23,6 +29,7 @@ import time
 from pathlib import Path
 
 import torch
+from torch.profiler import ProfilerActivity, profile
 
 from segmentation.config import SegTrainConfig
 from segmentation.losses import class_weights
@@ -69,6 +76,30 @@ def set_up(config: Path, variants: list[str]) -> list[dict]:
     return runs
 
 
+def add_profile(ops: dict, profiler: profile) -> None:
+    """Accumulate self CPU seconds, calls and FLOPs per operator name from one profiled step into `ops`."""
+    for event in profiler.key_averages():
+        entry = ops.setdefault(event.key, {"self_seconds": 0.0, "calls": 0, "flops": 0})
+        entry["self_seconds"] += event.self_cpu_time_total / 1e6
+        entry["calls"] += event.count
+        entry["flops"] += event.flops or 0
+
+
+def profile_summary(ops: dict, top: int = 12) -> dict:
+    """The `top` operators by self time (seconds, share, calls) and the rate of aten::mm over the profiled steps."""
+    total = sum(entry["self_seconds"] for entry in ops.values())
+    ranked = sorted(ops.items(), key=lambda item: -item[1]["self_seconds"])[:top]
+    mm = ops.get("aten::mm", {"self_seconds": 0.0, "flops": 0})
+    return {
+        "profiled_seconds": total,
+        "mm_gflop_per_second": mm["flops"] / mm["self_seconds"] / 1e9 if mm["self_seconds"] else 0.0,
+        "top_ops": [
+            {"op": name, "self_seconds": e["self_seconds"], "share": e["self_seconds"] / total, "calls": e["calls"]}
+            for name, e in ranked
+        ],
+    }
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, default=REPO / "configs" / "seg" / "cpu_minkunet.yaml")
@@ -80,6 +111,7 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=6, help="timed steps per variant (after one warm-up step)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "seg_step.json")
+    parser.add_argument("--profile", action="store_true", help="operator breakdown of the timed steps (torch.profiler)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     variants = args.variant if args.variant is not None else ["loss.level=point", "loss.level=voxel"]
@@ -92,14 +124,19 @@ def main() -> int:
     for step in range(args.steps + 1):
         for run in runs:
             batch = run["batches"][step]
-            start = time.perf_counter()
-            losses = supervised_step(run["model"], batch, run["cfg"], torch.device("cpu"), run["weight"])
-            run["optimizer"].zero_grad(set_to_none=True)
-            losses["loss"].backward()
-            run["optimizer"].step()
+            profiler = profile(activities=[ProfilerActivity.CPU], with_flops=True) if args.profile and step else None
+            with profiler or contextlib.nullcontext():
+                start = time.perf_counter()
+                losses = supervised_step(run["model"], batch, run["cfg"], torch.device("cpu"), run["weight"])
+                run["optimizer"].zero_grad(set_to_none=True)
+                losses["loss"].backward()
+                run["optimizer"].step()
+                seconds = time.perf_counter() - start
             if step:
-                run["times"].append(time.perf_counter() - start)
+                run["times"].append(seconds)
                 run["rows"].append(loss_rows(run["cfg"], batch))
+            if profiler is not None:
+                add_profile(run.setdefault("ops", {}), profiler)
         print(f"step {step}/{args.steps}", file=sys.stderr, flush=True)
 
     base = statistics.median(runs[0]["times"])
@@ -116,6 +153,8 @@ def main() -> int:
                 "step_times": run["times"],
             }
         )
+        if "ops" in run:
+            rows[-1]["profile"] = profile_summary(run["ops"])
     print(f"\n{args.config.name}, {args.threads} thread(s), median of {args.steps} steps (batch as in the preset)")
     print(f"{'variant':<48} {'s/step':>7} {'steps/s':>8} {'speed-up':>8} {'loss rows':>10}")
     for row in rows:
@@ -134,6 +173,15 @@ def main() -> int:
             "rows": rows,
         },
     )
+    for row in rows:
+        if "profile" in row:
+            prof = row["profile"]
+            print(
+                f"\n{row['variant']}: {prof['profiled_seconds']:.2f} s profiled, matrix products at "
+                f"{prof['mm_gflop_per_second']:.1f} GFLOP/s"
+            )
+            for op in prof["top_ops"]:
+                print(f"  {op['op']:<40} {op['self_seconds']:7.3f} s {100 * op['share']:5.1f} % {op['calls']:7d} calls")
     print(f"wrote {args.out}")
     return 0
 
