@@ -14,7 +14,8 @@ per step (points, or voxels with loss.level=voxel). Writes benchmarks/results/se
 
 --profile: the timed steps run under torch.profiler; per variant the operators with the most self time (share of
 the profiled time) and the rate of the matrix products (aten::mm FLOPs / its self time) against the profiled
-steps, which tells whether a step is bound by arithmetic (fewer FLOPs help) or by gathers and scatters.
+steps, which tells whether a step is bound by arithmetic (fewer FLOPs help) or by gathers and scatters. The step
+times of a --profile run include the profiler's overhead: compare variants within it, not with runs without it.
 """
 
 from __future__ import annotations
