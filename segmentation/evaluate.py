@@ -23,6 +23,8 @@ from tqdm import tqdm
 from segmentation.metrics import CalibrationAccumulator, ConfusionMatrix, iou_per_class, summarize
 from segmentation.plots import plot_reliability
 from segmentation.predict import (
+    add_views_argument,
+    check_views,
     load_checkpoint,
     model_from_checkpoint,
     parse_sequences,
@@ -44,8 +46,10 @@ def accumulate(
     rank: int = 0,
     world_size: int = 1,
     progress: bool = False,
+    views: int = 1,
 ) -> tuple[ConfusionMatrix, CalibrationAccumulator]:
-    """Confusion matrix + calibration over dataset[indices] (this rank's share, then gathered over ranks)."""
+    """Confusion matrix + calibration over dataset[indices] (this rank's share, then gathered over ranks);
+    views 2-4 score the mean softmax over mirror views (test-time augmentation, predict_probs)."""
     was_training = model.training
     model.eval()
     cm = ConfusionMatrix(num_classes, ignore_index)
@@ -54,7 +58,7 @@ def accumulate(
         item = dataset[index]
         if item["labels"] is None:
             continue
-        probs = predict_probs(model, item["points"], device)  # (N, K)
+        probs = predict_probs(model, item["points"], device, views)  # (N, K)
         target = torch.from_numpy(item["labels"])  # (N,) train ids, ignore id kept
         cm.update(probs.argmax(dim=1), target)
         calibration.update(probs, target)
@@ -90,8 +94,11 @@ def evaluate(
     reliability_png: str | Path | None = None,
     dist_info: DistInfo | None = None,
     progress: bool = False,
+    views: int = 1,
 ) -> dict:
-    """Summary dict (per-class IoU, mIoU, mIoU over present classes, ECE per scan and pooled, bins)."""
+    """Summary dict (per-class IoU, mIoU, mIoU over present classes, ECE per scan and pooled, bins);
+    views 2-4: test-time augmentation over mirror views (predict_probs)."""
+    check_views(views)
     info = dist_info or init_distributed(device)
     ckpt = load_checkpoint(checkpoint)
     model = model_from_checkpoint(ckpt, info.device, str(checkpoint))
@@ -103,7 +110,7 @@ def evaluate(
     indices = evenly_spaced(len(dataset), max_scans)
     cm, calibration = accumulate(
         model, dataset, indices, info.device, num_classes, SEMANTICKITTI_IGNORE,
-        info.rank, info.world_size, progress and info.is_main,
+        info.rank, info.world_size, progress and info.is_main, views,
     )  # fmt: skip
     summary = summary_of(cm, calibration, class_names)
     summary.update(
@@ -111,6 +118,7 @@ def evaluate(
         step=ckpt.get("step"),
         data_root=str(data_root),
         sequences=dataset.sequences,
+        views=views,
     )
     if reliability_png is not None and info.is_main:
         plot_reliability(calibration.pooled, reliability_png, title=Path(checkpoint).stem)
@@ -158,6 +166,7 @@ def add_seg_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--png", type=Path, default=None, help="write the reliability diagram here")
     parser.add_argument("--max-scans", type=int, default=None, help="evaluate this many evenly spaced scans")
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    add_views_argument(parser)
 
 
 def run_seg_eval(args: argparse.Namespace) -> int:
@@ -174,6 +183,7 @@ def run_seg_eval(args: argparse.Namespace) -> int:
             reliability_png=args.png,
             dist_info=info,
             progress=not args.json,
+            views=args.views,
         )
     finally:
         cleanup()

@@ -22,6 +22,7 @@ import math
 import shutil
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -290,17 +291,25 @@ def contrast_arms(arms: list[dict], contrasts: list[tuple[str, str]]) -> list[di
     return rows
 
 
-def run_experiment_config(cfg: ExperimentConfig, progress: bool = True, report_only: bool = False) -> dict:
+def run_experiment_config(
+    cfg: ExperimentConfig, progress: bool = True, report_only: bool = False, train_arms: Sequence[str] | None = None
+) -> dict:
     """Every run (skipping finished ones), then results.json, results.md and the reliability PNGs.
 
     report_only: train nothing; report the runs that have finished (an arm with some seeds finished is "partial"),
-    evaluating those whose full evaluation is missing when final_eval is set.
+    evaluating those whose full evaluation is missing when final_eval is set. train_arms: train only these arms
+    (names of cfg.arms), report the others as report_only does.
     """
+    names = [arm.name for arm in cfg.arms]
+    unknown = [name for name in train_arms or () if name not in names]
+    if unknown:
+        raise InputError(f"--arms: {unknown[0]!r} is not an arm of the experiment; its arms are {names}")
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "experiment.yaml")
     results: dict = {"config": config_to_dict(cfg), "arms": []}
     for arm in cfg.arms:
+        train = not report_only and (train_arms is None or arm.name in train_arms)
         problem = bank_problem(arm)
         for backbone in cfg.backbones:
             bank = None if arm.bank is None else str(arm.bank)
@@ -320,7 +329,7 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True, report_o
             for seed in cfg.seeds:
                 run = run_config(cfg, arm, backbone, seed)
                 t0 = time.perf_counter()
-                if not report_only:
+                if train:
                     print(f"{arm.name} / {backbone} / seed {seed} -> {run.out_dir}", file=sys.stderr)
                     donor = start_from_burn_in(run, donors_on_disk(out)) if cfg.share_burn_in else None
                     if donor is not None:
@@ -330,10 +339,10 @@ def run_experiment_config(cfg: ExperimentConfig, progress: bool = True, report_o
                         )
                     run_one(run, progress)
                 metrics = run_metrics(run, cfg.final_eval, progress)
-                if metrics is None:  # report_only: not finished
+                if metrics is None:  # not trained here and not finished
                     continue
                 runs.append({"seed": seed, "out_dir": str(run.out_dir), **metrics})
-                if not report_only:
+                if train:
                     print(f"  done in {time.perf_counter() - t0:.1f} s (mIoU {metrics.get('miou')})", file=sys.stderr)
             if not runs:
                 entry.update(status="not run", reason="no finished run")
@@ -479,6 +488,13 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--report-only", action="store_true", help="train nothing: results.json / results.md of the finished runs"
     )
+    parser.add_argument(
+        "--arms",
+        nargs="+",
+        default=None,
+        metavar="NAME",
+        help="train only these arms of the config (the report still covers every arm's finished runs)",
+    )
 
 
 def run_experiment(args: argparse.Namespace) -> int:
@@ -486,7 +502,9 @@ def run_experiment(args: argparse.Namespace) -> int:
     cfg = load_config(ExperimentConfig, args.config, args.overrides)
     if args.out is not None:
         cfg.out_dir = args.out
-    results = run_experiment_config(cfg, progress=not args.no_progress, report_only=args.report_only)
+    results = run_experiment_config(
+        cfg, progress=not args.no_progress, report_only=args.report_only, train_arms=args.arms
+    )
     print((Path(cfg.out_dir) / "results.md").read_text())
     return 0 if results["arms"] else 1
 

@@ -3,9 +3,9 @@
 `u4d seg-predict CKPT DATA --out DIR` writes, for every scan `DATA/sequences/XX/velodyne/NNNNNN.bin`,
 `DIR/sequences/XX/probs/NNNNNN.npy`: float16 (N, K) softmax probabilities, rows in the order of the scan's
 points (all N rows of the .bin; a NaN/inf point gets the uniform 1/K row), plus `DIR/manifest.json` naming the
-checkpoint (sha256[:16]) and its config. Any segmentor that writes these files can drive U4D. Files are
-written atomically and existing ones are skipped, so a re-run resumes; under torchrun each rank takes every
-world_size-th scan.
+checkpoint (sha256[:16]), its config and the test-time views (`--views 2-4`: mean softmax over the scan's mirror
+views). Any segmentor that writes these files can drive U4D. Files are written atomically and existing ones
+are skipped, so a re-run resumes; under torchrun each rank takes every world_size-th scan.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from segmentation.mean_teacher import mirror_views
 from segmentation.models import SegModelConfig, build_model
 from u4d_aug.config import config_from_dict
 from u4d_aug.data.datasets import SEMANTICKITTI_SPLITS, list_frames, resolve_sequences, scan_path
@@ -65,19 +66,32 @@ def checkpoint_hash(path: str | Path) -> str:
 
 
 @torch.no_grad()
-def predict_probs(model: nn.Module, points: np.ndarray | torch.Tensor, device: torch.device) -> torch.Tensor:
-    """Softmax probabilities (N, K) float32 on the CPU of one scan (N, 4); the model must be in eval mode."""
-    points = torch.as_tensor(points, dtype=torch.float32)
-    logits = model([points.to(device)])  # (N, K)
-    return logits.float().softmax(dim=1).cpu()
+def predict_probs(
+    model: nn.Module, points: np.ndarray | torch.Tensor, device: torch.device, views: int = 1
+) -> torch.Tensor:
+    """Softmax probabilities (N, K) float32 on the CPU of one scan (N, 4); the model must be in eval mode.
+
+    views 2-4: test-time augmentation, the mean softmax over the scan and its x / y / xy mirror views
+    (`mean_teacher.mirror_views`), the flips the training augmentation draws; one view per forward.
+    """
+    points = torch.as_tensor(points, dtype=torch.float32).to(device)
+    if views == 1:
+        return model([points]).float().softmax(dim=1).cpu()  # (N, K)
+    total = None
+    for view in mirror_views(points, views):
+        probs = model([view]).float().softmax(dim=1)  # (N, K)
+        total = probs if total is None else total + probs
+    return (total / views).cpu()
 
 
-def scan_probs(model: nn.Module, points: np.ndarray, device: torch.device, num_classes: int) -> np.ndarray:
+def scan_probs(
+    model: nn.Module, points: np.ndarray, device: torch.device, num_classes: int, views: int = 1
+) -> np.ndarray:
     """(N, K) float16 for all N rows of a raw scan; rows with NaN/inf coordinates get the uniform 1/K."""
     finite = np.isfinite(points).all(axis=1)
     probs = np.full((len(points), num_classes), 1.0 / num_classes, dtype=np.float32)
     if finite.any():
-        probs[finite] = predict_probs(model, points[finite], device).numpy()
+        probs[finite] = predict_probs(model, points[finite], device, views).numpy()
     return probs.astype(np.float16)
 
 
@@ -93,8 +107,13 @@ def predict_root(
     sequences: str | list[str] | None = None,
     dist_info: DistInfo | None = None,
     progress: bool = True,
+    views: int = 1,
 ) -> dict:
-    """Write the probabilities of every scan of `sequences` under out_dir (skip existing) and the manifest."""
+    """Write the probabilities of every scan of `sequences` under out_dir (skip existing) and the manifest.
+
+    views 2-4 average the softmax over mirror views (predict_probs); the manifest records the count.
+    """
+    check_views(views)
     info = dist_info or init_distributed("auto")
     out_dir = Path(out_dir)
     ckpt = load_checkpoint(checkpoint)
@@ -110,6 +129,7 @@ def predict_root(
         "config": ckpt["config"],
         "step": ckpt.get("step"),
         "num_classes": num_classes,
+        "views": views,
         "class_names": list(ckpt.get("class_names") or SEMANTICKITTI_CLASSES[:num_classes]),
         "dtype": "float16",
         "layout": "sequences/XX/probs/NNNNNN.npy, (N, K) rows in scan point order",
@@ -132,7 +152,7 @@ def predict_root(
             skipped += 1
             continue
         points = read_kitti_scan(scan_path(data_root, seq, frame))
-        atomic_save_npy(target, scan_probs(model, points, info.device, num_classes))
+        atomic_save_npy(target, scan_probs(model, points, info.device, num_classes, views))
         written += 1
     barrier()
     if info.is_main:
@@ -154,6 +174,17 @@ def _check_manifest(path: Path, manifest: dict) -> None:
             f"{path}: written by checkpoint {old.get('checkpoint_sha256')}, not "
             f"{manifest['checkpoint_sha256']}; choose another --out (two segmentors' probabilities would mix)"
         )
+    if old.get("views", 1) != manifest["views"]:
+        raise InputError(
+            f"{path}: written with --views {old.get('views', 1)}, not {manifest['views']}; "
+            "choose another --out (probabilities of two test-time augmentations would mix)"
+        )
+
+
+def check_views(views: int) -> None:
+    """--views must name 1-4 mirror views (scan, x, y, xy mirrored)."""
+    if not 1 <= views <= 4:
+        raise InputError(f"--views must be 1-4 (the scan and its x / y / xy mirror views), got {views}")
 
 
 def parse_sequences(values: list[str] | None) -> str | list[str] | None:
@@ -177,7 +208,18 @@ def add_seg_predict_arguments(parser: argparse.ArgumentParser) -> None:
         help="sequences (e.g. 00 01), ranges (00-87) or a split name; default all",
     )
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    add_views_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def add_views_argument(parser: argparse.ArgumentParser) -> None:
+    """--views N: test-time augmentation over N mirror views (1 = the scan only)."""
+    parser.add_argument(
+        "--views",
+        type=int,
+        default=1,
+        help="test-time augmentation: mean softmax over the scan and its x/y/xy mirror views (1-4; default 1)",
+    )
 
 
 def run_seg_predict(args: argparse.Namespace) -> int:
@@ -191,6 +233,7 @@ def run_seg_predict(args: argparse.Namespace) -> int:
             parse_sequences(args.sequences),
             dist_info=info,
             progress=not args.no_progress,
+            views=args.views,
         )
     finally:
         cleanup()

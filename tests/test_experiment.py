@@ -251,6 +251,21 @@ def test_report_only_trains_nothing_and_pairs_the_seeds_both_arms_finished(tmp_p
     with pytest.raises(InputError, match=r"contrasts\[0\] must be \[arm, reference\] with two different arms"):
         load_config(ExperimentConfig, TINY, [arms, "contrasts=[[mt, mt]]"])
 
+    # --arms: trains only the named arm (mt-b, seed 0) with the config's arms and contrasts, reports every arm
+    before = {p.relative_to(tmp_path) for p in (tmp_path / "out" / "runs").rglob("*") if "mt-b" not in p.parts}
+    assert run(arms, "seeds=[0, 1, 2]", contrasts, "--arms", "mt-b") == 0
+    results = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert [(a["arm"], a["status"]) for a in results["arms"]] == [
+        ("sup-only", "partial"),
+        ("mt", "partial"),
+        ("mt-b", "done"),
+    ]
+    after = {p.relative_to(tmp_path) for p in (tmp_path / "out" / "runs").rglob("*") if "mt-b" not in p.parts}
+    assert after == before  # the other arms' unfinished seeds were not trained
+    assert [c["arm"] for c in results["contrasts"]] == ["mt", "sup-only", "mt-b"]
+    with pytest.raises(InputError, match="--arms: 'nope' is not an arm of the experiment"):
+        run(arms, "seeds=[0]", "--arms", "nope")
+
 
 def test_an_arm_run_by_another_process_donates_its_burn_in(tmp_path):
     """`arms=[mt]` in a second invocation starts from the burn_in.pt of sup-only, trained by the first one."""

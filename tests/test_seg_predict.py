@@ -130,6 +130,43 @@ def test_predict_rejects_bad_inputs(trained, tmp_path):
         predict_root(ckpt, root, tmp_path / "o", sequences=["07"], progress=False)
 
 
+def test_views_average_the_softmax_over_mirror_views(trained, tmp_path):
+    """Test-time augmentation: views=k is the mean of the single-view softmax of the first k mirror views."""
+    root, ckpt = trained
+    model = model_from_checkpoint(load_checkpoint(ckpt), torch.device("cpu"))
+    points = torch.from_numpy(read_kitti_scan(root / "sequences" / "00" / "velodyne" / "000001.bin").copy())
+    cpu = torch.device("cpu")
+    signs = [(1, 1), (-1, 1), (1, -1), (-1, -1)]
+    single = []
+    for sx, sy in signs:
+        view = points.clone()
+        view[:, 0] *= sx
+        view[:, 1] *= sy
+        single.append(predict_probs(model, view, cpu))  # (N, K)
+    assert not torch.allclose(single[0], single[1], atol=1e-4)  # the mirror views do change the prediction
+    for views in (1, 2, 4):
+        expected = torch.stack(single[:views]).mean(dim=0)
+        torch.testing.assert_close(predict_probs(model, points, cpu, views), expected, atol=1e-5, rtol=1e-4)
+    assert torch.equal(points, torch.from_numpy(read_kitti_scan(root / "sequences" / "00" / "velodyne" / "000001.bin")))
+
+    # seg-eval scores the averaged probabilities; seg-predict records the views and refuses to mix two counts
+    summary = evaluate(ckpt, root, ["00"], views=2)
+    cm = ConfusionMatrix(19, SEMANTICKITTI_IGNORE)
+    for item in ScanDataset(root, ["00"]):
+        cm.update(predict_probs(model, item["points"], cpu, 2).argmax(1), item["labels"])
+    assert summary["views"] == 2 and summary["miou"] == pytest.approx(mean_iou(cm.matrix))
+    out = tmp_path / "probs"
+    assert run_seg_predict(_predict_args(str(ckpt), str(root), "--out", str(out), "--views", "4", "--no-progress")) == 0
+    assert json.loads((out / "manifest.json").read_text())["views"] == 4
+    probs = np.load(probs_path(out, "00", "000001")).astype(np.float32)
+    np.testing.assert_allclose(probs, torch.stack(single).mean(dim=0).numpy(), atol=2e-3)
+    with pytest.raises(InputError, match="--views 4, not 1"):
+        predict_root(ckpt, root, out, progress=False)
+    for bad in (0, 5):
+        with pytest.raises(InputError, match="--views must be 1-4"):
+            evaluate(ckpt, root, ["00"], views=bad)
+
+
 def test_evaluate_matches_metrics_by_hand(trained, tmp_path):
     root, ckpt = trained
     png = tmp_path / "rel.png"
