@@ -146,10 +146,14 @@ def mirror_views(points: torch.Tensor, views: int) -> list[torch.Tensor]:
     return out
 
 
+def mean_view_probs(view_logits: list[torch.Tensor]) -> torch.Tensor:
+    """Mean softmax over views, (N, K) logits each -> (N, K) float32 probabilities (test-time augmentation)."""
+    return torch.stack([F.softmax(logits.float(), dim=1) for logits in view_logits]).mean(dim=0)
+
+
 def mean_view_logits(view_logits: list[torch.Tensor]) -> torch.Tensor:
     """log of the mean softmax over views, (N, K) each -> (N, K): its softmax is the averaged distribution."""
-    probs = torch.stack([F.softmax(logits.float(), dim=1) for logits in view_logits]).mean(dim=0)  # (N, K)
-    return probs.clamp_min(1e-12).log()
+    return mean_view_probs(view_logits).clamp_min(1e-12).log()
 
 
 def consistency_loss(student_logits: torch.Tensor, teacher_logits: torch.Tensor) -> torch.Tensor:

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from segmentation.mean_teacher import mirror_views
+from segmentation.mean_teacher import mean_view_probs, mirror_views
 from segmentation.models import SegModelConfig, build_model
 from u4d_aug.config import config_from_dict
 from u4d_aug.data.datasets import SEMANTICKITTI_SPLITS, list_frames, resolve_sequences, scan_path
@@ -75,13 +75,7 @@ def predict_probs(
     (`mean_teacher.mirror_views`), the flips the training augmentation draws; one view per forward.
     """
     points = torch.as_tensor(points, dtype=torch.float32).to(device)
-    if views == 1:
-        return model([points]).float().softmax(dim=1).cpu()  # (N, K)
-    total = None
-    for view in mirror_views(points, views):
-        probs = model([view]).float().softmax(dim=1)  # (N, K)
-        total = probs if total is None else total + probs
-    return (total / views).cpu()
+    return mean_view_probs([model([view]) for view in mirror_views(points, views)]).cpu()  # (N, K)
 
 
 def scan_probs(
