@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import statistics
 import sys
 import time
@@ -37,6 +35,7 @@ from u4d_aug.config import load_config
 from u4d_aug.data.datasets import list_frames
 from u4d_aug.errors import InputError
 from u4d_aug.generate import GenerateConfig, generate_bank
+from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json, atomic_write_text
 from u4d_aug.metrics.evaluate import evaluate
 from u4d_aug.pipeline import load_generator
@@ -191,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {
         "benchmark": "generation",
         "command": " ".join(sys.argv),
-        "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count()},
+        "machine": host_info(),
         "torch": torch.__version__,
         "root": str(args.root),
         "reference": args.reference,

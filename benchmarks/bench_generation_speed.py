@@ -36,7 +36,6 @@ import argparse
 import dataclasses
 import functools
 import os
-import platform
 import statistics
 import sys
 import time
@@ -51,6 +50,7 @@ from u4d_aug.config import load_config
 from u4d_aug.diffusion import GaussianDiffusion
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
+from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json
 from u4d_aug.pipeline import Loaded, generate_baseline, generate_stage1, generate_u4d, load_generator
 from u4d_aug.train import DiffusionTrainConfig, build_net, stage_inputs
@@ -465,7 +465,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {
         "benchmark": "generation_speed",
         "command": " ".join(["python", "benchmarks/bench_generation_speed.py", *(argv or sys.argv[1:])]),
-        "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count()},
+        "machine": host_info(),
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "(default)"),

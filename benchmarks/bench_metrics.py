@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import functools
 import os
-import platform
 import statistics
 import time
 from collections.abc import Callable
@@ -26,6 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json
 from u4d_aug.metrics.bev import MMD_REPORT_SCALE, bev_histogram, bev_jsd, bev_mmd
 from u4d_aug.metrics.frechet import frechet_from_features, polynomial_mmd
@@ -210,7 +210,7 @@ def main() -> int:
             "threads": args.threads,
             "cpu_count": os.cpu_count(),
             "load_average_1min_before": load_before,
-            "machine": platform.machine(),
+            "machine": host_info(),
             "quick": args.quick,
             "reps": args.reps,
             "results": rows,

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import functools
 import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -24,6 +23,7 @@ import numpy as np
 import torch
 
 from u4d_aug.data.sensors import hdl64
+from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json
 from u4d_aug.range_view import project, project_batch, roundtrip_stats, to_image, unproject
 
@@ -158,7 +158,7 @@ def main() -> int:
             "cpu_count": os.cpu_count(),
             "load_average_1min_before": load_before,
             "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "(default)"),
-            "machine": platform.machine(),
+            "machine": host_info(),
             "quick": args.quick,
             "results": rows,
         },

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import platform
 import shlex
 import statistics
 import sys
@@ -40,6 +39,7 @@ from segmentation.train import TrainBatches, make_optimizer, supervised_step, tr
 from u4d_aug.config import load_config
 from u4d_aug.distributed import DistInfo
 from u4d_aug.errors import InputError
+from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json
 
 REPO = Path(__file__).resolve().parents[1]
@@ -170,7 +170,7 @@ def main() -> int:
             "config": str(args.config),
             "threads": args.threads,
             "steps": args.steps,
-            "machine": {"platform": platform.platform(), "torch": torch.__version__, "cpus": torch.get_num_threads()},
+            "machine": host_info(),
             "rows": rows,
         },
     )

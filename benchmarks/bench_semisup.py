@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import statistics
 import sys
 import time
@@ -27,6 +25,7 @@ from pathlib import Path
 import torch
 from peak_memory import peak_mb, run_case, start_memory_window
 
+from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json
 
 REPO = Path(__file__).resolve().parents[1]
@@ -125,7 +124,7 @@ def main() -> int:
         args.out,
         {
             "command": " ".join(["python", "benchmarks/bench_semisup.py", *sys.argv[1:]]),
-            "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count()},
+            "machine": host_info(),
             "torch": torch.__version__,
             "threads": args.threads,
             "preset": str(PRESET.relative_to(REPO)),

@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -45,6 +43,7 @@ from peak_memory import peak_mb, run_case, start_memory_window
 
 from segmentation.models import SegModelConfig, build_model
 from segmentation.sparse import SparseConv3d, SparseTensor, voxelize
+from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json
 
 REPO = Path(__file__).resolve().parents[1]
@@ -302,7 +301,7 @@ def main() -> int:
         args.out,
         {
             "command": " ".join(["python", "benchmarks/bench_sparse.py", *sys.argv[1:]]),
-            "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count()},
+            "machine": host_info(),
             "torch": torch.__version__,
             "threads": args.threads,
             "crop_m": {"xy_abs_lt": CROP_XY, "z": [-CROP_Z, CROP_Z]},

@@ -65,6 +65,7 @@ from u4d_aug.distributed import (
     init_distributed,
 )
 from u4d_aug.errors import InputError
+from u4d_aug.host import host_info
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_json, atomic_write_text, read_jsonl
 
 CHECKPOINT_FORMAT = "u4d-seg-checkpoint"
@@ -359,6 +360,8 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
     if info.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
         save_config(cfg, out_dir / "config.yaml")
+        # the machine of each start and resume: wall-clock figures read with it (u4d_aug/host.py)
+        append_jsonl(out_dir / "hosts.jsonl", {"step": start_step, "world_size": info.world_size, **host_info()})
         if class_weight is not None and start_step == 0:
             names = class_names(cfg)
             append_jsonl(log_path, {"step": 0, "class_weight": dict(zip(names, class_weight.tolist()))})

@@ -400,6 +400,9 @@ def test_resume_in_a_fresh_process_is_bit_exact(toy_root, tmp_path):
         assert torch.equal(a[key], b[key]), key
     steps = [r["step"] for r in read_jsonl(half / "log.jsonl") if "loss" in r]
     assert steps == list(range(1, 7))  # records after the checkpoint were replaced, not duplicated
+    hosts = read_jsonl(half / "hosts.jsonl")  # one machine record per start: here only the resume at step 3
+    assert [h["step"] for h in hosts] == [3] and hosts[0]["cores"] >= 1 and hosts[0]["world_size"] == 1
+    assert [h["step"] for h in read_jsonl(full / "hosts.jsonl")] == [0]
 
 
 def _overrides(cfg: SegTrainConfig) -> list[str]:
