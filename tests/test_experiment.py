@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -310,8 +311,13 @@ def test_experiment_configs_expand_into_valid_runs(path: Path, monkeypatch: pyte
             arm.name: run_config(cfg, arm, backbone, cfg.seeds[0]) for arm in cfg.arms
         }  # each arm's overrides parse
         assert len({run.out_dir for run in runs.values()}) == len(runs)
-        # each semi arm with a copied burn-in teacher can start from a supervised arm's burn_in.pt
-        supervised = {burn_in_signature(run) for run in runs.values() if run.mode == "supervised"}
+        # each semi arm with a copied burn-in teacher takes its first burn_in_steps steps as a supervised arm does
+        # (the pairing by seed holds); it starts from that arm's burn_in.pt when the two burn-ins are as long
+        supervised = [run for run in runs.values() if run.mode == "supervised"]
         for name, run in runs.items():
             signature = burn_in_signature(run) if run.mode == "semi" else None
-            assert signature is None or signature in supervised, f"{name} shares no supervised arm's burn-in"
+            if signature is None:
+                continue
+            steps = run.semi.burn_in_steps
+            partners = {burn_in_signature(replace(r, semi=replace(r.semi, burn_in_steps=steps))) for r in supervised}
+            assert signature in partners, f"{name} shares no supervised arm's first steps"
