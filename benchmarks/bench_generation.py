@@ -191,7 +191,6 @@ def main(argv: list[str] | None = None) -> int:
         "benchmark": "generation",
         "command": " ".join(sys.argv),
         "machine": host_info(),
-        "torch": torch.__version__,
         "root": str(args.root),
         "reference": args.reference,
         "floor_sequences": args.floor,

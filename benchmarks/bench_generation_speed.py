@@ -466,7 +466,6 @@ def main(argv: list[str] | None = None) -> int:
         "benchmark": "generation_speed",
         "command": " ".join(["python", "benchmarks/bench_generation_speed.py", *(argv or sys.argv[1:])]),
         "machine": host_info(),
-        "torch": torch.__version__,
         "threads": torch.get_num_threads(),
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "(default)"),
         "load_average_before": list(load_before),

@@ -125,7 +125,6 @@ def main() -> int:
         {
             "command": " ".join(["python", "benchmarks/bench_semisup.py", *sys.argv[1:]]),
             "machine": host_info(),
-            "torch": torch.__version__,
             "threads": args.threads,
             "preset": str(PRESET.relative_to(REPO)),
             "max_points": args.max_points,

@@ -302,7 +302,6 @@ def main() -> int:
         {
             "command": " ".join(["python", "benchmarks/bench_sparse.py", *sys.argv[1:]]),
             "machine": host_info(),
-            "torch": torch.__version__,
             "threads": args.threads,
             "crop_m": {"xy_abs_lt": CROP_XY, "z": [-CROP_Z, CROP_Z]},
             "memory_method": "VmHWM after a clear_refs reset minus VmRSS before; one subprocess per case",
