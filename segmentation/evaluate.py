@@ -20,8 +20,15 @@ import torch.distributed as dist
 from torch import nn
 from tqdm import tqdm
 
-from segmentation.metrics import CalibrationAccumulator, ConfusionMatrix, iou_per_class, summarize
-from segmentation.plots import plot_reliability
+from segmentation.metrics import (
+    CalibrationAccumulator,
+    ConfusionMatrix,
+    iou_per_class,
+    mean_iou,
+    summarize,
+    top_confusions,
+)
+from segmentation.plots import plot_confusion, plot_reliability
 from segmentation.predict import (
     add_views_argument,
     check_views,
@@ -95,8 +102,9 @@ def evaluate(
     dist_info: DistInfo | None = None,
     progress: bool = False,
     views: int = 1,
+    confusion_png: str | Path | None = None,
 ) -> dict:
-    """Summary dict (per-class IoU, mIoU, mIoU over present classes, ECE per scan and pooled, bins);
+    """Summary dict (per-class IoU, mIoU, mIoU over present classes, ECE per scan and pooled, bins, confusion);
     views 2-4: test-time augmentation over mirror views (predict_probs)."""
     check_views(views)
     info = dist_info or init_distributed(device)
@@ -122,6 +130,9 @@ def evaluate(
     )
     if reliability_png is not None and info.is_main:
         plot_reliability(calibration.pooled, reliability_png, title=Path(checkpoint).stem)
+    if confusion_png is not None and info.is_main:
+        name = f"{Path(checkpoint).parent.name}/{Path(checkpoint).name}"
+        plot_confusion(cm.matrix, class_names, confusion_png, title=f"{name}: mIoU {100 * mean_iou(cm.matrix):.1f} %")
     return summary
 
 
@@ -133,17 +144,25 @@ def evenly_spaced(count: int, limit: int | None) -> list[int]:
 
 
 def format_summary(summary: dict) -> str:
-    """Human-readable table: per-class IoU (%), mIoU, mIoU over present classes, both ECEs (%)."""
+    """Human-readable table: per-class IoU (%) with the two classes each is most mistaken for, mIoU, mIoU over
+    present classes, both ECEs (%)."""
 
     def pct(value: float | None) -> str:
         return "   n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{100 * value:6.2f}"
 
     present = set(summary.get("classes_present", []))
-    width = max(len(name) for name in summary["iou"])
-    lines = [f"{'class':<{width}}  IoU (%)"]
-    for name, value in summary["iou"].items():
-        mark = "" if name in present else "   (no ground truth)"
-        lines.append(f"{name:<{width}}  {pct(value)}{mark}")
+    names = list(summary["iou"])
+    width = max(len(name) for name in names)
+    confused = top_confusions(summary["confusion"]) if summary.get("confusion") is not None else None
+    lines = [f"{'class':<{width}}  IoU (%)" + ("  its points predicted as (share)" if confused else "")]
+    for k, (name, value) in enumerate(summary["iou"].items()):
+        if name not in present:
+            mark = "   (no ground truth)"
+        elif confused is not None:
+            mark = "  " + ", ".join(f"{names[c]} {100 * share:.0f} %" for c, share in confused[k])
+        else:
+            mark = ""
+        lines.append(f"{name:<{width}}  {pct(value)}{mark}".rstrip())
     lines += [
         "",
         f"mIoU (classes with a union)         {pct(summary['miou'])} %",
@@ -156,7 +175,7 @@ def format_summary(summary: dict) -> str:
 
 
 def add_seg_eval_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of `u4d seg-eval CKPT DATA [--sequences ..] [--json] [--png OUT]`."""
+    """Arguments of `u4d seg-eval CKPT DATA [--sequences ..] [--json] [--png OUT] [--confusion-png OUT]`."""
     parser.add_argument("checkpoint", type=Path, help="segmentation checkpoint (.pt from u4d seg-train)")
     parser.add_argument("data", type=Path, help="SemanticKITTI-layout root with labels")
     parser.add_argument(
@@ -164,6 +183,9 @@ def add_seg_eval_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--json", action="store_true", help="print the summary as json")
     parser.add_argument("--png", type=Path, default=None, help="write the reliability diagram here")
+    parser.add_argument(
+        "--confusion-png", type=Path, default=None, help="write the row-normalised confusion matrix here"
+    )
     parser.add_argument("--max-scans", type=int, default=None, help="evaluate this many evenly spaced scans")
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     add_views_argument(parser)
@@ -181,6 +203,7 @@ def run_seg_eval(args: argparse.Namespace) -> int:
             parse_sequences(args.sequences),
             max_scans=args.max_scans,
             reliability_png=args.png,
+            confusion_png=args.confusion_png,
             dist_info=info,
             progress=not args.json,
             views=args.views,

@@ -102,6 +102,25 @@ def mean_iou(cm: Array) -> float:
     return float(np.nanmean(iou))
 
 
+def confusion_shares(cm: Array) -> np.ndarray:
+    """(K, K) row-normalised confusion: share of class r's ground-truth points predicted as c (0 where r is absent)."""
+    cm = np.asarray(cm.cpu() if isinstance(cm, torch.Tensor) else cm, dtype=np.float64)
+    totals = cm.sum(axis=1, keepdims=True)
+    return np.divide(cm, totals, out=np.zeros_like(cm), where=totals > 0)
+
+
+def top_confusions(cm: Array, k: int = 2) -> list[list[tuple[int, float]]]:
+    """Per ground-truth class, the k other classes its points are most often predicted as, with those shares
+    (largest first; classes with a zero share left out)."""
+    shares = confusion_shares(cm)
+    np.fill_diagonal(shares, 0.0)
+    out = []
+    for row in shares:
+        order = np.argsort(-row, kind="stable")[:k]
+        out.append([(int(c), float(row[c])) for c in order if row[c] > 0])
+    return out
+
+
 # ------------------------------------------------------------------------------------------------ ECE
 
 
@@ -276,4 +295,5 @@ def summarize(cm: ConfusionMatrix, calibration: CalibrationAccumulator, class_na
         "ece_pooled": None if math.isnan(calibration.ece_pooled) else calibration.ece_pooled,
         "num_scans": len(calibration.scan_eces),
         "bins": calibration.pooled.to_dict(),
+        "confusion": cm.matrix.tolist(),  # (K, K) point counts, rows = ground truth, columns = prediction
     }

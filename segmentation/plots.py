@@ -1,4 +1,5 @@
-"""PNG figures for the segmentation reports: reliability diagram (Guo et al. 2017), learning curves, paired seeds.
+"""PNG figures for the segmentation reports: reliability diagram (Guo et al. 2017), confusion matrix, learning
+curves, paired seeds.
 
 Figures are built with `matplotlib.figure.Figure` (Agg canvas, no pyplot global state) and written atomically.
 """
@@ -13,7 +14,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from segmentation.metrics import ReliabilityBins
+from segmentation.metrics import ReliabilityBins, confusion_shares
 from u4d_aug.io import atomic_open
 
 X_KEYS = ("step", "iteration", "iter", "epoch")
@@ -67,6 +68,28 @@ def plot_reliability(bins: ReliabilityBins, path: str | os.PathLike, title: str 
     bottom.bar(centres, bins.count / max(bins.total, 1), width=width, edgecolor="black", color="tab:gray")
     bottom.set_xlabel("confidence")
     bottom.set_ylabel("fraction")
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def plot_confusion(matrix: np.ndarray, class_names: Sequence[str], path: str | os.PathLike, title: str = "") -> None:
+    """Row-normalised confusion matrix (share of each ground-truth class per predicted class, %), cells >= 1 %
+    written in; rows without ground truth left blank."""
+    shares = confusion_shares(matrix)  # (K, K)
+    present = np.asarray(matrix).sum(axis=1) > 0
+    k = len(class_names)
+    fig = Figure(figsize=(1.6 + 0.42 * k, 1.2 + 0.38 * k))
+    ax = fig.subplots()
+    image = ax.imshow(np.where(present[:, None], 100 * shares, np.nan), cmap="Blues", vmin=0, vmax=100)
+    for r, c in zip(*np.nonzero(shares >= 0.01)):
+        color = "white" if shares[r, c] > 0.6 else "black"
+        ax.text(c, r, f"{100 * shares[r, c]:.0f}", ha="center", va="center", fontsize=6, color=color)
+    ax.set_xticks(range(k), class_names, rotation=90, fontsize=7)
+    ax.set_yticks(range(k), class_names, fontsize=7)
+    ax.set_xlabel("predicted")
+    ax.set_ylabel("ground truth")
+    fig.colorbar(image, ax=ax, fraction=0.04, label="% of the ground-truth points")
+    ax.set_title(title or "confusion (rows sum to 100 %)", fontsize=9)
     fig.tight_layout()
     _save(fig, path)
 

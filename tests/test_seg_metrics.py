@@ -14,15 +14,17 @@ from segmentation.metrics import (
     ConfusionMatrix,
     ReliabilityBins,
     confusion_matrix,
+    confusion_shares,
     expected_calibration_error,
     iou_per_class,
     mean_iou,
     reliability_bins,
     scan_ece,
     summarize,
+    top_confusions,
     top_label,
 )
-from segmentation.plots import plot_learning_curve, plot_reliability
+from segmentation.plots import plot_confusion, plot_learning_curve, plot_reliability
 
 # ----------------------------------------------------------------------------------------------- IoU
 
@@ -35,6 +37,15 @@ def test_miou_hand_computed():
     # IoU_c = TP / (TP + FP + FN): 1/3, 2/3, 0/1
     np.testing.assert_allclose(iou_per_class(cm), [1 / 3, 2 / 3, 0.0])
     assert mean_iou(cm) == pytest.approx(1 / 3)
+
+
+def test_confusion_shares_and_top_confusions_hand_computed():
+    # rows = ground truth: class 0 has 4 points (2 right, 1 as 1, 1 as 2), class 1 3 points, class 2 none
+    cm = np.array([[2, 1, 1], [3, 0, 0], [0, 0, 0]])
+    np.testing.assert_allclose(confusion_shares(cm), [[0.5, 0.25, 0.25], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    assert top_confusions(cm) == [[(1, 0.25), (2, 0.25)], [(0, 1.0)], []]  # ties in class order, zeros left out
+    assert top_confusions(cm, k=1) == [[(1, 0.25)], [(0, 1.0)], []]
+    assert top_confusions(torch.tensor(cm))[1] == [(0, 1.0)]
 
 
 def test_miou_skips_absent_classes():
@@ -183,6 +194,7 @@ def test_bins_add_and_summary():
     assert summary["miou"] == pytest.approx(1 / 3)  # IoU a = 1/3, b = 1/3
     assert summary["ece_per_scan"] == pytest.approx((ECE1 + ECE2) / 2)
     assert summary["bins"]["count"][9] == 3 and summary["bins"]["accuracy"][0] is None
+    assert summary["confusion"] == cm.matrix.tolist()
 
 
 # --------------------------------------------------------------------------------------------- plots
@@ -201,7 +213,8 @@ def test_plots_write_png_atomically(tmp_path):
     records += [{"step": 25, "miou": 0.4, "ece_pooled": 0.05}, {"step": 50, "miou": 0.5}]
     plot_learning_curve(records, tmp_path / "sub" / "curve.png")
     plot_learning_curve([], tmp_path / "none.png")
-    for name in ("rel.png", "empty.png", "sub/curve.png", "none.png"):
+    plot_confusion(np.array([[5, 1, 0], [2, 7, 0], [0, 0, 0]]), ["a", "b", "c"], tmp_path / "confusion.png")
+    for name in ("rel.png", "empty.png", "sub/curve.png", "none.png", "confusion.png"):
         assert _is_png(tmp_path / name)
     leftovers = [p.name for p in tmp_path.rglob("*") if p.name.endswith(".tmp")]
     assert leftovers == []

@@ -20,7 +20,7 @@ from segmentation.evaluate import (
     format_summary,
     run_seg_eval,
 )
-from segmentation.metrics import CalibrationAccumulator, ConfusionMatrix, mean_iou
+from segmentation.metrics import CalibrationAccumulator, ConfusionMatrix, mean_iou, top_confusions
 from segmentation.predict import (
     add_seg_predict_arguments,
     checkpoint_hash,
@@ -185,6 +185,7 @@ def test_evaluate_matches_metrics_by_hand(trained, tmp_path):
     assert summary["classes_present"] == ["car", "road", "building"]
     present = [summary["iou"][c] for c in summary["classes_present"]]
     assert summary["miou_present"] == pytest.approx(np.mean(present))
+    np.testing.assert_array_equal(summary["confusion"], cm.matrix)
     assert "mIoU" in format_summary(summary)
 
 
@@ -195,10 +196,22 @@ def test_run_seg_eval_prints_table_and_json(trained, tmp_path, capsys):
     assert run_seg_eval(parser.parse_args([str(ckpt), str(root), "--sequences", "01", "--json"])) == 0
     summary = json.loads(capsys.readouterr().out)
     assert set(summary) >= {"miou", "iou", "ece_per_scan", "ece_pooled", "bins", "miou_present"}
-    png = tmp_path / "r.png"
-    assert run_seg_eval(parser.parse_args([str(ckpt), str(root), "--max-scans", "2", "--png", str(png)])) == 0
+    png, confusion_png = tmp_path / "r.png", tmp_path / "c.png"
+    # the 3 scans of sequence 01 again, so that the table shows the summary printed as json above
+    args = [str(ckpt), str(root), "--sequences", "01", "--max-scans", "3", "--png", str(png)]
+    args += ["--confusion-png", str(confusion_png)]
+    assert run_seg_eval(parser.parse_args(args)) == 0
     text = capsys.readouterr().out
     assert "ECE per scan" in text and "road" in text and png.is_file()
+    assert confusion_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # each class row names what its points are mistaken for, from the confusion matrix of the summary
+    names, checked = list(summary["iou"]), 0
+    for k, confused in enumerate(top_confusions(summary["confusion"])):
+        if confused:
+            row = next(line for line in text.splitlines() if line.startswith(names[k] + " "))
+            assert f"{names[confused[0][0]]} {100 * confused[0][1]:.0f} %" in row
+            checked += 1
+    assert checked > 0  # the tiny net mistakes some class for another
 
 
 def test_evenly_spaced():
