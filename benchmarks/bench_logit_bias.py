@@ -58,7 +58,8 @@ def iou_with_bias(log_probs: torch.Tensor, target: torch.Tensor, bias: torch.Ten
     return iou_per_class(cm.matrix), cm.matrix
 
 
-def main(argv: list[str] | None = None) -> int:
+def run(argv: list[str] | None = None) -> int:
+    """Parse the arguments, measure, print the table and write the json."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("checkpoint", type=Path)
     parser.add_argument("data", type=Path)
@@ -71,8 +72,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     names = list(SEMANTICKITTI_CLASSES)
     unknown = [c for c in args.classes if c not in names]
-    if unknown or args.every < 1:
-        raise InputError(f"--classes: unknown {unknown} (valid: {names}); --every must be >= 1, got {args.every}")
+    if unknown:
+        raise InputError(f"--classes: unknown class names {unknown}; valid: {names}")
+    if args.every < 1:
+        raise InputError(f"--every must be >= 1, got {args.every}")
     torch.set_num_threads(args.threads)
     log_probs, target = collect(args.checkpoint, args.data, parse_sequences(args.sequences), args.every)
     k = log_probs.shape[1]
@@ -111,6 +114,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(f"wrote {args.out}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`run`, with bad input (unknown class, missing checkpoint or data, no labelled scan) as a one-line error."""
+    try:
+        return run(argv)
+    except InputError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -29,7 +29,8 @@ from u4d_aug.errors import InputError  # noqa: E402
 from u4d_aug.viz import draw_bev, label_colors, save_figure  # noqa: E402
 
 
-def main(argv: list[str] | None = None) -> int:
+def run(argv: list[str] | None = None) -> int:
+    """Parse the arguments, predict the scan, print its largest errors and draw the figure."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("checkpoint", type=Path)
     parser.add_argument("data", type=Path)
@@ -82,6 +83,15 @@ def main(argv: list[str] | None = None) -> int:
     save_figure(fig, args.out)
     print(f"wrote {args.out}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`run`, with bad input (unknown class, missing checkpoint or data, no labelled scan) as a one-line error."""
+    try:
+        return run(argv)
+    except InputError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":
