@@ -27,7 +27,7 @@ from segmentation.metrics import ConfusionMatrix, iou_per_class, top_confusions
 from segmentation.predict import load_checkpoint, model_from_checkpoint, parse_sequences, predict_probs
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
-from u4d_aug.errors import InputError
+from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json
 
@@ -118,11 +118,7 @@ def run(argv: list[str] | None = None) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """`run`, with bad input (unknown class, missing checkpoint or data, no labelled scan) as a one-line error."""
-    try:
-        return run(argv)
-    except InputError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    return exit_code_of(run, argv)
 
 
 if __name__ == "__main__":

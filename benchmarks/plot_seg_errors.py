@@ -25,7 +25,7 @@ import torch  # noqa: E402
 from segmentation.predict import load_checkpoint, model_from_checkpoint, predict_probs  # noqa: E402
 from u4d_aug.data.datasets import ScanDataset  # noqa: E402
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE  # noqa: E402
-from u4d_aug.errors import InputError  # noqa: E402
+from u4d_aug.errors import InputError, exit_code_of  # noqa: E402
 from u4d_aug.viz import draw_bev, label_colors, save_figure  # noqa: E402
 
 
@@ -87,11 +87,7 @@ def run(argv: list[str] | None = None) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """`run`, with bad input (unknown class, missing checkpoint or data, no labelled scan) as a one-line error."""
-    try:
-        return run(argv)
-    except InputError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    return exit_code_of(run, argv)
 
 
 if __name__ == "__main__":
