@@ -40,7 +40,7 @@ from segmentation.predict import (
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
 from u4d_aug.distributed import DistInfo, cleanup, init_distributed, shard
-from u4d_aug.errors import InputError
+from u4d_aug.errors import InputError, exit_code_of
 
 
 def accumulate(
@@ -219,11 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     """`python -m segmentation.evaluate CKPT DATA ...`: as `u4d seg-eval`."""
     parser = argparse.ArgumentParser(prog="python -m segmentation.evaluate", description=run_seg_eval.__doc__)
     add_seg_eval_arguments(parser)
-    try:
-        return run_seg_eval(parser.parse_args(argv))
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    return exit_code_of(lambda args: run_seg_eval(parser.parse_args(args)), argv)
 
 
 if __name__ == "__main__":

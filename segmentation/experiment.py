@@ -38,7 +38,7 @@ from segmentation.plots import plot_paired, plot_reliability
 from segmentation.train import train
 from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.datasets import ScanDataset
-from u4d_aug.errors import InputError
+from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import atomic_torch_save, atomic_write_json, atomic_write_text, read_jsonl
 
 
@@ -513,11 +513,7 @@ def main(argv: list[str] | None = None) -> int:
     """`python -m segmentation.experiment CONFIG ...`: the same as `u4d experiment`."""
     parser = argparse.ArgumentParser(prog="python -m segmentation.experiment", description=run_experiment.__doc__)
     add_experiment_arguments(parser)
-    try:
-        return run_experiment(parser.parse_args(argv))
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    return exit_code_of(lambda args: run_experiment(parser.parse_args(args)), argv)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ from u4d_aug.data.datasets import SEMANTICKITTI_SPLITS, list_frames, resolve_seq
 from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES
 from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
-from u4d_aug.errors import InputError
+from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import atomic_save_npy, atomic_write_json
 
 MANIFEST_FORMAT = "u4d-seg-probs"
@@ -245,11 +245,7 @@ def main(argv: list[str] | None = None) -> int:
     """`python -m segmentation.predict CKPT DATA --out DIR`: as `u4d seg-predict`, handy under torchrun."""
     parser = argparse.ArgumentParser(prog="python -m segmentation.predict", description=run_seg_predict.__doc__)
     add_seg_predict_arguments(parser)
-    try:
-        return run_seg_predict(parser.parse_args(argv))
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    return exit_code_of(lambda args: run_seg_predict(parser.parse_args(args)), argv)
 
 
 if __name__ == "__main__":

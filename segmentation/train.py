@@ -64,7 +64,7 @@ from u4d_aug.distributed import (
     cleanup,
     init_distributed,
 )
-from u4d_aug.errors import InputError
+from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.host import host_info
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_json, atomic_write_text, read_jsonl
 
@@ -540,11 +540,7 @@ def main(argv: list[str] | None = None) -> int:
     """`python -m segmentation.train CONFIG ...`: the same as `u4d seg-train`, handy under torchrun."""
     parser = argparse.ArgumentParser(prog="python -m segmentation.train", description=run_seg_train.__doc__)
     add_seg_train_arguments(parser)
-    try:
-        return run_seg_train(parser.parse_args(argv))
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    return exit_code_of(lambda args: run_seg_train(parser.parse_args(args)), argv)
 
 
 if __name__ == "__main__":

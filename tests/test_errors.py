@@ -43,3 +43,23 @@ def test_benchmark_scripts_report_bad_input_in_one_line(tmp_path, script, args, 
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"error: {names}") and "'lorry'" in lines[0]
+
+
+@pytest.mark.parametrize(
+    ("module", "args"),
+    [
+        ("segmentation.train", ["{missing}"]),
+        ("segmentation.evaluate", ["{missing}", "{tmp}"]),
+        ("segmentation.predict", ["{missing}", "{tmp}", "--out", "{tmp}/probs"]),
+        ("segmentation.experiment", ["{missing}"]),
+        ("u4d_aug.train", ["{missing}"]),
+        ("u4d_aug.generate", ["{missing}", "--out", "{tmp}/bank"]),
+    ],
+)
+def test_torchrun_entry_points_report_a_missing_file_in_one_line(tmp_path, capsys, module, args):
+    missing = tmp_path / "nowhere.yaml"
+    argv = [a.format(missing=missing, tmp=tmp_path) for a in args]
+    main = __import__(module, fromlist=["main"]).main
+    assert main(argv) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "nowhere.yaml" in lines[0]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import shlex
 from pathlib import Path
 
 import pytest
@@ -62,3 +64,13 @@ def test_fewlabel_fit_changes_only_lr_and_loss_level():
         assert (b.optim.lr, b.loss.level) == (0.01, "voxel")
         b.optim.lr, b.loss.level, b.out_dir = a.optim.lr, a.loss.level, a.out_dir
         assert a == b
+
+
+def test_supervised_cpu_preset_is_the_measured_recipe():
+    """configs/seg/cpu_minkunet.yaml is what its results json measured: the recorded overrides change nothing."""
+    results = CONFIGS.parent / "benchmarks" / "results" / "seg_cpu_rich" / "lean_voxel025_lr02_seeds.json"
+    words = shlex.split(json.loads(results.read_text())["command"])
+    overrides = [w for w in words if "=" in w and not w.startswith(("threads=", "seed=", "OMP_NUM_THREADS="))]
+    assert len(overrides) >= 4  # decoder channels and blocks, voxel size, lr, steps
+    preset = CONFIGS / "seg" / "cpu_minkunet.yaml"
+    assert load_config(SegTrainConfig, preset, overrides) == load_config(SegTrainConfig, preset)

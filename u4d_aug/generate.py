@@ -34,7 +34,7 @@ from u4d_aug.config import config_to_dict, load_config
 from u4d_aug.data.datasets import ScanDataset, SequenceDataset
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.distributed import barrier, cleanup, init_distributed, shard
-from u4d_aug.errors import InputError
+from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.pipeline import Sampler, complete, generate_baseline, generate_u4d, load_generator, to_points
 from u4d_aug.train import DiffusionTrainConfig
 from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
@@ -290,11 +290,7 @@ def main(argv: list[str] | None = None) -> int:
     """`python -m u4d_aug.generate CONFIG ...`: the same as `u4d generate`, handy under torchrun."""
     parser = argparse.ArgumentParser(prog="python -m u4d_aug.generate", description=run_generate.__doc__)
     add_generate_arguments(parser)
-    try:
-        return run_generate(parser.parse_args(argv))
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    return exit_code_of(lambda args: run_generate(parser.parse_args(args)), argv)
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.diffusion import DiffusionConfig, GaussianDiffusion
 from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, budget_used, cleanup, init_distributed
 from u4d_aug.ema import EMA
-from u4d_aug.errors import InputError
+from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_text, read_jsonl
 from u4d_aug.nn.unet import RangeUNet, UNetConfig
 from u4d_aug.range_view import RowMode, project, ray_angles, to_image
@@ -449,11 +449,7 @@ def main(argv: list[str] | None = None) -> int:
     """`python -m u4d_aug.train CONFIG ...`: the same as `u4d train-diffusion`, handy under torchrun."""
     parser = argparse.ArgumentParser(prog="python -m u4d_aug.train", description=run_train_diffusion.__doc__)
     add_train_diffusion_arguments(parser)
-    try:
-        return run_train_diffusion(parser.parse_args(argv))
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    return exit_code_of(lambda args: run_train_diffusion(parser.parse_args(args)), argv)
 
 
 if __name__ == "__main__":
