@@ -1,0 +1,164 @@
+"""Collect 30-minute `seg-train` runs of one recipe (one per seed) into a results json and a learning-curve PNG.
+
+Reads from each RUN folder what training and evaluation left there: `log.jsonl` (steps, wall-clock, periodic val
+mIoU), `config.yaml` (seed), `hosts.jsonl` (the machine), and the `u4d seg-eval --json` outputs saved beside them:
+`eval_96.json` (required), `eval_96_views4.json` (`--views 4`) and `eval_real.json` (real SemanticKITTI), if present.
+Prints a table per seed and the mean +- std over seeds.
+
+    python benchmarks/collect_seg_runs.py runs/lean_v025_lr02_s0 runs/lean_v025_lr02_s1 runs/lean_v025_lr02_s2 \
+        --command "THE TRAINING COMMAND" --out benchmarks/results/seg_cpu_rich/lean_voxel025_lr02_seeds.json
+
+Writes OUT and OUT with `_learning_curve.png` in place of `.json`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+from pathlib import Path
+
+import yaml
+
+from segmentation.plots import plot_learning_curve
+from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.io import atomic_write_json, read_jsonl
+
+EVAL_COMMAND = (
+    "OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m segmentation.evaluate RUN/model.pt data/sim_seg "
+    "--sequences 88-99 --json [--views 4] > RUN/eval_96[_views4].json"
+)
+REAL_EVAL_COMMAND = (
+    "OMP_NUM_THREADS=2 python3 -m segmentation.evaluate RUN/model.pt ../shared/data/real/semantickitti --json "
+    "--device cpu > RUN/eval_real.json"
+)
+REAL_KEYS = ("num_scans", "classes_present", "miou_present", "miou", "ece_per_scan", "ece_pooled", "iou")
+
+
+def read_json(path: Path, needed: tuple[str, ...]) -> dict:
+    """A json file that must hold `needed` keys, or an InputError naming the file and the missing key."""
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{path}: not found") from None
+    except json.JSONDecodeError as err:
+        raise InputError(f"{path}: not valid json ({err.msg}, line {err.lineno})") from None
+    missing = [k for k in needed if k not in data]
+    if missing:
+        raise InputError(f"{path}: expected the keys {', '.join(missing)} (a `u4d seg-eval --json` output)")
+    return data
+
+
+def collect_run(run: Path) -> dict:
+    """One run's steps, time, host, held-out and real-scan figures and its periodic curve."""
+    log_path = run / "log.jsonl"
+    if not log_path.is_file():
+        raise InputError(f"{log_path}: not found (is {run} a seg-train output folder?)")
+    log = [r for r in read_jsonl(log_path) if "time" in r and "step" in r]
+    if not log:
+        raise InputError(f"{log_path}: no record with 'step' and 'time'")
+    config_path = run / "config.yaml"
+    if not config_path.is_file():
+        raise InputError(f"{config_path}: not found")
+    seed = (yaml.safe_load(config_path.read_text()) or {}).get("seed")
+    hosts = run / "hosts.jsonl"
+    evaluation = read_json(run / "eval_96.json", ("miou", "ece_per_scan", "ece_pooled", "iou"))
+    views4 = run / "eval_96_views4.json"
+    views4 = read_json(views4, ("miou", "ece_per_scan")) if views4.exists() else None
+    real = run / "eval_real.json"
+    real = read_json(real, REAL_KEYS) if real.exists() else None
+    steps, seconds = max(r["step"] for r in log), max(r["time"] for r in log)
+    return {
+        "run": str(run),
+        "seed": seed,
+        "host": read_jsonl(hosts)[0] if hosts.is_file() else None,
+        "steps": steps,
+        "train_seconds": seconds,
+        "seconds_per_step": seconds / steps,
+        "miou_96": evaluation["miou"],
+        "ece_per_scan_96": evaluation["ece_per_scan"],
+        "ece_pooled_96": evaluation["ece_pooled"],
+        "iou_96": evaluation["iou"],
+        "miou_96_views4": views4["miou"] if views4 else None,
+        "ece_per_scan_96_views4": views4["ece_per_scan"] if views4 else None,
+        "real_semantickitti": {k: real[k] for k in REAL_KEYS} if real else None,
+        "curve": [
+            {"step": r["step"], "minutes": r["time"] / 60, "val_miou_10_scans": r["val_miou"]}
+            for r in log
+            if "val_miou" in r
+        ],
+        "_log": log,
+    }
+
+
+def mean_std(values: list[float]) -> tuple[float, float | None]:
+    """Mean and sample standard deviation (None for one value)."""
+    return statistics.mean(values), statistics.stdev(values) if len(values) > 1 else None
+
+
+def summarize(rows: list[dict], command: str) -> dict:
+    """The results json: commands, mean +- std over the runs, per-class mean IoU, and every run."""
+    summary: dict = {"command": command, "eval_command": EVAL_COMMAND, "alone_on_machine": True}
+    summary["miou_96_mean"], summary["miou_96_std"] = mean_std([r["miou_96"] for r in rows])
+    summary["iou_96_mean"] = {c: statistics.mean(r["iou_96"][c] for r in rows) for c in rows[0]["iou_96"]}
+    if all(r["miou_96_views4"] is not None for r in rows):
+        summary["miou_96_views4_mean"], summary["miou_96_views4_std"] = mean_std([r["miou_96_views4"] for r in rows])
+    reals = [r["real_semantickitti"]["miou_present"] for r in rows if r["real_semantickitti"]]
+    if reals:
+        summary["real_miou_present_mean"] = statistics.mean(reals)
+        summary["real_eval_command"] = REAL_EVAL_COMMAND
+    summary["runs"] = [{k: v for k, v in r.items() if k != "_log"} for r in rows]
+    return summary
+
+
+def curve_records(rows: list[dict]) -> list[dict]:
+    """Training loss and periodic val mIoU of every run against wall-clock minutes, one key per seed."""
+    records = []
+    for row in rows:
+        for r in row["_log"]:
+            record = {"minutes": r["time"] / 60}
+            if "val_miou" in r:
+                record[f"val_miou_seed{row['seed']}"] = r["val_miou"]
+            if "loss" in r:
+                record[f"loss_seed{row['seed']}"] = r["loss"]
+            records.append(record)
+    return sorted(records, key=lambda r: r["minutes"])
+
+
+def run(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("runs", type=Path, nargs="+", help="seg-train output folders, one per seed")
+    parser.add_argument("--command", required=True, help="the training command, recorded in the json (seed=S)")
+    parser.add_argument("--out", type=Path, required=True, help="results json; the PNG goes beside it")
+    args = parser.parse_args(argv)
+    if args.out.suffix != ".json":
+        raise InputError(f"--out {args.out}: expected a .json path")
+    rows = [collect_run(path) for path in args.runs]
+    summary = summarize(rows, args.command)
+    atomic_write_json(args.out, summary)
+    png = args.out.with_name(args.out.stem + "_learning_curve.png")
+    plot_learning_curve(curve_records(rows), png, x_key="minutes")
+
+    def pct(value: float | None) -> str:
+        return "-" if value is None else f"{100 * value:.2f}"
+
+    print(f"{'run':<36} {'seed':>4} {'steps':>5} {'s/step':>6} {'mIoU':>6} {'ECE':>5} {'4 views':>7} {'real':>6}")
+    for r in rows:
+        real = r["real_semantickitti"]["miou_present"] if r["real_semantickitti"] else None
+        print(
+            f"{r['run']:<36} {r['seed']!s:>4} {r['steps']:>5} {r['seconds_per_step']:>6.2f} {pct(r['miou_96']):>6} "
+            f"{pct(r['ece_per_scan_96']):>5} {pct(r['miou_96_views4']):>7} {pct(real):>6}"
+        )
+    spread = "" if summary["miou_96_std"] is None else f" +- {pct(summary['miou_96_std'])}"
+    print(f"mean mIoU over {len(rows)} runs: {pct(summary['miou_96_mean'])}{spread} % -> {args.out}, {png}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`run`, with a missing or malformed run file as a one-line error."""
+    return exit_code_of(run, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
