@@ -30,7 +30,7 @@ from segmentation.sparse import (
     voxels_to_points,
 )
 
-IN_FEATURE_CHANNELS = {"xyzi": 4, "xyz": 3, "i": 1, "xyzir": 5}
+IN_FEATURE_CHANNELS = {"xyzi": 4, "xyz": 3, "i": 1, "xyzir": 5, "local": 6}
 
 
 @dataclass
@@ -46,7 +46,8 @@ class SegModelConfig:
     decoder_channels: tuple[int, ...] = (256, 128, 96, 96)
     blocks: tuple[int, ...] = (2, 2, 2, 2)  # residual blocks per encoder stage ((2, 3, 4, 6) = MinkUNet34)
     decoder_blocks: tuple[int, ...] = (2, 2, 2, 2)  # residual blocks per decoder stage
-    in_features: Literal["xyzi", "xyz", "i", "xyzir"] = "xyzi"  # xyz (m), intensity, r = range (m)
+    # xyz (m), intensity, r = range (m); "local": offset in the voxel, z, intensity, horizontal range (no x, y)
+    in_features: Literal["xyzi", "xyz", "i", "xyzir", "local"] = "xyzi"
     dropout: float = 0.3  # SPVCNN: on the re-voxelised features after the first two fusions
     interpolation: Literal["trilinear", "nearest"] = "trilinear"  # SPVCNN voxels -> points
 
@@ -66,8 +67,13 @@ class SegModelConfig:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
 
 
-def point_features(points: torch.Tensor, in_features: str) -> torch.Tensor:
-    """(N, >= 4) [x, y, z, intensity, ...] -> (N, C_in) network input features."""
+def point_features(points: torch.Tensor, in_features: str, voxel_size: float = 1.0) -> torch.Tensor:
+    """(N, >= 4) [x, y, z, intensity, ...] -> (N, C_in) network input features.
+
+    "local" drops the absolute x, y (under the training's random rotation about z they only say where the scan
+    was turned to) for what does not turn with the scan: (N, 6) [offset of the point from its voxel's centre in
+    voxel units (3, in [-0.5, 0.5)), z (m), intensity, horizontal range / 10 m].
+    """
     if in_features == "xyzi":
         return points[:, :4]
     if in_features == "xyz":
@@ -76,6 +82,11 @@ def point_features(points: torch.Tensor, in_features: str) -> torch.Tensor:
         return points[:, 3:4]
     if in_features == "xyzir":
         return torch.cat([points[:, :4], points[:, :3].norm(dim=1, keepdim=True)], dim=1)
+    if in_features == "local":
+        cell = points[:, :3] / voxel_size
+        offset = cell - torch.floor(cell) - 0.5  # (N, 3)
+        ground_range = points[:, :2].norm(dim=1, keepdim=True) / 10.0
+        return torch.cat([offset, points[:, 2:4], ground_range], dim=1)
     raise ValueError(f"in_features must be one of {sorted(IN_FEATURE_CHANNELS)}, got {in_features!r}")
 
 
@@ -197,7 +208,9 @@ class MinkUNet(nn.Module):
         voxel_output=True returns the voxels' logits with the point -> voxel map instead (loss.level "voxel").
         """
         xyzi, batch = _batch(points, self.head.weight.device)
-        x, inverse = voxelize(xyzi, self.cfg.voxel_size, batch, point_features(xyzi, self.cfg.in_features))
+        x, inverse = voxelize(
+            xyzi, self.cfg.voxel_size, batch, point_features(xyzi, self.cfg.in_features, self.cfg.voxel_size)
+        )
         x = self.unet.stem(x)
         x, skips = self.unet.encode(x)
         for i in range(self.unet.stages):
@@ -234,7 +247,7 @@ class SPVCNN(nn.Module):
         xyzi, batch = _batch(points, self.head.weight.device)
         positions = xyzi[:, :3] / cfg.voxel_size  # (N, 3) in voxel units
         coords = point_voxel_coords(xyzi[:, :3], batch, cfg.voxel_size)  # (N, 4)
-        x, inverse = voxelize(xyzi, cfg.voxel_size, batch, point_features(xyzi, cfg.in_features))
+        x, inverse = voxelize(xyzi, cfg.voxel_size, batch, point_features(xyzi, cfg.in_features, cfg.voxel_size))
         x = self.unet.stem(x)
         z = voxels_to_points(x, positions, batch, cfg.interpolation)  # z0 (N, base)
         x = points_to_voxels(z, x, inverse)

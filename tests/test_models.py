@@ -107,13 +107,29 @@ def test_blocks_config_sets_residual_blocks():
     assert [len(stage) - 1 for stage in model.unet.encoder] == [2, 3, 4, 6]
 
 
-@pytest.mark.parametrize("in_features", ["xyz", "i", "xyzir"])
-def test_input_feature_choices(in_features, generator):
+@pytest.mark.parametrize("name", ["minkunet", "spvcnn"])
+@pytest.mark.parametrize("in_features", ["xyz", "i", "xyzir", "local"])
+def test_input_feature_choices(name, in_features, generator):
     torch.manual_seed(0)
-    model = build_model(tiny_config("spvcnn", in_features=in_features))
+    model = build_model(tiny_config(name, in_features=in_features))
     scans = random_scans(generator)
     assert model(scans).shape == (1100, 5)
-    assert point_features(scans[0], in_features).shape[1] == {"xyz": 3, "i": 1, "xyzir": 5}[in_features]
+    width = {"xyz": 3, "i": 1, "xyzir": 5, "local": 6}[in_features]
+    assert point_features(scans[0], in_features, 0.25).shape == (scans[0].shape[0], width)
+
+
+def test_local_features_do_not_turn_with_the_scan():
+    points = torch.tensor([[1.125, -2.125, -1.625, 0.3], [3.0, 4.0, 0.5, 0.9], [-0.1, 0.2, 1.0, 0.0]])
+    f = point_features(points, "local", 0.25)
+    # the first point sits at its voxel's centre, the second on a voxel corner, the third inside one
+    torch.testing.assert_close(f[0, :3], torch.zeros(3))
+    torch.testing.assert_close(f[1, :3], torch.full((3,), -0.5))
+    torch.testing.assert_close(f[2, :3], torch.tensor([0.1, 0.3, -0.5]))
+    torch.testing.assert_close(f[:, 3:5], points[:, 2:4])  # z, intensity as they are
+    torch.testing.assert_close(f[1, 5], torch.tensor(0.5))  # horizontal range 5 m / 10 m
+    turned = points.clone()
+    turned[:, :2] = points[:, :2] @ torch.tensor([[0.6, -0.8], [0.8, 0.6]]).T  # a rotation about z
+    torch.testing.assert_close(point_features(turned, "local", 0.25)[:, 3:], f[:, 3:])
 
 
 def test_bad_configs_and_inputs():

@@ -68,9 +68,9 @@ def test_fewlabel_fit_changes_only_lr_and_loss_level():
 
 def test_supervised_cpu_preset_is_the_measured_recipe():
     """configs/seg/cpu_minkunet.yaml is what its results json measured: the recorded overrides change nothing."""
-    results = CONFIGS.parent / "benchmarks" / "results" / "seg_cpu_rich" / "lean_voxel025_lr02_seeds.json"
+    results = CONFIGS.parent / "benchmarks" / "results" / "seg_cpu_rich" / "local_features_seeds.json"
     words = shlex.split(json.loads(results.read_text())["command"])
     overrides = [w for w in words if "=" in w and not w.startswith(("threads=", "seed=", "OMP_NUM_THREADS="))]
-    assert len(overrides) >= 4  # decoder channels and blocks, voxel size, lr, steps
+    assert len(overrides) >= 6  # decoder channels and blocks, voxel size, lr, steps, input features
     preset = CONFIGS / "seg" / "cpu_minkunet.yaml"
     assert load_config(SegTrainConfig, preset, overrides) == load_config(SegTrainConfig, preset)
