@@ -10,7 +10,9 @@ training loop would draw (`segmentation.train.TrainBatches`: the preset's scans,
 augmentation, step for step). The steps interleave - variant A step s, variant B step s, ... - so that load
 changes on the machine hit every variant alike; one warm-up step each, then the median over --steps timed
 steps of the whole `supervised_step` + backward + optimiser step. Also reports how many rows the losses read
-per step (points, or voxels with loss.level=voxel). Writes benchmarks/results/seg_step.json.
+per step (points, or voxels with loss.level=voxel) and the memory autograd keeps for backward in the warm-up step
+(the storages of the saved tensors, counted once; `model.keep_gathers` adds the convolutions' gathered inputs).
+Writes benchmarks/results/seg_step.json.
 
 --profile: the timed steps run under torch.profiler; per variant the operators with the most self time (share of
 the profiled time) and the rate of the matrix products (aten::mm FLOPs / its self time) against the profiled
@@ -77,6 +79,22 @@ def set_up(config: Path, variants: list[str]) -> list[dict]:
     return runs
 
 
+class SavedBytes:
+    """Bytes autograd holds for backward during a forward: the storages of the saved tensors, each counted once."""
+
+    def __init__(self) -> None:
+        self.storages: dict[int, int] = {}
+
+    def pack(self, tensor: torch.Tensor) -> torch.Tensor:
+        storage = tensor.untyped_storage()
+        self.storages[storage.data_ptr()] = storage.nbytes()
+        return tensor
+
+    @property
+    def megabytes(self) -> float:
+        return sum(self.storages.values()) / 2**20
+
+
 def add_profile(ops: dict, profiler: profile) -> None:
     """Accumulate self CPU seconds, calls and FLOPs per operator name from one profiled step into `ops`."""
     for event in profiler.key_averages():
@@ -126,13 +144,18 @@ def main() -> int:
         for run in runs:
             batch = run["batches"][step]
             profiler = profile(activities=[ProfilerActivity.CPU], with_flops=True) if args.profile and step else None
+            saved = SavedBytes() if step == 0 else None  # the warm-up step counts what backward keeps
+            hooks = torch.autograd.graph.saved_tensors_hooks(saved.pack, lambda t: t) if saved else None
             with profiler or contextlib.nullcontext():
                 start = time.perf_counter()
-                losses = supervised_step(run["model"], batch, run["cfg"], torch.device("cpu"), run["weight"])
+                with hooks or contextlib.nullcontext():
+                    losses = supervised_step(run["model"], batch, run["cfg"], torch.device("cpu"), run["weight"])
                 run["optimizer"].zero_grad(set_to_none=True)
                 losses["loss"].backward()
                 run["optimizer"].step()
                 seconds = time.perf_counter() - start
+            if saved is not None:
+                run["saved_mb"] = saved.megabytes
             if step:
                 run["times"].append(seconds)
                 run["rows"].append(loss_rows(run["cfg"], batch))
@@ -151,17 +174,18 @@ def main() -> int:
                 "steps_per_second": 1.0 / median,
                 "speedup_vs_first": base / median,
                 "loss_rows_per_step": statistics.median(run["rows"]),
+                "saved_for_backward_mb": run["saved_mb"],
                 "step_times": run["times"],
             }
         )
         if "ops" in run:
             rows[-1]["profile"] = profile_summary(run["ops"])
     print(f"\n{args.config.name}, {args.threads} thread(s), median of {args.steps} steps (batch as in the preset)")
-    print(f"{'variant':<48} {'s/step':>7} {'steps/s':>8} {'speed-up':>8} {'loss rows':>10}")
+    print(f"{'variant':<48} {'s/step':>7} {'steps/s':>8} {'speed-up':>8} {'loss rows':>10} {'saved MB':>9}")
     for row in rows:
         print(
             f"{row['variant']:<48} {row['step_seconds']:7.3f} {row['steps_per_second']:8.3f} "
-            f"{row['speedup_vs_first']:7.2f}x {row['loss_rows_per_step']:10.0f}"
+            f"{row['speedup_vs_first']:7.2f}x {row['loss_rows_per_step']:10.0f} {row['saved_for_backward_mb']:9.0f}"
         )
     atomic_write_json(
         args.out,

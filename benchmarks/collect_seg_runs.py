@@ -2,8 +2,9 @@
 
 Reads from each RUN folder what training and evaluation left there: `log.jsonl` (steps, wall-clock, periodic val
 mIoU), `config.yaml` (seed), `hosts.jsonl` (the machine), and the `u4d seg-eval --json` outputs saved beside them:
-`eval_96.json` (required), `eval_96_views4.json` (`--views 4`) and `eval_real.json` (real SemanticKITTI), if present.
-Prints a table per seed and the mean +- std over seeds.
+`eval_96.json` (required), every `eval_96_VARIANT.json` (other evaluation options of the same scans, e.g.
+`eval_96_views4.json` with `--views 4`, `eval_96_trilinear.json` with `--readout trilinear`) and `eval_real.json`
+(real SemanticKITTI), if present. Prints a table per seed and the mean +- std over seeds, per variant too.
 
     python benchmarks/collect_seg_runs.py runs/lean_v025_lr02_s0 runs/lean_v025_lr02_s1 runs/lean_v025_lr02_s2 \
         --command "THE TRAINING COMMAND" --out benchmarks/results/seg_cpu_rich/lean_voxel025_lr02_seeds.json
@@ -27,7 +28,7 @@ from u4d_aug.io import atomic_write_json, read_jsonl
 
 EVAL_COMMAND = (
     "OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m segmentation.evaluate RUN/model.pt data/sim_seg "
-    "--sequences 88-99 --json [--views 4] > RUN/eval_96[_views4].json"
+    "--sequences 88-99 --json [--readout trilinear] [--views N] > RUN/eval_96[_trilinear][_viewsN].json"
 )
 REAL_EVAL_COMMAND = (
     "OMP_NUM_THREADS=2 python3 -m segmentation.evaluate RUN/model.pt ../shared/data/real/semantickitti --json "
@@ -64,8 +65,10 @@ def collect_run(run: Path) -> dict:
     seed = (yaml.safe_load(config_path.read_text()) or {}).get("seed")
     hosts = run / "hosts.jsonl"
     evaluation = read_json(run / "eval_96.json", ("miou", "ece_per_scan", "ece_pooled", "iou"))
-    views4 = run / "eval_96_views4.json"
-    views4 = read_json(views4, ("miou", "ece_per_scan")) if views4.exists() else None
+    variants = {
+        path.stem.removeprefix("eval_96_"): read_json(path, ("miou", "ece_per_scan", "iou"))
+        for path in sorted(run.glob("eval_96_*.json"))
+    }
     real = run / "eval_real.json"
     real = read_json(real, REAL_KEYS) if real.exists() else None
     steps, seconds = max(r["step"] for r in log), max(r["time"] for r in log)
@@ -80,8 +83,10 @@ def collect_run(run: Path) -> dict:
         "ece_per_scan_96": evaluation["ece_per_scan"],
         "ece_pooled_96": evaluation["ece_pooled"],
         "iou_96": evaluation["iou"],
-        "miou_96_views4": views4["miou"] if views4 else None,
-        "ece_per_scan_96_views4": views4["ece_per_scan"] if views4 else None,
+        **{f"miou_96_{name}": v["miou"] for name, v in variants.items()},
+        **{f"ece_per_scan_96_{name}": v["ece_per_scan"] for name, v in variants.items()},
+        "variants": sorted(variants),
+        "iou_96_variants": {name: v["iou"] for name, v in variants.items()},
         "real_semantickitti": {k: real[k] for k in REAL_KEYS} if real else None,
         "curve": [
             {"step": r["step"], "minutes": r["time"] / 60, "val_miou_10_scans": r["val_miou"]}
@@ -97,13 +102,21 @@ def mean_std(values: list[float]) -> tuple[float, float | None]:
     return statistics.mean(values), statistics.stdev(values) if len(values) > 1 else None
 
 
+def shared_variants(rows: list[dict]) -> list[str]:
+    """The evaluation variants (eval_96_VARIANT.json) every run has."""
+    return [name for name in rows[0]["variants"] if all(name in r["variants"] for r in rows)]
+
+
 def summarize(rows: list[dict], command: str) -> dict:
     """The results json: commands, mean +- std over the runs, per-class mean IoU, and every run."""
     summary: dict = {"command": command, "eval_command": EVAL_COMMAND, "alone_on_machine": True}
     summary["miou_96_mean"], summary["miou_96_std"] = mean_std([r["miou_96"] for r in rows])
     summary["iou_96_mean"] = {c: statistics.mean(r["iou_96"][c] for r in rows) for c in rows[0]["iou_96"]}
-    if all(r["miou_96_views4"] is not None for r in rows):
-        summary["miou_96_views4_mean"], summary["miou_96_views4_std"] = mean_std([r["miou_96_views4"] for r in rows])
+    for name in shared_variants(rows):
+        summary[f"miou_96_{name}_mean"], summary[f"miou_96_{name}_std"] = mean_std([r[f"miou_96_{name}"] for r in rows])
+        summary[f"iou_96_{name}_mean"] = {
+            c: statistics.mean(r["iou_96_variants"][name][c] for r in rows) for c in rows[0]["iou_96"]
+        }
     reals = [r["real_semantickitti"]["miou_present"] for r in rows if r["real_semantickitti"]]
     if reals:
         summary["real_miou_present_mean"] = statistics.mean(reals)
@@ -143,15 +156,22 @@ def run(argv: list[str] | None = None) -> int:
     def pct(value: float | None) -> str:
         return "-" if value is None else f"{100 * value:.2f}"
 
-    print(f"{'run':<36} {'seed':>4} {'steps':>5} {'s/step':>6} {'mIoU':>6} {'ECE':>5} {'4 views':>7} {'real':>6}")
+    names = shared_variants(rows)
+    head = "".join(f" {name:>{max(len(name), 6)}}" for name in names)
+    print(f"{'run':<36} {'seed':>4} {'steps':>5} {'s/step':>6} {'mIoU':>6} {'ECE':>5}{head} {'real':>6}")
     for r in rows:
         real = r["real_semantickitti"]["miou_present"] if r["real_semantickitti"] else None
+        cells = "".join(f" {pct(r[f'miou_96_{name}']):>{max(len(name), 6)}}" for name in names)
         print(
             f"{r['run']:<36} {r['seed']!s:>4} {r['steps']:>5} {r['seconds_per_step']:>6.2f} {pct(r['miou_96']):>6} "
-            f"{pct(r['ece_per_scan_96']):>5} {pct(r['miou_96_views4']):>7} {pct(real):>6}"
+            f"{pct(r['ece_per_scan_96']):>5}{cells} {pct(real):>6}"
         )
-    spread = "" if summary["miou_96_std"] is None else f" +- {pct(summary['miou_96_std'])}"
-    print(f"mean mIoU over {len(rows)} runs: {pct(summary['miou_96_mean'])}{spread} % -> {args.out}, {png}")
+    for name in [""] + names:
+        key = f"miou_96_{name}_" if name else "miou_96_"
+        spread = "" if summary[key + "std"] is None else f" +- {pct(summary[key + 'std'])}"
+        label = f" ({name})" if name else ""
+        print(f"mean mIoU{label} over {len(rows)} runs: {pct(summary[key + 'mean'])}{spread} %")
+    print(f"-> {args.out}, {png}")
     return 0
 
 

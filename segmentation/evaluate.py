@@ -30,6 +30,7 @@ from segmentation.metrics import (
 )
 from segmentation.plots import plot_confusion, plot_reliability
 from segmentation.predict import (
+    add_readout_argument,
     add_views_argument,
     check_views,
     load_checkpoint,
@@ -56,7 +57,7 @@ def accumulate(
     views: int = 1,
 ) -> tuple[ConfusionMatrix, CalibrationAccumulator]:
     """Confusion matrix + calibration over dataset[indices] (this rank's share, then gathered over ranks);
-    views 2-4 score the mean softmax over mirror views (test-time augmentation, predict_probs)."""
+    views > 1 score the mean softmax over mirror / turned views (test-time augmentation, predict_probs)."""
     was_training = model.training
     model.eval()
     cm = ConfusionMatrix(num_classes, ignore_index)
@@ -103,13 +104,15 @@ def evaluate(
     progress: bool = False,
     views: int = 1,
     confusion_png: str | Path | None = None,
+    readout: str | None = None,
 ) -> dict:
     """Summary dict (per-class IoU, mIoU, mIoU over present classes, ECE per scan and pooled, bins, confusion);
-    views 2-4: test-time augmentation over mirror views (predict_probs)."""
+    views > 1: test-time augmentation over mirror / turned views (predict_probs); `readout` replaces the
+    checkpoint's (model_from_checkpoint)."""
     check_views(views)
     info = dist_info or init_distributed(device)
     ckpt = load_checkpoint(checkpoint)
-    model = model_from_checkpoint(ckpt, info.device, str(checkpoint))
+    model = model_from_checkpoint(ckpt, info.device, str(checkpoint), readout)
     num_classes = model.cfg.num_classes
     class_names = list(ckpt.get("class_names") or SEMANTICKITTI_CLASSES[:num_classes])
     dataset = ScanDataset(data_root, sequences, labeled_only=True)
@@ -127,6 +130,7 @@ def evaluate(
         data_root=str(data_root),
         sequences=dataset.sequences,
         views=views,
+        readout=model.cfg.readout,
     )
     if reliability_png is not None and info.is_main:
         plot_reliability(calibration.pooled, reliability_png, title=Path(checkpoint).stem)
@@ -189,6 +193,7 @@ def add_seg_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-scans", type=int, default=None, help="evaluate this many evenly spaced scans")
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     add_views_argument(parser)
+    add_readout_argument(parser)
 
 
 def run_seg_eval(args: argparse.Namespace) -> int:
@@ -207,6 +212,7 @@ def run_seg_eval(args: argparse.Namespace) -> int:
             dist_info=info,
             progress=not args.json,
             views=args.views,
+            readout=args.readout,
         )
     finally:
         cleanup()

@@ -132,16 +132,32 @@ def pseudo_labels(
     return labels.masked_fill(~keep, ignore_index), confidence
 
 
-def mirror_views(points: torch.Tensor, views: int) -> list[torch.Tensor]:
-    """The first `views` of [scan, x mirrored, y mirrored, both] of one (N, C >= 3) scan; point order kept."""
-    if not 1 <= views <= 4:
-        raise ValueError(f"views must be in 1..4; got {views}")
-    signs = [(1.0, 1.0), (-1.0, 1.0), (1.0, -1.0), (-1.0, -1.0)][:views]
+def view_count_error(views: int) -> str | None:
+    """Why `views` is not a valid number of test-time views (1-4, or a multiple of 4 up to 32), else None."""
+    if 1 <= views <= 4 or (views % 4 == 0 and 4 < views <= 32):
+        return None
+    return f"views must be 1-4 (the scan and its x / y / xy mirrors) or a multiple of 4 up to 32, got {views}"
+
+
+def scan_views(points: torch.Tensor, views: int) -> list[torch.Tensor]:
+    """Test-time views of one (N, C >= 3) scan, point order kept: [scan, x mirrored, y mirrored, both][:views]
+    for views <= 4; for views = 4 R the same four mirrors after each of R turns about z by multiples of
+    90 / R degrees (views 8: 0 and 45 degrees). A turn voxelizes the scene on another grid, a mirror not."""
+    error = view_count_error(views)
+    if error is not None:
+        raise ValueError(error)
+    signs = [(1.0, 1.0), (-1.0, 1.0), (1.0, -1.0), (-1.0, -1.0)]
+    turns = max(1, views // 4)
     out = []
-    for sx, sy in signs:
+    for i in range(views):
+        sx, sy = signs[i % 4]
         view = points.clone()
         view[:, 0] *= sx
         view[:, 1] *= sy
+        angle = (i // 4) * math.pi / (2 * turns)
+        if angle:  # x' = c x - s y, y' = s x + c y
+            c, s = math.cos(angle), math.sin(angle)
+            view[:, 0], view[:, 1] = c * view[:, 0] - s * view[:, 1], s * view[:, 0] + c * view[:, 1]
         out.append(view)
     return out
 

@@ -50,6 +50,11 @@ class SegModelConfig:
     in_features: Literal["xyzi", "xyz", "i", "xyzir", "local"] = "xyzi"
     dropout: float = 0.3  # SPVCNN: on the re-voxelised features after the first two fusions
     interpolation: Literal["trilinear", "nearest"] = "trilinear"  # SPVCNN voxels -> points
+    # convolutions keep their gathered inputs for backward instead of gathering again (more memory, same result)
+    keep_gathers: bool = False
+    # MinkUNet: a point reads its voxel's logits ("voxel", mmdet3d) or the softmax of the 8 nearest voxel centres
+    # interpolated trilinearly ("trilinear", torchsparse voxel_to_point), returned as log-probabilities
+    readout: Literal["voxel", "trilinear"] = "voxel"
 
     def __post_init__(self) -> None:
         stages = len(self.encoder_channels)
@@ -65,6 +70,10 @@ class SegModelConfig:
             raise ValueError("blocks and decoder_blocks need at least 1 residual block per stage")
         if not 0 <= self.dropout < 1:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+        if self.readout not in ("voxel", "trilinear") or (self.name == "spvcnn" and self.readout != "voxel"):
+            raise ValueError(
+                f"readout must be 'voxel' or 'trilinear' (minkunet only; spvcnn reads points), got {self.readout!r}"
+            )
 
 
 def point_features(points: torch.Tensor, in_features: str, voxel_size: float = 1.0) -> torch.Tensor:
@@ -159,6 +168,9 @@ class VoxelUNet(nn.Module):
             nn.Sequential(*_blocks(dec[i + 1] + enc[-2 - i], dec[i + 1], cfg.decoder_blocks[i]))
             for i in range(self.stages)
         )
+        for module in self.modules():
+            if isinstance(module, SparseConv3d):
+                module.keep_gathers = cfg.keep_gathers
 
     def encode(self, x: SparseTensor) -> tuple[SparseTensor, list[SparseTensor]]:
         """Encoder stages -> (bottleneck, skips finest first incl. the stem output)."""
@@ -206,6 +218,8 @@ class MinkUNet(nn.Module):
         """List of (N_b, >= 4) scans -> (sum N_b, K) logits, points in input order.
 
         voxel_output=True returns the voxels' logits with the point -> voxel map instead (loss.level "voxel").
+        readout "trilinear": the point logits are log p with p (N, K) the voxels' softmax interpolated over the 8
+        nearest voxel centres (absent ones renormalised away), so softmax(logits) = p.
         """
         xyzi, batch = _batch(points, self.head.weight.device)
         x, inverse = voxelize(
@@ -218,6 +232,10 @@ class MinkUNet(nn.Module):
         logits = self.head(x.features)  # (M, K)
         if voxel_output:
             return VoxelLogits(logits, inverse, x.coords[:, 0])
+        if self.cfg.readout == "trilinear":
+            positions = xyzi[:, :3] / self.cfg.voxel_size  # (N, 3) in voxel units
+            probs = voxels_to_points(x.replace(torch.softmax(logits, dim=1)), positions, batch, "trilinear")
+            return probs.clamp_min(1e-12).log()  # (N, K)
         return logits[inverse]  # (N, K)
 
 

@@ -3,8 +3,8 @@
 `u4d seg-predict CKPT DATA --out DIR` writes, for every scan `DATA/sequences/XX/velodyne/NNNNNN.bin`,
 `DIR/sequences/XX/probs/NNNNNN.npy`: float16 (N, K) softmax probabilities, rows in the order of the scan's
 points (all N rows of the .bin; a NaN/inf point gets the uniform 1/K row), plus `DIR/manifest.json` naming the
-checkpoint (sha256[:16]), its config and the test-time views (`--views 2-4`: mean softmax over the scan's mirror
-views). Any segmentor that writes these files can drive U4D. Files are written atomically and existing ones
+checkpoint (sha256[:16]), its config and the test-time views (`--views N`: mean softmax over the scan's mirror
+and turned views). Any segmentor that writes these files can drive U4D. Files are written atomically and existing ones
 are skipped, so a re-run resumes; under torchrun each rank takes every world_size-th scan.
 """
 
@@ -21,7 +21,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from segmentation.mean_teacher import mean_view_probs, mirror_views
+from segmentation.mean_teacher import mean_view_probs, scan_views, view_count_error
 from segmentation.models import SegModelConfig, build_model
 from u4d_aug.config import config_from_dict
 from u4d_aug.data.datasets import SEMANTICKITTI_SPLITS, list_frames, resolve_sequences, scan_path
@@ -48,9 +48,15 @@ def load_checkpoint(path: str | Path) -> dict:
     return ckpt
 
 
-def model_from_checkpoint(ckpt: dict, device: torch.device, source: str = "checkpoint") -> nn.Module:
-    """Rebuild the net from the checkpoint's config['model'] and load its weights, in eval mode."""
-    model_cfg = config_from_dict(SegModelConfig, ckpt["config"].get("model", {}), source=f"{source} config")
+def model_from_checkpoint(
+    ckpt: dict, device: torch.device, source: str = "checkpoint", readout: str | None = None
+) -> nn.Module:
+    """Rebuild the net from the checkpoint's config['model'] and load its weights, in eval mode; `readout`
+    (voxel | trilinear) replaces the config's way points read the voxel output (same weights)."""
+    fields = dict(ckpt["config"].get("model", {}))
+    if readout is not None:
+        fields["readout"] = readout
+    model_cfg = config_from_dict(SegModelConfig, fields, source=f"{source} config")
     model = build_model(model_cfg)
     model.load_state_dict(ckpt["model"])
     return model.to(device).eval()
@@ -71,11 +77,11 @@ def predict_probs(
 ) -> torch.Tensor:
     """Softmax probabilities (N, K) float32 on the CPU of one scan (N, 4); the model must be in eval mode.
 
-    views 2-4: test-time augmentation, the mean softmax over the scan and its x / y / xy mirror views
-    (`mean_teacher.mirror_views`), the flips the training augmentation draws; one view per forward.
+    views > 1: test-time augmentation, the mean softmax over the scan's mirror and turned views
+    (`mean_teacher.scan_views`), flips and turns the training augmentation draws; one view per forward.
     """
     points = torch.as_tensor(points, dtype=torch.float32).to(device)
-    return mean_view_probs([model([view]) for view in mirror_views(points, views)]).cpu()  # (N, K)
+    return mean_view_probs([model([view]) for view in scan_views(points, views)]).cpu()  # (N, K)
 
 
 def scan_probs(
@@ -102,16 +108,18 @@ def predict_root(
     dist_info: DistInfo | None = None,
     progress: bool = True,
     views: int = 1,
+    readout: str | None = None,
 ) -> dict:
     """Write the probabilities of every scan of `sequences` under out_dir (skip existing) and the manifest.
 
-    views 2-4 average the softmax over mirror views (predict_probs); the manifest records the count.
+    views > 1 average the softmax over mirror and turned views (predict_probs); the manifest records the count
+    and the readout (`readout` replaces the checkpoint's, model_from_checkpoint).
     """
     check_views(views)
     info = dist_info or init_distributed("auto")
     out_dir = Path(out_dir)
     ckpt = load_checkpoint(checkpoint)
-    model = model_from_checkpoint(ckpt, info.device, str(checkpoint))
+    model = model_from_checkpoint(ckpt, info.device, str(checkpoint), readout)
     num_classes = int(ckpt["config"].get("model", {}).get("num_classes", SegModelConfig.num_classes))
     sequences = resolve_sequences(data_root, sequences)
     entries = [(seq, frame) for seq in sequences for frame in list_frames(data_root, seq)]
@@ -124,6 +132,7 @@ def predict_root(
         "step": ckpt.get("step"),
         "num_classes": num_classes,
         "views": views,
+        "readout": model.cfg.readout,
         "class_names": list(ckpt.get("class_names") or SEMANTICKITTI_CLASSES[:num_classes]),
         "dtype": "float16",
         "layout": "sequences/XX/probs/NNNNNN.npy, (N, K) rows in scan point order",
@@ -173,12 +182,18 @@ def _check_manifest(path: Path, manifest: dict) -> None:
             f"{path}: written with --views {old.get('views', 1)}, not {manifest['views']}; "
             "choose another --out (probabilities of two test-time augmentations would mix)"
         )
+    if old.get("readout", "voxel") != manifest["readout"]:
+        raise InputError(
+            f"{path}: written with readout {old.get('readout', 'voxel')}, not {manifest['readout']}; "
+            "choose another --out (probabilities of two readouts would mix)"
+        )
 
 
 def check_views(views: int) -> None:
-    """--views must name 1-4 mirror views (scan, x, y, xy mirrored)."""
-    if not 1 <= views <= 4:
-        raise InputError(f"--views must be 1-4 (the scan and its x / y / xy mirror views), got {views}")
+    """--views must name 1-4 mirror views or a multiple of 4 up to 32 (mirrors x turns, `scan_views`)."""
+    error = view_count_error(views)
+    if error is not None:
+        raise InputError(f"--{error}")
 
 
 def parse_sequences(values: list[str] | None) -> str | list[str] | None:
@@ -203,16 +218,29 @@ def add_seg_predict_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     add_views_argument(parser)
+    add_readout_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def add_readout_argument(parser: argparse.ArgumentParser) -> None:
+    """--readout voxel|trilinear: how points read a MinkUNet's voxel output (default: the checkpoint's)."""
+    parser.add_argument(
+        "--readout",
+        choices=["voxel", "trilinear"],
+        default=None,
+        help="MinkUNet: points read their voxel's logits (voxel) or the voxel softmax interpolated over the 8 "
+        "nearest voxel centres (trilinear); default: as the checkpoint was trained",
+    )
+
+
 def add_views_argument(parser: argparse.ArgumentParser) -> None:
-    """--views N: test-time augmentation over N mirror views (1 = the scan only)."""
+    """--views N: test-time augmentation over N mirror / turned views (1 = the scan only)."""
     parser.add_argument(
         "--views",
         type=int,
         default=1,
-        help="test-time augmentation: mean softmax over the scan and its x/y/xy mirror views (1-4; default 1)",
+        help="test-time augmentation: mean softmax over the scan and its x/y/xy mirror views (1-4), or those four "
+        "after each of N/4 turns about z by multiples of 90*4/N degrees (N a multiple of 4 up to 32); default 1",
     )
 
 
@@ -228,6 +256,7 @@ def run_seg_predict(args: argparse.Namespace) -> int:
             dist_info=info,
             progress=not args.no_progress,
             views=args.views,
+            readout=args.readout,
         )
     finally:
         cleanup()

@@ -21,8 +21,8 @@ from segmentation.mean_teacher import (
     copy_buffers,
     ema_update,
     mean_view_logits,
-    mirror_views,
     pseudo_labels,
+    scan_views,
     total_loss,
 )
 from u4d_aug.data.datasets import ScanDataset
@@ -153,7 +153,7 @@ def semi_step(
     # teacher: pseudo-labels y_hat (sum M_b,) of the unlabeled scans, ignore id below the threshold; with
     # teacher_views > 1 one forward over the scans and their mirror views, pseudo-labels from the mean softmax
     b, num_views = len(unlabeled), cfg.semi.teacher_views
-    views = [view for scan in unlabeled for view in mirror_views(scan, num_views)]  # scan-major: b * num_views
+    views = [view for scan in unlabeled for view in scan_views(scan, num_views)]  # scan-major: b * num_views
     order = [i * num_views + v for v in range(num_views) for i in range(b)]  # view-major: the scans themselves first
     with torch.no_grad():
         if voxel:

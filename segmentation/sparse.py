@@ -7,7 +7,8 @@ MLSys 2022): coordinates are integer voxel indices of the finest grid, `[batch, 
 Kernel maps are built by hashing coordinates to int64 keys (mixed radix over the occupied extent), sorting the
 keys once per stride and looking queries up with `torch.searchsorted`. A convolution is gather-GEMM-scatter
 per kernel offset (`index_select`, `mm`, `index_add_`) with weights `(K, C_in, C_out)`; a custom autograd
-function recomputes the gathers in backward so that only the input features are kept for it.
+function either recomputes the gathers in backward, so that only the input features are kept for it, or keeps
+the forward's gathers (`keep_gathers`: more memory, one gather fewer per offset).
 
 Every operation works on CPU and CUDA tensors alike. Dense equivalents (checked in tests/test_sparse.py):
 - submanifold conv, odd kernel k      == conv3d(kernel k, padding k // 2) read at the input sites
@@ -372,24 +373,30 @@ def _stride2_k3_map(x: SparseTensor) -> KernelMap:
 
 
 class _GatherGemmScatter(torch.autograd.Function):
-    """out[o_k] += in[i_k] @ W[k] for each offset k; backward recomputes the gathers (saves in, W only)."""
+    """out[o_k] += in[i_k] @ W[k] for each offset k; backward recomputes the gathers in[i_k] (saves in, W only)
+    or, with keep_gathers, reuses the forward's."""
 
     @staticmethod
-    def forward(ctx, features: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> torch.Tensor:
+    def forward(ctx, features: torch.Tensor, weight: torch.Tensor, kmap: KernelMap, keep_gathers: bool) -> torch.Tensor:
         out = features.new_zeros(kmap.num_out, weight.shape[2])
+        gathers = []  # (P_k, C_in) per offset with pairs, kept for backward if keep_gathers
         for k, (i, o) in enumerate(zip(kmap.in_idx, kmap.out_idx)):
             if i is None:
                 out += features @ weight[k]
             elif i.numel():
-                out.index_add_(0, o, features.index_select(0, i) @ weight[k])
-        ctx.save_for_backward(features, weight)
-        ctx.kmap = kmap
+                gathered = features.index_select(0, i)
+                out.index_add_(0, o, gathered @ weight[k])
+                if keep_gathers:
+                    gathers.append(gathered)
+        ctx.save_for_backward(features, weight, *gathers)
+        ctx.kmap, ctx.keep_gathers = kmap, keep_gathers
         return out
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):
-        features, weight = ctx.saved_tensors
+        features, weight, *gathers = ctx.saved_tensors
         kmap: KernelMap = ctx.kmap
+        kept = iter(gathers)
         grad_out = grad_out.contiguous()
         need_in, need_w = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         grad_in = torch.zeros_like(features) if need_in else None
@@ -398,7 +405,8 @@ class _GatherGemmScatter(torch.autograd.Function):
             if i is None:
                 f, g = features, grad_out
             elif i.numel():
-                f, g = features.index_select(0, i), grad_out.index_select(0, o)
+                f = next(kept) if ctx.keep_gathers else features.index_select(0, i)
+                g = grad_out.index_select(0, o)
             else:
                 continue
             if need_w:
@@ -409,14 +417,20 @@ class _GatherGemmScatter(torch.autograd.Function):
                     grad_in += gi
                 else:
                     grad_in.index_add_(0, i, gi)
-        return grad_in, grad_w, None
+        return grad_in, grad_w, None, None
 
 
-def sparse_conv(features: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> torch.Tensor:
-    """(M_in, C_in) features, (K, C_in, C_out) weight -> (M_out, C_out) by gather-GEMM-scatter."""
+def sparse_conv(
+    features: torch.Tensor, weight: torch.Tensor, kmap: KernelMap, keep_gathers: bool = False
+) -> torch.Tensor:
+    """(M_in, C_in) features, (K, C_in, C_out) weight -> (M_out, C_out) by gather-GEMM-scatter.
+
+    keep_gathers: backward reuses the forward's gathered inputs (sum_k P_k x C_in more memory held until
+    backward) instead of gathering them again; ignored where no gradient is recorded."""
     if weight.shape[0] != len(kmap.in_idx):
         raise ValueError(f"weight has {weight.shape[0]} offsets but the kernel map has {len(kmap.in_idx)}")
-    return _GatherGemmScatter.apply(features, weight, kmap)
+    keep = keep_gathers and torch.is_grad_enabled() and (features.requires_grad or weight.requires_grad)
+    return _GatherGemmScatter.apply(features, weight, kmap, keep)
 
 
 class SparseConv3d(nn.Module):
@@ -436,6 +450,7 @@ class SparseConv3d(nn.Module):
         stride: int = 1,
         transposed: bool = False,
         bias: bool = False,
+        keep_gathers: bool = False,
     ) -> None:
         super().__init__()
         if stride == 1 and (transposed or kernel_size % 2 == 0):
@@ -447,6 +462,7 @@ class SparseConv3d(nn.Module):
             raise ValueError(f"stride must be 1 or 2, got {stride}")
         self.in_channels, self.out_channels = in_channels, out_channels
         self.kernel_size, self.stride, self.transposed = kernel_size, stride, transposed
+        self.keep_gathers = keep_gathers  # backward reuses the forward's gathers (sparse_conv)
         volume = kernel_size**3
         self.weight = nn.Parameter(torch.empty(volume, in_channels, out_channels))
         self.bias = nn.Parameter(torch.zeros(out_channels)) if bias else None
@@ -465,11 +481,11 @@ class SparseConv3d(nn.Module):
             if self.kernel_size == 1:
                 out = x.features @ self.weight[0]
             else:
-                out = sparse_conv(x.features, self.weight, submanifold_map(x, self.kernel_size))
+                out = sparse_conv(x.features, self.weight, submanifold_map(x, self.kernel_size), self.keep_gathers)
             y = x.replace(out)
         elif not self.transposed:
             kmap = _stride2_map(x) if self.kernel_size == 2 else _stride2_k3_map(x)
-            out = sparse_conv(x.features, self.weight, kmap)
+            out = sparse_conv(x.features, self.weight, kmap, self.keep_gathers)
             y = SparseTensor(out, x.cache.coords[2 * x.stride], 2 * x.stride, x.cache)
         else:
             fine = x.stride // 2
@@ -477,7 +493,7 @@ class SparseConv3d(nn.Module):
                 raise ValueError(f"no finer coordinates at stride {fine} stored for this tensor (stride {x.stride})")
             fine_coords = x.cache.coords[fine]
             finer = SparseTensor(x.features.new_empty(fine_coords.shape[0], 0), fine_coords, fine, x.cache)
-            out = sparse_conv(x.features, self.weight, _stride2_map(finer).transposed())
+            out = sparse_conv(x.features, self.weight, _stride2_map(finer).transposed(), self.keep_gathers)
             y = finer.replace(out)
         if self.bias is not None:
             y = y.replace(y.features + self.bias)

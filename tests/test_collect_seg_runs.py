@@ -55,6 +55,26 @@ def test_collects_seeds_into_mean_and_std(tmp_path):
     assert result["runs"][1]["real_semantickitti"] is None
     assert (tmp_path / "res" / "recipe_learning_curve.png").stat().st_size > 0
     assert "65.00 +- 7.07 %" in done.stdout
+    assert first["variants"] == ["views4"] and result["runs"][1]["variants"] == ["views4"]
+    assert result["iou_96_views4_mean"] == pytest.approx({"car": 0.65, "road": 0.9})
+
+
+def test_every_saved_evaluation_variant_is_collected(tmp_path):
+    a = fake_run(tmp_path / "s0", 0, 0.60, None, None)
+    b = fake_run(tmp_path / "s1", 1, 0.70, None, None)
+    for folder, value in ((a, 0.64), (b, 0.72)):
+        evaluation = {"miou": value, "ece_per_scan": 0.03, "iou": {"car": value, "road": 0.9}}
+        (folder / "eval_96_trilinear_views8.json").write_text(json.dumps(evaluation))
+    (a / "eval_96_views4.json").write_text(json.dumps({"miou": 0.61, "ece_per_scan": 0.02, "iou": {"car": 0.6}}))
+    out = tmp_path / "variants.json"
+    done = collect(str(a), str(b), "--command", "c", "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    result = json.loads(out.read_text())
+    assert result["miou_96_trilinear_views8_mean"] == pytest.approx(0.68)
+    assert result["runs"][0]["ece_per_scan_96_trilinear_views8"] == pytest.approx(0.03)
+    assert "miou_96_views4_mean" not in result  # one run only: no mean over seeds
+    assert result["runs"][0]["miou_96_views4"] == pytest.approx(0.61)
+    assert "mean mIoU (trilinear_views8) over 2 runs: 68.00 +- 5.66 %" in done.stdout
 
 
 def test_one_run_has_no_std_and_no_views_mean(tmp_path):

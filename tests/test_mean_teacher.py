@@ -17,8 +17,8 @@ from segmentation.mean_teacher import (
     ema_update,
     make_teacher,
     mean_view_logits,
-    mirror_views,
     pseudo_labels,
+    scan_views,
     teacher_mode,
     total_loss,
 )
@@ -111,19 +111,34 @@ def test_pseudo_labels_below_threshold_get_ignore_id():
     assert pseudo_labels(logits, threshold=0.0)[0].tolist() == [0, 1, 2, 1]
 
 
-def test_mirror_views_and_their_mean_softmax():
+def test_scan_views_mirror_then_turn_and_their_mean_softmax():
     scan = torch.tensor([[1.0, 2.0, 3.0, 0.5], [-4.0, 5.0, -6.0, 0.25]])
-    views = mirror_views(scan, 4)
-    assert [v[:, :2].tolist() for v in views] == [
+    views = scan_views(scan, 4)
+    mirrors = [
         [[1.0, 2.0], [-4.0, 5.0]],
         [[-1.0, 2.0], [4.0, 5.0]],
         [[1.0, -2.0], [-4.0, -5.0]],
         [[-1.0, -2.0], [4.0, -5.0]],
     ]
+    assert [v[:, :2].tolist() for v in views] == mirrors
     assert all(torch.equal(v[:, 2:], scan[:, 2:]) for v in views)  # z and intensity untouched
-    assert len(mirror_views(scan, 1)) == 1 and torch.equal(mirror_views(scan, 1)[0], scan)
-    with pytest.raises(ValueError, match="views"):
-        mirror_views(scan, 5)
+    assert len(scan_views(scan, 1)) == 1 and torch.equal(scan_views(scan, 1)[0], scan)
+    # 8 views: the four mirrors, then the four mirrors turned by 45 degrees (x' = c x - s y, y' = s x + c y)
+    eight = scan_views(scan, 8)
+    assert [v[:, :2].tolist() for v in eight[:4]] == mirrors
+    h = math.sqrt(0.5)
+    for view, mirrored in zip(eight[4:], mirrors):
+        m = torch.tensor(mirrored)
+        torch.testing.assert_close(view[:, :2], torch.stack([h * (m[:, 0] - m[:, 1]), h * (m[:, 0] + m[:, 1])], 1))
+        torch.testing.assert_close(view[:, :2].norm(dim=1), m.norm(dim=1))  # a turn keeps the range
+        assert torch.equal(view[:, 2:], scan[:, 2:])
+    # 12 views: turns by 0, 30 and 60 degrees
+    twelve = scan_views(torch.tensor([[1.0, 0.0, 0.0, 0.0]]), 12)
+    angles = [math.degrees(math.atan2(float(v[0, 1]), float(v[0, 0]))) for v in twelve[::4]]
+    assert angles == pytest.approx([0.0, 30.0, 60.0])
+    for bad in (0, 5, 6, 36):
+        with pytest.raises(ValueError, match="views"):
+            scan_views(scan, bad)
     a = torch.tensor([[4.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
     b = torch.tensor([[0.0, 4.0, 0.0], [0.0, 0.0, 2.0]])
     mean = torch.softmax(mean_view_logits([a, b]), dim=1)

@@ -88,6 +88,31 @@ def test_minkunet_voxel_output_is_what_its_points_read(generator):
     assert out.batch[out.inverse].tolist() == [0] * 700 + [1] * 400
 
 
+def test_trilinear_readout_interpolates_the_voxel_softmax(generator):
+    """readout=trilinear: a point at a voxel centre reads that voxel's softmax, one halfway between two occupied
+    centres (with the other 6 corners empty) the mean of their two; log-probabilities, voxel output unchanged."""
+    torch.manual_seed(0)
+    cfg = tiny_config("minkunet", readout="trilinear")
+    model = build_model(cfg).eval()
+    centres = torch.tensor([[0.125, 0.125, 0.125, 0.5], [0.375, 0.125, 0.125, 0.2], [2.125, 2.125, 0.125, 0.9]])
+    halfway = torch.tensor([[0.25, 0.125, 0.125, 0.0]])  # between the first two centres (in the second voxel)
+    scan = torch.cat([centres, halfway])
+    with torch.no_grad():
+        voxel = model([scan], voxel_output=True)
+        logits = model([scan])
+    softmax = torch.softmax(voxel.logits, dim=1)[voxel.inverse]  # (4, K): each point's voxel
+    torch.testing.assert_close(logits.exp().sum(dim=1), torch.ones(4))
+    torch.testing.assert_close(logits[:3].exp(), softmax[:3])
+    torch.testing.assert_close(logits[3].exp(), (softmax[0] + softmax[1]) / 2)
+    assert not torch.allclose(softmax[0], softmax[1])  # so the mean differs from the point's own voxel
+    with torch.no_grad():
+        plain = build_model(tiny_config("minkunet"))
+        plain.load_state_dict(model.state_dict())
+        assert torch.equal(plain.eval()([scan], voxel_output=True).logits, model([scan], voxel_output=True).logits)
+    with pytest.raises(ValueError, match="readout"):
+        tiny_config("spvcnn", readout="trilinear")
+
+
 def test_default_channels_follow_minkunet18_w32():
     model = build_model(SegModelConfig())
     assert isinstance(model, MinkUNet)

@@ -66,11 +66,23 @@ def test_fewlabel_fit_changes_only_lr_and_loss_level():
         assert a == b
 
 
+def recorded_overrides(results_json: str) -> list[str]:
+    """The key=value overrides of the training command a results json records (not threads, seed, env)."""
+    path = CONFIGS.parent / "benchmarks" / "results" / "seg_cpu_rich" / results_json
+    words = shlex.split(json.loads(path.read_text())["command"])
+    return [w for w in words if "=" in w and not w.startswith(("threads=", "seed=", "OMP_NUM_THREADS="))]
+
+
 def test_supervised_cpu_preset_is_the_measured_recipe():
-    """configs/seg/cpu_minkunet.yaml is what its results json measured: the recorded overrides change nothing."""
-    results = CONFIGS.parent / "benchmarks" / "results" / "seg_cpu_rich" / "local_features_seeds.json"
-    words = shlex.split(json.loads(results.read_text())["command"])
-    overrides = [w for w in words if "=" in w and not w.startswith(("threads=", "seed=", "OMP_NUM_THREADS="))]
-    assert len(overrides) >= 6  # decoder channels and blocks, voxel size, lr, steps, input features
+    """configs/seg/cpu_minkunet.yaml is what its results jsons measured. The last runs trained it with
+    model.readout=voxel and were evaluated with both readouts; the voxel-level losses do not read the readout, so
+    the preset (trilinear) trains the same net. The recipe before (six overrides of the first preset) is it too."""
     preset = CONFIGS / "seg" / "cpu_minkunet.yaml"
-    assert load_config(SegTrainConfig, preset, overrides) == load_config(SegTrainConfig, preset)
+    current = load_config(SegTrainConfig, preset)
+    measured = load_config(SegTrainConfig, preset, recorded_overrides("keep_gathers_seeds.json"))
+    assert (measured.model.readout, current.model.readout, current.loss.level) == ("voxel", "trilinear", "voxel")
+    measured.model.readout = "trilinear"
+    assert measured == current
+    earlier = recorded_overrides("local_features_seeds.json")
+    assert len(earlier) >= 6  # decoder channels and blocks, voxel size, lr, steps, input features
+    assert load_config(SegTrainConfig, preset, earlier) == current

@@ -130,8 +130,8 @@ def test_predict_rejects_bad_inputs(trained, tmp_path):
         predict_root(ckpt, root, tmp_path / "o", sequences=["07"], progress=False)
 
 
-def test_views_average_the_softmax_over_mirror_views(trained, tmp_path):
-    """Test-time augmentation: views=k is the mean of the single-view softmax of the first k mirror views."""
+def test_views_average_the_softmax_over_mirror_and_turned_views(trained, tmp_path):
+    """Test-time augmentation: views=k is the mean of the single-view softmax of the first k mirror / turned views."""
     root, ckpt = trained
     model = model_from_checkpoint(load_checkpoint(ckpt), torch.device("cpu"))
     points = torch.from_numpy(read_kitti_scan(root / "sequences" / "00" / "velodyne" / "000001.bin").copy())
@@ -147,6 +147,17 @@ def test_views_average_the_softmax_over_mirror_views(trained, tmp_path):
     for views in (1, 2, 4):
         expected = torch.stack(single[:views]).mean(dim=0)
         torch.testing.assert_close(predict_probs(model, points, cpu, views), expected, atol=1e-5, rtol=1e-4)
+    # views 8 adds the four mirrors turned by 45 degrees about z: another voxel grid, another prediction
+    c = math.sqrt(0.5)
+    turned = []
+    for sx, sy in signs:
+        x, y = points[:, 0] * sx, points[:, 1] * sy
+        view = points.clone()
+        view[:, 0], view[:, 1] = c * (x - y), c * (x + y)
+        turned.append(predict_probs(model, view, cpu))
+    assert not torch.allclose(turned[0], single[0], atol=1e-4)
+    expected = torch.stack(single + turned).mean(dim=0)
+    torch.testing.assert_close(predict_probs(model, points, cpu, 8), expected, atol=1e-5, rtol=1e-4)
     assert torch.equal(points, torch.from_numpy(read_kitti_scan(root / "sequences" / "00" / "velodyne" / "000001.bin")))
 
     # seg-eval scores the averaged probabilities; seg-predict records the views and refuses to mix two counts
@@ -162,7 +173,7 @@ def test_views_average_the_softmax_over_mirror_views(trained, tmp_path):
     np.testing.assert_allclose(probs, torch.stack(single).mean(dim=0).numpy(), atol=2e-3)
     with pytest.raises(InputError, match="--views 4, not 1"):
         predict_root(ckpt, root, out, progress=False)
-    for bad in (0, 5):
+    for bad in (0, 5, 36):
         with pytest.raises(InputError, match="--views must be 1-4"):
             evaluate(ckpt, root, ["00"], views=bad)
 
@@ -234,3 +245,28 @@ def test_cli_sequence_ranges() -> None:
     assert parse_sequences(["88-99"]) == ["88-99"]  # expanded by resolve_sequences
     assert parse_sequences(["00-02,05", "07"]) == ["00-02", "05", "07"]
     assert parse_sequences(["train"]) == "train" and parse_sequences(None) is None
+
+
+def test_readout_override_in_eval_and_predict(trained, tmp_path):
+    """--readout trilinear rereads the same weights (a MinkUNet checkpoint trained with the voxel readout):
+    seg-eval scores the interpolated softmax and records the readout; seg-predict will not mix two readouts."""
+    root, ckpt = trained
+    cpu = torch.device("cpu")
+    voxel = model_from_checkpoint(load_checkpoint(ckpt), cpu)
+    trilinear = model_from_checkpoint(load_checkpoint(ckpt), cpu, readout="trilinear")
+    assert (voxel.cfg.readout, trilinear.cfg.readout) == ("voxel", "trilinear")
+    points = torch.from_numpy(read_kitti_scan(root / "sequences" / "00" / "velodyne" / "000001.bin").copy())
+    a, b = predict_probs(voxel, points, cpu), predict_probs(trilinear, points, cpu)
+    assert not torch.allclose(a, b, atol=1e-4)  # points near voxel borders read their neighbours too
+    torch.testing.assert_close(b.sum(dim=1), torch.ones(b.shape[0]))
+    summary = evaluate(ckpt, root, ["00"], readout="trilinear")
+    cm = ConfusionMatrix(19, SEMANTICKITTI_IGNORE)
+    for item in ScanDataset(root, ["00"]):
+        cm.update(predict_probs(trilinear, item["points"], cpu).argmax(1), item["labels"])
+    assert summary["readout"] == "trilinear" and summary["miou"] == pytest.approx(mean_iou(cm.matrix))
+    out = tmp_path / "probs"
+    args = ("--out", str(out), "--sequences", "00", "--no-progress")
+    assert run_seg_predict(_predict_args(str(ckpt), str(root), *args, "--readout", "trilinear")) == 0
+    assert json.loads((out / "manifest.json").read_text())["readout"] == "trilinear"
+    with pytest.raises(InputError, match="readout trilinear, not voxel"):
+        predict_root(ckpt, root, out, sequences=["00"], progress=False)

@@ -67,10 +67,11 @@ def compare(x: SparseTensor, conv: SparseConv3d, dense_fn, generator) -> None:
     torch.testing.assert_close(weight.grad, weight_d.grad, rtol=1e-10, atol=1e-10)
 
 
+@pytest.mark.parametrize("keep", [False, True])
 @pytest.mark.parametrize("kernel", [3, 5, 1])
-def test_submanifold_equals_dense_conv3d_at_occupied_sites(generator, kernel):
+def test_submanifold_equals_dense_conv3d_at_occupied_sites(generator, kernel, keep):
     x = random_sparse(generator)
-    conv = SparseConv3d(3, 4, kernel_size=kernel).double()
+    conv = SparseConv3d(3, 4, kernel_size=kernel, keep_gathers=keep).double()
 
     def dense(inp, w):
         return F.conv3d(inp, dense_weight(w, kernel), padding=kernel // 2)
@@ -80,9 +81,10 @@ def test_submanifold_equals_dense_conv3d_at_occupied_sites(generator, kernel):
         assert conv(x.replace(x.features)).coords is x.coords  # outputs = inputs
 
 
-def test_stride2_kernel2_equals_dense_conv3d(generator):
+@pytest.mark.parametrize("keep", [False, True])
+def test_stride2_kernel2_equals_dense_conv3d(generator, keep):
     x = random_sparse(generator)
-    conv = SparseConv3d(3, 5, kernel_size=2, stride=2).double()
+    conv = SparseConv3d(3, 5, kernel_size=2, stride=2, keep_gathers=keep).double()
     compare(x, conv, lambda inp, w: F.conv3d(inp, dense_weight(w, 2), stride=2), generator)
     # every dense output outside the sparse output sites is exactly zero (no input there)
     y = conv(x)
@@ -92,18 +94,20 @@ def test_stride2_kernel2_equals_dense_conv3d(generator):
     assert y.stride == 2 and bool((y.coords[:, 1:] % 2 == 0).all())
 
 
-def test_stride2_kernel3_equals_dense_conv3d(generator):
+@pytest.mark.parametrize("keep", [False, True])
+def test_stride2_kernel3_equals_dense_conv3d(generator, keep):
     x = random_sparse(generator)
-    conv = SparseConv3d(3, 4, kernel_size=3, stride=2).double()
+    conv = SparseConv3d(3, 4, kernel_size=3, stride=2, keep_gathers=keep).double()
     compare(x, conv, lambda inp, w: F.conv3d(inp, dense_weight(w, 3), stride=2, padding=1), generator)
 
 
-def test_transposed_equals_dense_conv_transpose3d(generator):
+@pytest.mark.parametrize("keep", [False, True])
+def test_transposed_equals_dense_conv_transpose3d(generator, keep):
     fine = random_sparse(generator)
     down = SparseConv3d(3, 6, kernel_size=2, stride=2).double()
     coarse = down(fine)
     coarse = coarse.replace(torch.randn(coarse.features.shape, generator=generator, dtype=torch.float64))
-    up = SparseConv3d(6, 4, kernel_size=2, stride=2, transposed=True).double()
+    up = SparseConv3d(6, 4, kernel_size=2, stride=2, transposed=True, keep_gathers=keep).double()
 
     def dense(inp, w):
         return F.conv_transpose3d(inp, dense_weight(w, 2, transposed=True), stride=2)
@@ -128,6 +132,31 @@ def test_gradcheck_custom_autograd(generator):
     weight = torch.randn(27, 1, 2, generator=generator, dtype=torch.float64, requires_grad=True)
     features = x.features.clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lambda f, w: sparse_conv(f, w, kmap), (features, weight), fast_mode=True)
+
+
+def test_kept_gathers_give_the_same_result_and_are_saved_only_for_backward(generator):
+    x = random_sparse(generator)
+    kmap = submanifold_map(x)
+    with_pairs = sum(1 for i in kmap.in_idx if i is not None and i.numel())
+    weight = torch.randn(27, 3, 4, generator=generator, dtype=torch.float64, requires_grad=True)
+    probe = torch.randn(x.num_voxels, 4, generator=generator, dtype=torch.float64)
+    results = []
+    for keep in (False, True):
+        features = x.features.clone().requires_grad_(True)
+        y = sparse_conv(features, weight, kmap, keep_gathers=keep)
+        # features + weight, plus one (P_k, C_in) gather per offset with pairs when kept
+        assert len(y.grad_fn.saved_tensors) == 2 + (with_pairs if keep else 0)
+        (grad_f, grad_w) = torch.autograd.grad((y * probe).sum(), (features, weight))
+        results.append((y.detach(), grad_f, grad_w))
+    for a, b in zip(*results):
+        assert torch.equal(a, b)  # the same operations on the same values: bit-identical
+    with torch.no_grad():
+        assert sparse_conv(x.features, weight, kmap, keep_gathers=True).grad_fn is None
+    assert torch.autograd.gradcheck(
+        lambda f, w: sparse_conv(f, w, kmap, keep_gathers=True),
+        (x.features.clone().requires_grad_(True), weight),
+        fast_mode=True,
+    )
 
 
 def test_kernel_map_cached_and_shared(generator):
