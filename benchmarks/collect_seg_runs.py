@@ -9,7 +9,8 @@ mIoU), `config.yaml` (seed), `hosts.jsonl` (the machine), and the `u4d seg-eval 
     python benchmarks/collect_seg_runs.py runs/lean_v025_lr02_s0 runs/lean_v025_lr02_s1 runs/lean_v025_lr02_s2 \
         --command "THE TRAINING COMMAND" --out benchmarks/results/seg_cpu_rich/lean_voxel025_lr02_seeds.json
 
-Writes OUT and OUT with `_learning_curve.png` in place of `.json`.
+Writes OUT and OUT with `_learning_curve.png` in place of `.json`. `--shared RUN` marks a run that did not have the
+machine to itself (`alone_on_machine: false` in the json; its steps in the budget are not comparable).
 """
 
 from __future__ import annotations
@@ -109,7 +110,8 @@ def shared_variants(rows: list[dict]) -> list[str]:
 
 def summarize(rows: list[dict], command: str) -> dict:
     """The results json: commands, mean +- std over the runs, per-class mean IoU, and every run."""
-    summary: dict = {"command": command, "eval_command": EVAL_COMMAND, "alone_on_machine": True}
+    alone = all(r["alone_on_machine"] for r in rows)
+    summary: dict = {"command": command, "eval_command": EVAL_COMMAND, "alone_on_machine": alone}
     summary["miou_96_mean"], summary["miou_96_std"] = mean_std([r["miou_96"] for r in rows])
     summary["iou_96_mean"] = {c: statistics.mean(r["iou_96"][c] for r in rows) for c in rows[0]["iou_96"]}
     for name in shared_variants(rows):
@@ -144,10 +146,20 @@ def run(argv: list[str] | None = None) -> int:
     parser.add_argument("runs", type=Path, nargs="+", help="seg-train output folders, one per seed")
     parser.add_argument("--command", required=True, help="the training command, recorded in the json (seed=S)")
     parser.add_argument("--out", type=Path, required=True, help="results json; the PNG goes beside it")
+    parser.add_argument(
+        "--shared",
+        type=Path,
+        action="append",
+        default=[],
+        help="a run (one of RUNS) that did not have the machine to itself; recorded as alone_on_machine: false",
+    )
     args = parser.parse_args(argv)
+    unknown = [str(path) for path in args.shared if path not in args.runs]
+    if unknown:
+        raise InputError(f"--shared {', '.join(unknown)}: not among the runs given")
     if args.out.suffix != ".json":
         raise InputError(f"--out {args.out}: expected a .json path")
-    rows = [collect_run(path) for path in args.runs]
+    rows = [{**collect_run(path), "alone_on_machine": path not in args.shared} for path in args.runs]
     summary = summarize(rows, args.command)
     atomic_write_json(args.out, summary)
     png = args.out.with_name(args.out.stem + "_learning_curve.png")

@@ -389,14 +389,14 @@ class _GatherGemmScatter(torch.autograd.Function):
                 if keep_gathers:
                     gathers.append(gathered)
         ctx.save_for_backward(features, weight, *gathers)
-        ctx.kmap, ctx.keep_gathers = kmap, keep_gathers
+        ctx.kmap = kmap
         return out
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):
         features, weight, *gathers = ctx.saved_tensors
         kmap: KernelMap = ctx.kmap
-        kept = iter(gathers)
+        kept = iter(gathers) if gathers else None  # kept gathers, one per offset with pairs, in order
         grad_out = grad_out.contiguous()
         need_in, need_w = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         grad_in = torch.zeros_like(features) if need_in else None
@@ -405,7 +405,7 @@ class _GatherGemmScatter(torch.autograd.Function):
             if i is None:
                 f, g = features, grad_out
             elif i.numel():
-                f = next(kept) if ctx.keep_gathers else features.index_select(0, i)
+                f = next(kept) if kept is not None else features.index_select(0, i)
                 g = grad_out.index_select(0, o)
             else:
                 continue

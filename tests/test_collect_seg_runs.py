@@ -75,6 +75,19 @@ def test_every_saved_evaluation_variant_is_collected(tmp_path):
     assert "miou_96_views4_mean" not in result  # one run only: no mean over seeds
     assert result["runs"][0]["miou_96_views4"] == pytest.approx(0.61)
     assert "mean mIoU (trilinear_views8) over 2 runs: 68.00 +- 5.66 %" in done.stdout
+    assert result["alone_on_machine"] and all(r["alone_on_machine"] for r in result["runs"])
+
+
+def test_a_run_that_shared_the_machine_is_recorded(tmp_path):
+    a = fake_run(tmp_path / "s0", 0, 0.60, None, None)
+    b = fake_run(tmp_path / "s1", 1, 0.70, None, None)
+    out = tmp_path / "shared.json"
+    done = collect(str(a), str(b), "--command", "c", "--out", str(out), "--shared", str(a))
+    assert done.returncode == 0, done.stderr
+    result = json.loads(out.read_text())
+    assert [r["alone_on_machine"] for r in result["runs"]] == [False, True] and not result["alone_on_machine"]
+    done = collect(str(a), "--command", "c", "--out", str(out), "--shared", str(b))
+    assert done.returncode != 0 and "--shared" in done.stderr and "not among the runs" in done.stderr
 
 
 def test_one_run_has_no_std_and_no_views_mean(tmp_path):
