@@ -49,8 +49,11 @@ CPU = DistInfo(0, 1, 0, torch.device("cpu"))
 
 
 def loss_rows(cfg: SegTrainConfig, batch: dict) -> int:
-    """Rows the training losses read in this batch: points, or occupied voxels with loss.level=voxel."""
-    if cfg.loss.level == "point":
+    """Rows the training losses read in this batch: points (those sampled with loss.point_fraction < 1), or occupied
+    voxels with loss.level=voxel."""
+    if "loss_rows" in batch:
+        return sum(int(r.shape[0]) for r in batch["loss_rows"])
+    elif cfg.loss.level == "point":
         return sum(int(p.shape[0]) for p in batch["points"])
     return voxelize(list(batch["points"]), cfg.model.voxel_size)[0].num_voxels
 
@@ -86,13 +89,23 @@ class SavedBytes:
         self.storages: dict[int, int] = {}
 
     def pack(self, tensor: torch.Tensor) -> torch.Tensor:
-        storage = tensor.untyped_storage()
-        self.storages[storage.data_ptr()] = storage.nbytes()
+        for part in storage_parts(tensor):
+            storage = part.untyped_storage()
+            self.storages[storage.data_ptr()] = storage.nbytes()
         return tensor
 
     @property
     def megabytes(self) -> float:
         return sum(self.storages.values()) / 2**20
+
+
+def storage_parts(tensor: torch.Tensor) -> list[torch.Tensor]:
+    """The dense tensors holding a tensor's data: itself, or a sparse one's indices and values (CSR / COO)."""
+    if tensor.layout == torch.sparse_csr:
+        return [tensor.crow_indices(), tensor.col_indices(), tensor.values()]
+    elif tensor.layout == torch.sparse_coo:
+        return [tensor._indices(), tensor._values()]
+    return [tensor]
 
 
 def add_profile(ops: dict, profiler: profile) -> None:

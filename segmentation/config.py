@@ -110,6 +110,9 @@ class LossConfig:
     # majority of its points (torchsparse / SPVNAS style; MinkUNet only, whose points share their voxel's logits
     # anyway): 2-4x fewer rows for the CE and the Lovász sort. "point": every point (mmdet3d). Evaluation is per point.
     level: Literal["point", "voxel"] = "point"
+    # level "point": the losses read this random share of each training scan's points, drawn per step (the net
+    # computes only their logits; with a MinkUNet trilinear readout only their interpolation); 1 = all points
+    point_fraction: float = 1.0
 
     def __post_init__(self) -> None:
         if self.class_weighting not in ("none", "inverse_sqrt"):
@@ -118,6 +121,10 @@ class LossConfig:
             raise ValueError(f"loss.max_class_weight must be >= 1; got {self.max_class_weight}")
         if self.level not in ("point", "voxel"):
             raise ValueError(f"loss.level must be 'point' or 'voxel'; got {self.level!r}")
+        if not 0.0 < self.point_fraction <= 1.0:
+            raise ValueError(f"loss.point_fraction must be in (0, 1]; got {self.point_fraction}")
+        if self.point_fraction < 1.0 and self.level != "point":
+            raise ValueError("loss.point_fraction < 1 samples points: it needs loss.level=point")
 
 
 @dataclass
@@ -193,6 +200,8 @@ class SegTrainConfig:
             raise ValueError("keep_checkpoints, num_workers, threads and max_minutes must be >= 0")
         if self.optim.anneal_to == "budget" and self.max_minutes <= 0:
             raise ValueError("optim.anneal_to=budget needs a wall-clock budget: set max_minutes > 0")
+        if self.loss.point_fraction < 1.0 and self.mode != "supervised":
+            raise ValueError("loss.point_fraction < 1 is for mode=supervised (the semi losses read every point)")
         if self.loss.level == "voxel" and self.model.name != "minkunet":
             raise ValueError(
                 f"loss.level=voxel needs model.name=minkunet (the {self.model.name} head reads points); use point"

@@ -159,7 +159,7 @@ class TrainBatches(Dataset):
         cfg = self.cfg
         indices = batch_indices(step, len(self.scans), cfg.optim.batch_size, cfg.seed)
         slots = range(self.rank, cfg.optim.batch_size, self.world_size)
-        points, labels = [], []
+        points, labels, loss_rows = [], [], []
         for slot in slots:
             item = self.scans[indices[slot]]
             generator = torch.Generator().manual_seed(derived_seed(cfg.seed, _SCAN, step, slot))
@@ -180,7 +180,11 @@ class TrainBatches(Dataset):
                 )
             points.append(augment(scan, generator, cfg.augment))
             labels.append(target)
+            if cfg.loss.point_fraction < 1.0:
+                loss_rows.append(sample_rows(len(target), cfg.loss.point_fraction, generator))
         batch = {"step": step, "slots": list(slots), "points": points, "labels": labels}
+        if loss_rows:
+            batch["loss_rows"] = loss_rows
         if self.unlabeled is not None and not in_burn_in(cfg.semi, step):
             batch["unlabeled"], unlabeled_labels = load_unlabeled(self.unlabeled, cfg, step, slots)
             if unlabeled_labels is not None:
@@ -197,9 +201,19 @@ def supervised_step(
     if cfg.loss.level == "voxel":
         out = model(points, voxel_output=True)  # logits (M, K) of the occupied voxels
         logits, target = out.logits, voxel_targets(target, out.inverse, out.logits.shape[0], SEMANTICKITTI_IGNORE)
+    elif "loss_rows" in batch:  # loss.point_fraction < 1: the sampled points only
+        starts = torch.tensor([0] + [len(p) for p in batch["points"][:-1]]).cumsum(0).tolist()
+        rows = torch.cat([r + s for r, s in zip(batch["loss_rows"], starts)]).to(device)  # (R,) into the batch
+        logits, target = model(points, rows=rows), target[rows]  # (R, K), (R,)
     else:
         logits = model(points)  # (sum N_b, K)
     return segmentation_loss(logits, target, cfg.loss, SEMANTICKITTI_IGNORE, class_weight)
+
+
+def sample_rows(num: int, fraction: float, generator: torch.Generator) -> torch.Tensor:
+    """Sorted rows of max(1, round(fraction * num)) points drawn without replacement from num (loss.point_fraction)."""
+    count = max(1, round(fraction * num))
+    return torch.randperm(num, generator=generator)[:count].sort().values
 
 
 def train_class_counts(scans: ScanDataset) -> torch.Tensor:

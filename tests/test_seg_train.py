@@ -333,6 +333,35 @@ def test_voxel_level_loss_reads_majority_labels_and_learns(toy_root, tmp_path):
     assert records[-1]["loss"] < records[0]["loss"]
 
 
+def test_point_fraction_loss_reads_the_sampled_points(toy_root, tmp_path):
+    """loss.point_fraction=0.25: each scan's batch item holds a quarter of its rows (sorted, distinct, the same
+    for the same step), and the losses are those of the full point logits at those rows."""
+    cfg = tiny_config(toy_root, tmp_path / "frac", "loss.point_fraction=0.25", "loss.lovasz_weight=1.0")
+    batches = TrainBatches(train_scans(cfg, CPU), cfg, 0, 1)
+    batch = batches[0]
+    for rows, labels in zip(batch["loss_rows"], batch["labels"]):
+        assert len(rows) == round(0.25 * len(labels)) and bool((rows.diff() > 0).all()) and int(rows[-1]) < len(labels)
+    torch.testing.assert_close(batches[0]["loss_rows"], batch["loss_rows"])
+    assert not torch.equal(batches[1]["loss_rows"][0][:50], batch["loss_rows"][0][:50])
+    torch.manual_seed(0)
+    model = build_model(cfg.model).eval()  # eval: batch norm does not see which points were computed
+    losses = supervised_step(model, batch, cfg, torch.device("cpu"))
+    start = len(batch["points"][0])
+    rows = torch.cat([batch["loss_rows"][0], batch["loss_rows"][1] + start])
+    want = segmentation_loss(
+        model(batch["points"])[rows], torch.cat(batch["labels"])[rows], cfg.loss, SEMANTICKITTI_IGNORE
+    )
+    for key in ("loss", "loss_ce", "loss_lovasz"):
+        assert float(losses[key].detach()) == pytest.approx(float(want[key].detach()), rel=1e-5), key
+    assert "loss_rows" not in TrainBatches(train_scans(cfg, CPU), tiny_config(toy_root, tmp_path), 0, 1)[0]
+    with pytest.raises(ValueError, match="loss.level=point"):
+        tiny_config(toy_root, tmp_path, "loss.level=voxel", "loss.point_fraction=0.5")
+    with pytest.raises(ValueError, match="point_fraction must be in"):
+        tiny_config(toy_root, tmp_path, "loss.point_fraction=0")
+    with pytest.raises(ValueError, match="mode=supervised"):
+        tiny_config(toy_root, tmp_path, "mode=semi", "loss.point_fraction=0.5")
+
+
 def test_class_weighted_run_logs_its_weights(toy_root, tmp_path):
     out = tmp_path / "weighted"
     train(tiny_config(toy_root, out, "optim.steps=2", "loss.class_weighting=inverse_sqrt"), progress=False)
