@@ -148,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--floor", nargs="+", default=["06"], help="other held-out sequences: real-vs-real floor")
     parser.add_argument("--num", type=int, default=64, help="scans per method and seed")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddpm", help="R2DM samples with ddpm")
+    parser.add_argument("--sampler", choices=("ddpm", "ddim", "dpmpp2m"), default="ddpm", help="R2DM samples with ddpm")
     parser.add_argument("--steps", type=int, default=32, help="sampler steps (baseline and stage 2)")
     parser.add_argument("--stage1-steps", type=int, default=8, help="sampler steps of stage 1")
     parser.add_argument("--metrics", default="jsd,mmd", help="subset of frd,fpd,jsd,mmd")

@@ -414,7 +414,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--matmul-size", type=int, default=None, help="square matmul size (2048)")
     parser.add_argument("--full-preset", type=Path, default=FULL_PRESET, help="preset counted for params/FLOPs")
     parser.add_argument("--full-reps", type=int, default=None, help="timed full-size forwards, 0 skips (3; quick 0)")
-    parser.add_argument("--sampler", choices=["ddpm", "ddim"], default="ddpm", help="sampler of the timed generation")
+    parser.add_argument(
+        "--sampler", choices=["ddpm", "ddim", "dpmpp2m"], default="ddpm", help="sampler of the timed generation"
+    )
     parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
     parser.add_argument("--quick", action="store_true", help="tiny preset, 4 (2) steps, 3 reps, matmul 512")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "generation_speed.json")

@@ -7,7 +7,7 @@ import torch
 
 from u4d_aug.config import config_from_dict, config_to_dict, load_config
 from u4d_aug.errors import InputError
-from u4d_aug.nn.unet import RangeUNet, UNetConfig
+from u4d_aug.nn.unet import RangeUNet, UNetConfig, crop_columns
 
 H, W = 16, 64
 
@@ -172,3 +172,37 @@ def test_golden_output_without_most_and_no_most_modules():
     assert float(logits.double().mean()) == pytest.approx(-1.1508832460950014, rel=1e-5)
     assert net.most_names == [] and net.gate_weights().shape == (0, 2) and float(net.most_aux_loss()) == 0.0
     assert not any("most" in name for name in net.state_dict())
+
+
+def test_crop_of_a_periodic_panorama_equals_the_panorama_at_its_columns(generator):
+    """A crop is padded as a ring of its own: on a panorama that repeats every crop width, the crop sees exactly the
+    neighbourhoods (and, for attention, the keys) the panorama has, so the net's output is the panorama's columns."""
+    net = randomized(RangeUNet(tiny(mask_head=True, cond_channels=3)))
+    crop = W // 4
+    x_t = torch.randn(2, 2, H, crop, generator=generator).repeat(1, 1, 1, 4)  # period = crop width
+    cond = torch.randn(2, 3, H, crop, generator=generator).repeat(1, 1, 1, 4)
+    log_snr = torch.tensor([0.5, -1.0])
+    eps, logits = net(x_t, log_snr, cond)
+    offsets = torch.tensor([0, 3 * net.cfg.downsampling_factor])
+    columns = crop_columns(offsets, crop, W)  # (2, crop)
+    pick = lambda t: torch.stack([t[i][..., columns[i]] for i in range(2)])  # noqa: E731
+    eps_c, logits_c = net(pick(x_t), log_snr, pick(cond), crop_offsets=offsets)
+    assert eps_c.shape == (2, 2, H, crop)
+    assert torch.allclose(eps_c, pick(eps), atol=1e-4 * eps.abs().max().item())
+    assert torch.allclose(logits_c, pick(logits), atol=1e-4 * logits.abs().max().item())
+
+
+def test_crop_reads_the_ray_features_at_its_columns(generator):
+    """A full-width crop starting at column k is the panorama rolled by k: with the ray features read at the crop's
+    columns the output is the rolled output (without them the first column would get column 0's angles)."""
+    net = randomized(RangeUNet(tiny(fourier_features=True), *angles()))
+    x_t = torch.randn(1, 2, H, W, generator=generator)
+    log_snr = torch.tensor([1.0])
+    eps, _ = net(x_t, log_snr)
+    shift = 3 * net.cfg.downsampling_factor
+    eps_c, _ = net(torch.roll(x_t, -shift, -1), log_snr, crop_offsets=torch.tensor([shift]))
+    assert torch.allclose(eps_c, torch.roll(eps, -shift, -1), atol=1e-4 * eps.abs().max().item())
+    eps_wrong, _ = net(torch.roll(x_t, -shift, -1), log_snr, crop_offsets=torch.tensor([0]))
+    assert not torch.allclose(eps_wrong, torch.roll(eps, -shift, -1), atol=1e-2 * eps.abs().max().item())
+    with pytest.raises(InputError, match="azimuth crop and needs crop_offsets"):
+        net(x_t[..., : W // 2], log_snr)  # a narrower image without offsets

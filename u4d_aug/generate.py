@@ -50,7 +50,9 @@ class GenerateConfig:
     stage1: str = ""  # u4d mode
     stage2: str = ""  # u4d and complete modes
     baseline: str = ""  # baseline mode
-    sampler: Sampler = "ddpm"  # ancestral, as R2DM; DDIM at few steps keeps x_1 noise with briefly trained nets
+    # ddpm: ancestral, as R2DM; ddim: DDIM at few steps keeps x_1 noise with briefly trained nets; dpmpp2m:
+    # DPM-Solver++(2M), deterministic 2nd order, the same t grid and one net call per step
+    sampler: Sampler = "ddpm"
     steps: int = 32
     stage1_steps: int | None = None  # None = steps; the uncertain region allows fewer
     num: int = 64
@@ -263,7 +265,9 @@ def _real_condition(
 def add_generate_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `u4d generate CONFIG --out BANK [--num N] [--mode ...] [--steps S] [--seed S] [key=value ..]`."""
     parser.add_argument("config", type=Path, help="yaml naming the checkpoints, sampler and steps")
-    parser.add_argument("overrides", nargs="*", help="key=value overrides, e.g. stage1=runs/s1 sampler=ddpm")
+    parser.add_argument(
+        "overrides", nargs="*", help="key=value overrides, e.g. stage1=runs/s1 sampler=dpmpp2m (ddpm|ddim|dpmpp2m)"
+    )
     parser.add_argument("--out", type=Path, required=True, help="bank folder (SemanticKITTI layout)")
     parser.add_argument("--num", type=int, default=None, help="number of scans (default: the config's num)")
     parser.add_argument("--mode", choices=["u4d", "baseline", "complete"], default=None)

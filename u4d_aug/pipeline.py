@@ -24,10 +24,11 @@ from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.nn.unet import RangeUNet
 from u4d_aug.range_view import RowMode, unproject
-from u4d_aug.sampling import Generators, Sample, ddim_sample, ddpm_sample
+from u4d_aug.sampling import SAMPLER_NAMES, Generators, Sample
+from u4d_aug.sampling import sample as sample_named
 from u4d_aug.train import DiffusionTrainConfig, build_net, config_from_checkpoint, find_checkpoint
 
-Sampler = Literal["ddim", "ddpm"]
+Sampler = Literal["ddim", "ddpm", "dpmpp2m"]  # u4d_aug.sampling.sample: DDIM, ancestral DDPM, DPM-Solver++(2M)
 Loaded = tuple[RangeUNet, DiffusionTrainConfig]
 
 
@@ -68,11 +69,9 @@ def _sample(
     net, cfg = loaded
     device = next(net.parameters()).device
     shape = (*batch_shape, cfg.net.in_channels, cfg.height, cfg.width)
-    if sampler == "ddim":
-        return ddim_sample(net, shape, steps, generator, cond=cond, device=device)
-    if sampler == "ddpm":
-        return ddpm_sample(net, shape, steps, generator, cond=cond, device=device)
-    raise InputError(f"sampler {sampler!r} is not one of 'ddim', 'ddpm'")
+    if sampler not in SAMPLER_NAMES:
+        raise InputError(f"sampler {sampler!r} is not one of {', '.join(repr(n) for n in SAMPLER_NAMES)}")
+    return sample_named(sampler, net, shape, steps, generator, cond=cond, device=device)
 
 
 def mask_from_logits(logits: Tensor, pos_weight: float = 1.0) -> Tensor:

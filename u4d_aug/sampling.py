@@ -2,16 +2,17 @@
 
 `denoise_fn(x_t, log_snr, cond)` returns ε̂, or a tuple (ε̂, extra) whose `extra` (e.g. the stage-1 mask logits)
 from the last network call is handed back with the sample. A `RangeUNet` is itself such a function.
-Both samplers walk t = linspace(1, 0, steps + 1) on the cosine log-SNR of `u4d_aug.diffusion`, clamp
-x̂0 = (x_t − σ ε̂)/α to [−1, 1] at every step and return the last x̂0 (R2DM
-`ContinuousTimeGaussianDiffusion.sample`, generation_protocols.md §2.2).
+All samplers make `steps` network calls on the cosine log-SNR of `u4d_aug.diffusion`, at the first `steps` points
+of t = linspace(1, 0, steps + 1) (DPM-Solver++(2M) can instead space them uniformly in log-SNR), clamp
+x̂0 = (x_t − σ ε̂)/α to [−1, 1] at every step (`clip`) and return the last x̂0 (R2DM
+`ContinuousTimeGaussianDiffusion.sample`, generation_protocols.md §2.2). `sample(name, ...)` picks one by name.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from typing import Any, Literal, NamedTuple
+from typing import Any, Literal, NamedTuple, get_args
 
 import torch
 from torch import Tensor
@@ -32,6 +33,31 @@ class Sample(NamedTuple):
     extra: Any
 
 
+SamplerName = Literal["ddpm", "ddim", "dpmpp2m"]
+SAMPLER_NAMES: tuple[str, ...] = get_args(SamplerName)
+
+
+def sample(
+    name: SamplerName,
+    denoise_fn: DenoiseFn,
+    shape: tuple[int, ...],
+    steps: int,
+    generator: Generators,
+    cond: Tensor | None = None,
+    device: torch.device | str | None = None,
+    progress: bool = False,
+    clip: bool = True,
+) -> Sample:
+    """The sampler called `name`: ddpm | ddim | dpmpp2m (on its default time grid), same arguments as each."""
+    if name == "ddpm":
+        return ddpm_sample(denoise_fn, shape, steps, generator, cond, device, progress, clip)
+    elif name == "ddim":
+        return ddim_sample(denoise_fn, shape, steps, generator, cond, device, progress, clip)
+    elif name == "dpmpp2m":
+        return dpmpp_2m_sample(denoise_fn, shape, steps, generator, cond, device, progress, clip)
+    raise ValueError(f"sampler {name!r} is not one of {', '.join(repr(n) for n in SAMPLER_NAMES)}")
+
+
 @torch.no_grad()
 def ddpm_sample(
     denoise_fn: DenoiseFn,
@@ -41,9 +67,10 @@ def ddpm_sample(
     cond: Tensor | None = None,
     device: torch.device | str | None = None,
     progress: bool = False,
+    clip: bool = True,
 ) -> Sample:
     """Ancestral DDPM sampling in continuous time (Kingma et al. 2021, VDM; R2DM `sample`, mode ddpm)."""
-    return _sample("ddpm", denoise_fn, shape, steps, generator, cond, device, progress)
+    return _sample("ddpm", denoise_fn, shape, steps, generator, cond, device, progress, clip)
 
 
 @torch.no_grad()
@@ -55,9 +82,53 @@ def ddim_sample(
     cond: Tensor | None = None,
     device: torch.device | str | None = None,
     progress: bool = False,
+    clip: bool = True,
 ) -> Sample:
     """Deterministic DDIM, η = 0 (Song et al. 2021, eq. 12); only x_1 ~ N(0, I) uses the generator."""
-    return _sample("ddim", denoise_fn, shape, steps, generator, cond, device, progress)
+    return _sample("ddim", denoise_fn, shape, steps, generator, cond, device, progress, clip)
+
+
+@torch.no_grad()
+def dpmpp_2m_sample(
+    denoise_fn: DenoiseFn,
+    shape: tuple[int, ...],
+    steps: int,
+    generator: Generators,
+    cond: Tensor | None = None,
+    device: torch.device | str | None = None,
+    progress: bool = False,
+    clip: bool = True,
+    grid: Literal["time", "logsnr"] = "time",
+) -> Sample:
+    """DPM-Solver++(2M), multistep 2nd order in x̂0 on λ = log(α/σ) (Lu et al. 2022, Alg. 2; k-diffusion).
+
+    The first step is first order (= DDIM); the last call's x̂0 is returned, as by the other samplers (a step
+    to σ = 0, first order as in k-diffusion `sample_dpmpp_2m`), so `steps` = 1 is DDIM with one step. `grid`:
+    "time" = the other samplers' t = linspace(1, 0, steps + 1), "logsnr" = uniform in log-SNR between its ends.
+    Only x_1 ~ N(0, I) uses the generator.
+    """
+    lams = _grid(steps, grid)  # log-SNR = 2λ at the steps + 1 grid points, rising
+    batch, device, x = _start(shape, steps, generator, device)
+    extra: Any = None
+    x0_prev: Tensor | None = None  # x̂0 of the previous call, the second point of the multistep
+    for i in tqdm(range(steps), disable=not progress, desc="dpmpp2m sampling", leave=False):
+        eps, extra = _denoise(denoise_fn, x, lams[i], batch, device, cond)
+        alpha_t, sigma_t = _alpha_sigma(lams[i])
+        x0_hat = (x - sigma_t * eps) / alpha_t
+        if clip:
+            x0_hat.clamp_(-1.0, 1.0)
+        if i == steps - 1:
+            x = x0_hat
+            break
+        alpha_s, sigma_s = _alpha_sigma(lams[i + 1])
+        h = 0.5 * (lams[i + 1] - lams[i])  # h_i = λ_s − λ_t > 0 in DPM-Solver's half log-SNR
+        d = x0_hat
+        if x0_prev is not None:
+            r = 0.5 * (lams[i] - lams[i - 1]) / h  # r_i = h_{i−1} / h_i
+            d = (1.0 + 0.5 / r) * x0_hat - (0.5 / r) * x0_prev  # D_i, the 2nd-order x̂0 over [λ_t, λ_s]
+        x = (sigma_s / sigma_t) * x - alpha_s * math.expm1(-h) * d  # x_s = σ_s/σ_t x_t − α_s (e^{−h} − 1) D_i
+        x0_prev = x0_hat
+    return Sample(x, extra)
 
 
 def _sample(
@@ -69,24 +140,19 @@ def _sample(
     cond: Tensor | None,
     device: torch.device | str | None,
     progress: bool,
+    clip: bool,
 ) -> Sample:
-    if steps < 1:
-        raise ValueError(f"sampling steps must be >= 1, got {steps}")
-    batch = shape[0]
-    if not isinstance(generator, torch.Generator) and len(generator) != batch:
-        raise ValueError(f"got {len(generator)} generators for a batch of {batch}")
-    device = torch.device(device) if device is not None else _first(generator).device
-    # the schedule in float64 python scalars: exact at the ends of the grid where alpha or sigma ~ 5e-4
-    grid = log_snr(torch.linspace(1.0, 0.0, steps + 1, dtype=torch.float64)).tolist()
-    x = _randn(shape, generator, device)  # x_1 ~ N(0, I)
+    batch, device, x = _start(shape, steps, generator, device)
+    grid = _grid(steps, "time")
     extra: Any = None
     for i in tqdm(range(steps), disable=not progress, desc=f"{mode} sampling", leave=False):
         lam_t, lam_s = grid[i], grid[i + 1]  # lam_s > lam_t: s is the less noisy time
         alpha_t, sigma_t = _alpha_sigma(lam_t)
         alpha_s, sigma_s = _alpha_sigma(lam_s)
-        out = denoise_fn(x, torch.full((batch,), lam_t, device=device, dtype=torch.float32), cond)
-        eps, extra = out if isinstance(out, tuple) else (out, None)
-        x0_hat = ((x - sigma_t * eps) / alpha_t).clamp_(-1.0, 1.0)
+        eps, extra = _denoise(denoise_fn, x, lam_t, batch, device, cond)
+        x0_hat = (x - sigma_t * eps) / alpha_t
+        if clip:
+            x0_hat.clamp_(-1.0, 1.0)
         if i == steps - 1:
             x = x0_hat
         elif mode == "ddpm":
@@ -97,6 +163,37 @@ def _sample(
             eps = (x - alpha_t * x0_hat) / sigma_t  # re-derived from the clamped x̂0 so both stay consistent
             x = alpha_s * x0_hat + sigma_s * eps
     return Sample(x, extra)
+
+
+def _start(
+    shape: tuple[int, ...], steps: int, generator: Generators, device: torch.device | str | None
+) -> tuple[int, torch.device, Tensor]:
+    """(batch B, device, x_1 ~ N(0, I) of `shape`) after checking steps >= 1 and one generator per element."""
+    if steps < 1:
+        raise ValueError(f"sampling steps must be >= 1, got {steps}")
+    batch = shape[0]
+    if not isinstance(generator, torch.Generator) and len(generator) != batch:
+        raise ValueError(f"got {len(generator)} generators for a batch of {batch}")
+    device = torch.device(device) if device is not None else _first(generator).device
+    return batch, device, _randn(shape, generator, device)
+
+
+def _grid(steps: int, kind: Literal["time", "logsnr"]) -> list[float]:
+    """log-SNR at steps + 1 points from t = 1 to t = 0, uniform in t or in log-SNR (float64: exact at the ends)."""
+    if kind == "time":
+        return log_snr(torch.linspace(1.0, 0.0, steps + 1, dtype=torch.float64)).tolist()
+    if kind == "logsnr":
+        lo, hi = log_snr(torch.tensor([1.0, 0.0], dtype=torch.float64)).tolist()
+        return torch.linspace(lo, hi, steps + 1, dtype=torch.float64).tolist()
+    raise ValueError(f"grid {kind!r} is not one of 'time', 'logsnr'")
+
+
+def _denoise(
+    denoise_fn: DenoiseFn, x: Tensor, lam: float, batch: int, device: torch.device, cond: Tensor | None
+) -> tuple[Tensor, Any]:
+    """(ε̂ of x_t at log-SNR `lam`, given to the net as (B,) float32; the call's extra or None)."""
+    out = denoise_fn(x, torch.full((batch,), lam, device=device, dtype=torch.float32), cond)
+    return out if isinstance(out, tuple) else (out, None)
 
 
 def _alpha_sigma(lam: float) -> tuple[float, float]:

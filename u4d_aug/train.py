@@ -34,7 +34,7 @@ from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, budget_used,
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_text, read_jsonl
-from u4d_aug.nn.unet import RangeUNet, UNetConfig
+from u4d_aug.nn.unet import RangeUNet, UNetConfig, crop_columns
 from u4d_aug.range_view import RowMode, project, ray_angles, to_image
 from u4d_aug.uncertainty import Strategy, load_probs, probs_path, uncertain_range_view
 
@@ -72,6 +72,7 @@ class DiffusionTrainConfig:
     height: int = 64
     width: int = 1024
     row_mode: RowMode = "beam"
+    crop_width: int = 0  # > 0: train on random azimuth crops of this many columns (sampling stays full width); 0 = off
     frames: int = 1  # L: scans per item; > 1 trains on L-frame windows of one sequence, (B, L, C, H, W)
     frame_stride: int = 1  # frames between the scans of a window
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
@@ -100,6 +101,12 @@ class DiffusionTrainConfig:
             raise InputError(f"steps and batch_size must be >= 1, got {self.steps}, {self.batch_size}")
         if self.height < 1 or self.width < 1:
             raise InputError(f"height/width must be >= 1, got {self.height}x{self.width}")
+        factor = self.net.downsampling_factor
+        if self.crop_width and not (0 < self.crop_width <= self.width and self.crop_width % factor == 0):
+            raise InputError(
+                f"crop_width must be 0 (off) or a multiple of {factor} (the net's downsampling) up to width "
+                f"{self.width}, got {self.crop_width}"
+            )
         if self.frames < 1 or self.frame_stride < 1:
             raise InputError(f"frames and frame_stride must be >= 1, got {self.frames}, {self.frame_stride}")
 
@@ -197,6 +204,24 @@ def make_batch(images: RangeImages, indices: list[int], generator: torch.Generat
     """Stack the items of `indices` into (B, [L,] C, H, W) tensors on `device`."""
     items = [images.__getitem__(i, generator) for i in indices]
     return {key: torch.stack([item[key] for item in items]).to(device) for key in items[0]}
+
+
+def crop_offsets(batch_size: int, cfg: DiffusionTrainConfig, generator: torch.Generator) -> Tensor | None:
+    """(B,) random first columns of the azimuth crops, multiples of the net's downsampling (None: no crop)."""
+    if not cfg.crop_width:
+        return None
+    factor = cfg.net.downsampling_factor
+    return factor * torch.randint(0, cfg.width // factor, (batch_size,), generator=generator)
+
+
+def crop_batch(batch: dict[str, Tensor], offsets: Tensor, crop_width: int) -> dict[str, Tensor]:
+    """Azimuth crops (B, [L,] C, H, crop_width) of every (B, [L,] C, H, W) tensor, wrapping around the ring."""
+    out = {}
+    for key, value in batch.items():
+        columns = crop_columns(offsets.to(value.device), crop_width, value.shape[-1])  # (B, w)
+        index = columns.view(value.shape[0], *([1] * (value.dim() - 2)), crop_width).expand(*value.shape[:-1], -1)
+        out[key] = torch.gather(value, -1, index)
+    return out
 
 
 def stage_inputs(stage: str, batch: dict) -> tuple[Tensor, Tensor | None, Tensor | None]:
@@ -359,11 +384,14 @@ def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress:
         generator = torch.Generator().manual_seed(derived_seed(cfg.seed, _NOISE, step, info.rank))
         indices = batch_indices(step, info.rank, len(images), cfg.batch_size, cfg.seed)
         batch = make_batch(images, indices, generator, info.device)
+        offsets = crop_offsets(len(indices), cfg, generator)  # None: full panorama
+        if offsets is not None:
+            batch = crop_batch(batch, offsets, cfg.crop_width)
         x0, cond, m_u = stage_inputs(cfg.diffusion.stage, batch)
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(step, cfg.optim)
 
-        losses = model(x0, cond, m_u, generator)
+        losses = model(x0, cond, m_u, generator, offsets)
         optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
         grad_norm = nn.utils.clip_grad_norm_(

@@ -78,6 +78,11 @@ class UNetConfig:
         return 2 ** (len(self.channel_multipliers) - 1)
 
 
+def crop_columns(offsets: Tensor, width: int, full_width: int) -> Tensor:
+    """Panorama columns of azimuth crops: offsets (N,) -> (N, width) = (offset + j) mod full_width."""
+    return (offsets.long()[:, None] + torch.arange(width, device=offsets.device)[None, :]) % full_width
+
+
 class LevelBlock(nn.Module):
     """One UNet stage entry: a ResBlock, then self-attention when `attention` and the config allow it."""
 
@@ -203,11 +208,19 @@ class RangeUNet(nn.Module):
         return torch.stack(terms).sum() if terms else torch.zeros(())
 
     def forward(
-        self, x_t: Tensor, log_snr: Tensor, cond: Tensor | None = None, generator: torch.Generator | None = None
+        self,
+        x_t: Tensor,
+        log_snr: Tensor,
+        cond: Tensor | None = None,
+        generator: torch.Generator | None = None,
+        crop_offsets: Tensor | None = None,
     ) -> tuple[Tensor, Tensor | None]:
         """x_t (B, [L,] C_in, H, W), log_snr (B,) or (), cond (B, [L,] C_cond, H, W) -> (ε̂, mask logits).
 
         `generator` draws the MoST gate noise in training mode (torch's CPU default generator if None).
+        `crop_offsets` (B,) int: x_t is an azimuth crop of width W < the net's full width starting at these columns
+        of the panorama (wrapping around); the ray features are read at the crop's columns (`crop_columns`) and the
+        crop is padded as a ring of its own. None: x_t is the full panorama.
         """
         sequence = x_t.dim() == 5
         if x_t.dim() not in (4, 5):
@@ -222,14 +235,21 @@ class RangeUNet(nn.Module):
             x_t = x_t.flatten(0, 1)
             cond = cond.flatten(0, 1) if cond is not None else None
             log_snr = log_snr.repeat_interleave(frames)
-        eps, mask_logits = self._forward_frames(x_t, log_snr, cond, frames, generator)
+            crop_offsets = crop_offsets.repeat_interleave(frames) if crop_offsets is not None else None
+        eps, mask_logits = self._forward_frames(x_t, log_snr, cond, frames, generator, crop_offsets)
         if sequence:
             eps = eps.unflatten(0, (batch, frames))
             mask_logits = mask_logits.unflatten(0, (batch, frames)) if mask_logits is not None else None
         return eps, mask_logits
 
     def _forward_frames(
-        self, x_t: Tensor, log_snr: Tensor, cond: Tensor | None, frames: int, generator: torch.Generator | None
+        self,
+        x_t: Tensor,
+        log_snr: Tensor,
+        cond: Tensor | None,
+        frames: int,
+        generator: torch.Generator | None,
+        crop_offsets: Tensor | None = None,
     ) -> tuple[Tensor, Tensor | None]:
         cfg = self.cfg
         _, channels, height, width = x_t.shape
@@ -249,12 +269,17 @@ class RangeUNet(nn.Module):
         emb = F.silu(self.embed(log_snr))  # (N, E); every ResBlock applies its own Linear after this SiLU
         h = self.stem(x_t)  # (N, C0, H, W)
         if self.ray_features is not None:
-            if self.ray_features.size != (height, width):
+            full_height, full_width = self.ray_features.size
+            if height != full_height or width > full_width or (width < full_width and crop_offsets is None):
                 raise InputError(
-                    f"range image {height}x{width} does not match the {self.ray_features.size} ray-angle "
-                    "grid the net was built with"
+                    f"range image {height}x{width} does not match the {self.ray_features.size} ray-angle grid the net "
+                    "was built with (a narrower image is an azimuth crop and needs crop_offsets)"
                 )
-            h = h + self.ray_features()  # (1, C0, H, W) broadcast over the batch
+            features = self.ray_features()  # (1, C0, H, W_full)
+            if crop_offsets is not None:
+                columns = crop_columns(crop_offsets.to(features.device), width, full_width)  # (N, W)
+                features = features[0][:, :, columns].permute(2, 0, 1, 3)  # (N, C0, H, W)
+            h = h + features  # broadcast over the batch for the full panorama
 
         skips = [h]
         for index, block in enumerate(self.down):
