@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from test_extractors import TINY_CONFIG, write_tiny_root
@@ -68,7 +69,7 @@ def test_synthetic_bank_tables_hashes_and_missing_poses(synthetic):
         synthetic["bank"], synthetic["real"], extractor_frd=synthetic["frd0"], extractor_fpd=synthetic["fpd0"]
     )
     table1 = result["table1"]
-    assert set(table1) == {"frd", "fpd", "jsd", "mmd"}
+    assert set(table1) == {"frd", "fpd", "jsd", "mmd", "points", "rangejs"}
     assert len(table1["frd"]["extractor_hash"]) == 16 and len(table1["fpd"]["extractor_hash"]) == 16
     assert table1["frd"]["feature_dim"] == 4096 and table1["fpd"]["feature_dim"] == 56
     assert table1["frd"]["value"] > 0 and table1["jsd"]["value"] > 0 and table1["mmd"]["value"] > 0
@@ -136,3 +137,39 @@ def test_bad_inputs(tmp_path):
     assert [seq for seq, _, _ in list_scans(root, None, ["00"])] == ["00", "00"]
     with pytest.raises(InputError, match="sequence.*07 not found; present: 00"):
         list_scans(root, None, ["07"])
+
+
+def write_scans(root: Path, scans: list) -> Path:
+    from u4d_aug.data.formats import write_kitti_scan
+
+    for i, points in enumerate(scans):
+        write_kitti_scan(root / "sequences" / "00" / "velodyne" / f"{i:06d}.bin", points)
+    return root
+
+
+def ring(count: int, radius: float) -> np.ndarray:
+    angle = np.linspace(0, 2 * np.pi, count, endpoint=False)
+    return np.stack([radius * np.cos(angle), radius * np.sin(angle), np.zeros(count), np.ones(count)], 1).astype(
+        np.float32
+    )
+
+
+def test_points_per_scan_and_range_histogram_js(tmp_path):
+    """Hand-made scans: rings of known size and radius give known counts and range pmfs."""
+    import math
+
+    real = write_scans(tmp_path / "real", [ring(100, 10.5), ring(300, 20.5)])  # 200 points/scan, a quarter at 10 m
+    same = write_scans(tmp_path / "same", [ring(300, 20.5), ring(100, 10.5)])  # the same pooled pmf of ranges
+    far = write_scans(tmp_path / "far", [ring(50, 30.5)])  # 50 points, all at 30 m
+    result = evaluate(same, real, ("points", "rangejs"))["table1"]
+    assert result["points"]["value"] == 200 and result["points"]["real"] == 200
+    assert result["points"]["ratio_to_real"] == 1.0 and result["rangejs"]["value"] == pytest.approx(0.0, abs=1e-9)
+    result = evaluate(far, real, ("points", "rangejs"))["table1"]
+    assert result["points"]["value"] == 50 and result["points"]["ratio_to_real"] == 0.25
+    assert result["rangejs"]["value"] == pytest.approx(math.sqrt(math.log(2)), rel=1e-6)  # disjoint supports
+    mixed = write_scans(tmp_path / "mixed", [ring(100, 10.5), ring(100, 30.5)])
+    p, q = np.array([0.25, 0.75, 0.0]), np.array([0.5, 0.0, 0.5])  # pmfs over 10 / 20 / 30 m
+    m = (p + q) / 2
+    kl = lambda a, b: sum(x * math.log(x / y) for x, y in zip(a, b) if x > 0)  # noqa: E731
+    expected = math.sqrt((kl(p, m) + kl(q, m)) / 2)
+    assert evaluate(mixed, real, ("rangejs",))["table1"]["rangejs"]["value"] == pytest.approx(expected, rel=1e-6)

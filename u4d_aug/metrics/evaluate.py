@@ -25,8 +25,9 @@ from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_json, atomic_write_text
 from u4d_aug.metrics import bev, temporal
 
-METRICS = ("frd", "fpd", "jsd", "mmd", "ttce", "ctc")
-TABLE1 = ("frd", "fpd", "jsd", "mmd")
+METRICS = ("frd", "fpd", "jsd", "mmd", "points", "rangejs", "ttce", "ctc")
+TABLE1 = ("frd", "fpd", "jsd", "mmd", "points", "rangejs")
+RANGE_BINS = np.arange(0.0, 81.0, 1.0)  # 1 m bins over 0-80 m for the range-histogram JS distance
 TABLE2 = ("ttce", "ctc")
 
 
@@ -107,6 +108,36 @@ def _feature_metric(
         entry["pooled_value"] = frechet_from_features(feats_real["frd_pooled"], feats_bank["frd_pooled"])
         entry["pooled_dim"] = int(feats_bank["frd_pooled"].shape[1])
     return entry
+
+
+def scan_statistics(entries: list[tuple[str, str, Path]]) -> tuple[np.ndarray, np.ndarray]:
+    """Points per scan (S,) and the pooled histogram of point ranges over `RANGE_BINS` (80,) of the scans."""
+    counts, pooled = [], np.zeros(len(RANGE_BINS) - 1, dtype=np.int64)
+    for _, _, path in entries:
+        points = read_kitti_scan(path)
+        counts.append(points.shape[0])
+        pooled += np.histogram(np.linalg.norm(points[:, :3], axis=1), RANGE_BINS)[0]
+    return np.asarray(counts), pooled
+
+
+def _statistic_metric(
+    name: str, bank: tuple[np.ndarray, np.ndarray], real: tuple[np.ndarray, np.ndarray]
+) -> dict[str, Any]:
+    """points: mean points per scan of the bank (and of the real scans); rangejs: JS distance of pooled range pmfs.
+
+    `bank`, `real`: `scan_statistics` of each side.
+    """
+    from scipy.spatial.distance import jensenshannon
+
+    (counts_bank, hist_bank), (counts_real, hist_real) = bank, real
+    if name == "points":
+        value = float(counts_bank.mean())
+        return {"value": value, "std": float(counts_bank.std()), "real": float(counts_real.mean()),
+                "ratio_to_real": value / max(float(counts_real.mean()), 1.0)}  # fmt: skip
+    if hist_bank.sum() == 0 or hist_real.sum() == 0:
+        return {"value": None, "missing": "no points on one side"}
+    value = float(jensenshannon(hist_real / hist_real.sum(), hist_bank / hist_bank.sum()))
+    return {"value": value, "unit": "JS distance (natural log), 1 m bins over 0-80 m"}
 
 
 def _temporal_table(root: Path, entries: list[tuple[str, str, Path]], metrics: tuple[str, ...]) -> dict[str, Any]:
@@ -195,6 +226,8 @@ def evaluate(
             hist_bank = bev.bev_histograms(read_kitti_scan(path) for _, _, path in bank_entries)  # (S_b, 100, 100)
             hist_real = bev.bev_histograms(read_kitti_scan(path) for _, _, path in real_entries)  # (S_r, 100, 100)
             result["seconds"]["bev_histograms"] = time.perf_counter() - start
+        if "points" in wanted1 or "rangejs" in wanted1:
+            stats_bank, stats_real = scan_statistics(bank_entries), scan_statistics(real_entries)
         for name in wanted1:
             start = time.perf_counter()
             if name == "jsd":
@@ -202,6 +235,8 @@ def evaluate(
             elif name == "mmd":
                 raw = bev.bev_mmd(hist_real, hist_bank)
                 entry = {"value": raw * bev.MMD_REPORT_SCALE, "raw": raw, "unit": "x1e-4"}
+            elif name in ("points", "rangejs"):
+                entry = _statistic_metric(name, stats_bank, stats_real)
             else:
                 checkpoint = extractor_frd if name == "frd" else extractor_fpd
                 entry = _feature_metric(name, checkpoint, bank_entries, real_entries)
@@ -235,7 +270,8 @@ def to_markdown(result: dict[str, Any]) -> str:
     table1 = result["table1"]
     if table1:
         names = list(table1)
-        header = {"frd": "FRD ↓", "fpd": "FPD ↓", "jsd": "JSD ↓", "mmd": "MMD ×10⁴ ↓"}
+        header = {"frd": "FRD ↓", "fpd": "FPD ↓", "jsd": "JSD ↓", "mmd": "MMD ×10⁴ ↓", "points": "points/scan",
+                  "rangejs": "range JS ↓"}  # fmt: skip
         lines += ["## Table 1: distribution metrics (bank vs real)", ""]
         lines += ["| | " + " | ".join(header[n] for n in names) + " |", "|---" * (len(names) + 1) + "|"]
         lines += ["| bank | " + " | ".join(_fmt(table1[n].get("value")) for n in names) + " |", ""]
