@@ -29,14 +29,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from u4d_aug.config import load_config
 from u4d_aug.data.datasets import list_frames
 from u4d_aug.errors import InputError
 from u4d_aug.generate import GenerateConfig, generate_bank
 from u4d_aug.host import host_info
-from u4d_aug.io import atomic_write_json, atomic_write_text
+from u4d_aug.io import atomic_write_json, atomic_write_text, load_checkpoint
 from u4d_aug.metrics.evaluate import evaluate
 from u4d_aug.pipeline import load_generator
 
@@ -53,7 +52,7 @@ def training_budget(run: Path) -> dict:
         if not found:
             raise InputError(f"{run}: no checkpoints/step_*.pt (train it with `u4d train-diffusion`)")
         path = found[-1]
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    ckpt = load_checkpoint(path, "diffusion checkpoint")
     cfg = ckpt["config"]
     return {
         "checkpoint": str(path),

@@ -31,7 +31,7 @@ from u4d_aug.config import config_from_dict
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
 from u4d_aug.errors import InputError
-from u4d_aug.io import atomic_write_json
+from u4d_aug.io import atomic_write_json, load_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
 THRESHOLDS = (0.5, 0.6, 0.7, 0.8, 0.9, 0.95)
@@ -41,8 +41,8 @@ def teacher_outputs(ckpt_path: Path, num_scans: int, seed: int) -> tuple[SegTrai
     """(run config, step, teacher logits (sum N, K) per batch, ground truth (sum N,) per batch)."""
     if not ckpt_path.is_file():
         raise InputError(f"{ckpt_path}: checkpoint not found (expected RUN/checkpoints/step_*.pt of a mode 'semi' run)")
-    ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-    if not isinstance(ckpt, dict) or ckpt.get("ema") is None:
+    ckpt = load_checkpoint(ckpt_path, "seg-train checkpoint")
+    if ckpt.get("ema") is None:
         raise InputError(f"{ckpt_path}: no teacher (ema) weights; pass a checkpoint of a mode 'semi' run")
     cfg = config_from_dict(SegTrainConfig, ckpt["config"], source=str(ckpt_path))
     teacher = build_model(cfg.model)

@@ -28,7 +28,6 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import torch
 from scipy import stats
 
 from segmentation.config import BankConfig, SegTrainConfig
@@ -39,7 +38,7 @@ from segmentation.train import train
 from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.errors import InputError, exit_code_of
-from u4d_aug.io import atomic_torch_save, atomic_write_json, atomic_write_text, read_jsonl
+from u4d_aug.io import atomic_torch_save, atomic_write_json, atomic_write_text, load_checkpoint, read_jsonl
 
 
 @dataclass
@@ -158,7 +157,7 @@ def start_from_burn_in(run: SegTrainConfig, donors: list[SegTrainConfig]) -> Pat
         source = Path(donor.out_dir) / "burn_in.pt"
         if Path(donor.out_dir) == out or not source.is_file() or burn_in_signature(donor) != signature:
             continue
-        state = torch.load(source, map_location="cpu", weights_only=False)
+        state = load_checkpoint(source, "burn-in checkpoint")
         steps = run.semi.burn_in_steps
         if int(state.get("step", -1)) != steps:
             continue

@@ -30,21 +30,22 @@ from u4d_aug.data.labels import SEMANTICKITTI_CLASSES
 from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import atomic_save_npy, atomic_write_json
+from u4d_aug.io import load_checkpoint as load_torch_checkpoint
+from u4d_aug.weights import SEGMENTATION_KIND, exported_model, is_exported
 
 MANIFEST_FORMAT = "u4d-seg-probs"
 
 
 def load_checkpoint(path: str | Path) -> dict:
-    """Read a checkpoint written by segmentation.train (on CPU; tensors and plain python only)."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: checkpoint not found")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for a file that is not a checkpoint
-        raise InputError(f"{path}: not a readable torch checkpoint ({type(exc).__name__})") from None
-    if not isinstance(ckpt, dict) or "model" not in ckpt or "config" not in ckpt:
+    """Read a checkpoint written by segmentation.train, or its exported float16 weights (`u4d_aug.weights`, then
+    'model' holds them cast back to float32 and 'step' the training step); on CPU, tensors and plain python only."""
+    ckpt = load_torch_checkpoint(path, "segmentation checkpoint")
+    if "model" not in ckpt or "config" not in ckpt:
         raise InputError(f"{path}: not a segmentation checkpoint (expected keys 'config' and 'model')")
+    if is_exported(ckpt):
+        if ckpt.get("kind") != SEGMENTATION_KIND:
+            raise InputError(f"{path}: exported {ckpt.get('kind')} weights, not a segmentation checkpoint")
+        ckpt = {**ckpt, "model": exported_model(ckpt, str(path)), "step": ckpt.get("trained", {}).get("step")}
     return ckpt
 
 

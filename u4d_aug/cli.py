@@ -93,6 +93,7 @@ DELEGATED = (
     ("generate", "write a bank of generated scans (U4D, baseline or completion of real scans), torchrun-ready"),
     ("gen-report", "real vs generated scans side by side: uncertainty, stage-1, stage-2, baseline; range + BEV PNG"),
     ("train-extractor", "train the FRD (range-view) or FPD (PointNet) feature extractor on labeled scans"),
+    ("export-weights", "float16 inference weights + config + hash of a trained net (diffusion, extractor, segmentor)"),
     ("evaluate", "generation metrics of a bank vs real scans: FRD, FPD, BEV JSD/MMD (Table 1), TTCE/CTC (Table 2)"),
     ("experiment", "sup-only / LaserMix / +R2DM bank / +U4D bank comparison: mIoU and ECE over seeds"),
 )
@@ -120,6 +121,8 @@ def _delegated_module(name: str):
         return importlib.import_module("u4d_aug.gen_report"), "gen_report"
     elif name == "train-extractor":
         return importlib.import_module("u4d_aug.metrics.extractors"), "train_extractor"
+    elif name == "export-weights":
+        return importlib.import_module("u4d_aug.weights"), "export_weights"
     elif name == "evaluate":
         return importlib.import_module("u4d_aug.metrics.evaluate"), "evaluate"
     elif name == "experiment":

@@ -1,16 +1,21 @@
-"""Atomic file writes (temp file in the same folder + os.replace) so that nothing already written is lost."""
+"""Atomic file writes (temp file in the same folder + os.replace) so that nothing already written is lost;
+checkpoints read with torch.load(weights_only=True), so that a file handed to us cannot run code (issue 44)."""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import pickle
+import re
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
+
+from u4d_aug.errors import InputError
 
 
 @contextlib.contextmanager
@@ -59,6 +64,36 @@ def atomic_torch_save(path: str | os.PathLike, obj: Any) -> None:
 
     with atomic_open(path, "wb") as f:
         torch.save(obj, f)
+
+
+def load_checkpoint(path: str | os.PathLike, what: str) -> dict:
+    """torch.load(weights_only=True) of a dict: tensors and plain python only, nothing in the file runs (issue 44).
+
+    A missing, empty, truncated or corrupt file, one that is no torch checkpoint, or one that holds other objects
+    (a class, a function, numpy scalars) is an InputError naming the file and `what` was expected there.
+    """
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: {what} not found")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        found = re.search(r"Unsupported global: GLOBAL (\S+)", str(exc))
+        if found is None:
+            raise InputError(f"{path}: not a readable {what} (corrupt, truncated or not a torch file)") from None
+        raise InputError(
+            f"{path}: refused as a {what}: it holds {found.group(1).rstrip('.')}, not only tensors and plain python "
+            "(weights-only loading, nothing was run)"
+        ) from None
+    except Exception as exc:  # torch raises many types for non-checkpoints: RuntimeError (zip), EOFError, KeyError
+        raise InputError(
+            f"{path}: not a readable {what} (corrupt, truncated or not a torch file: {type(exc).__name__})"
+        ) from None
+    if not isinstance(state, dict):
+        raise InputError(f"{path}: not a {what} (expected a dict, found {type(state).__name__})")
+    return state
 
 
 def append_jsonl(path: str | os.PathLike, record: dict) -> None:

@@ -22,29 +22,33 @@ from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.diffusion import stage_cond
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
+from u4d_aug.io import load_checkpoint
 from u4d_aug.nn.unet import RangeUNet
 from u4d_aug.range_view import RowMode, unproject
 from u4d_aug.sampling import SAMPLER_NAMES, Generators, Sample
 from u4d_aug.sampling import sample as sample_named
 from u4d_aug.train import DiffusionTrainConfig, build_net, config_from_checkpoint, find_checkpoint
+from u4d_aug.weights import is_exported, load_exported
 
 Sampler = Literal["ddim", "ddpm", "dpmpp2m"]  # u4d_aug.sampling.sample: DDIM, ancestral DDPM, DPM-Solver++(2M)
 Loaded = tuple[RangeUNet, DiffusionTrainConfig]
 
 
 def load_generator(ckpt: str | Path, device: torch.device | str = "cpu") -> Loaded:
-    """(net with the EMA weights, in eval mode; its training config) from a checkpoint file or a run folder."""
+    """(net with the EMA weights, in eval mode; its training config) from a checkpoint, exported weights
+    (`u4d_aug.weights`) or a run folder."""
     path = Path(ckpt)
     if path.is_dir():
         path = find_checkpoint(path, "last")
-    if not path.is_file():
-        raise InputError(f"{path}: diffusion checkpoint not found")
-    state = torch.load(path, map_location="cpu", weights_only=False)
+    state = load_checkpoint(path, "diffusion checkpoint")
     cfg = config_from_checkpoint(state, str(path))
     net = build_net(cfg, "cpu")
-    ema = EMA(net)
-    ema.load_state_dict(state["ema"])
-    ema.copy_to(net)
+    if is_exported(state):  # `u4d export-weights`: the EMA weights in float16
+        load_exported(net, state, str(path))
+    else:
+        ema = EMA(net)
+        ema.load_state_dict(state["ema"])
+        ema.copy_to(net)
     return net.requires_grad_(False).to(device).eval(), cfg
 
 

@@ -33,10 +33,11 @@ from u4d_aug.diffusion import DiffusionConfig, GaussianDiffusion
 from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, budget_used, cleanup, init_distributed
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError, exit_code_of
-from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_text, read_jsonl
+from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_text, load_checkpoint, read_jsonl
 from u4d_aug.nn.unet import RangeUNet, UNetConfig, crop_columns
 from u4d_aug.range_view import RowMode, project, ray_angles, to_image
 from u4d_aug.uncertainty import Strategy, load_probs, probs_path, uncertain_range_view
+from u4d_aug.weights import is_exported
 
 CHECKPOINT_KIND = "u4d-diffusion"
 _BATCH, _NOISE = 1, 2  # streams of derived_seed
@@ -346,8 +347,10 @@ def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress:
     start, elapsed_before = 0, 0.0
     if resume is not None:
         ckpt_path = find_checkpoint(out_dir, resume)
-        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        ckpt = load_checkpoint(ckpt_path, "diffusion checkpoint to resume from")
         old = config_from_checkpoint(ckpt, str(ckpt_path))
+        if is_exported(ckpt):
+            raise InputError(f"{ckpt_path}: exported weights hold no optimizer or EMA state; resume from a step_*.pt")
         if old.diffusion.stage != cfg.diffusion.stage:
             raise InputError(
                 f"{ckpt_path}: trained stage {old.diffusion.stage}, asked to resume as {cfg.diffusion.stage}"

@@ -39,8 +39,9 @@ from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
 from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.errors import InputError
-from u4d_aug.io import append_jsonl, atomic_torch_save
+from u4d_aug.io import append_jsonl, atomic_torch_save, load_checkpoint
 from u4d_aug.range_view import encode_depth, project_batch, scatter_to_image, unproject
+from u4d_aug.weights import exported_model, is_exported
 
 ExtractorKind = Literal["frd", "fpd"]
 EXTRACTOR_KINDS = ("frd", "fpd")
@@ -283,19 +284,24 @@ class Extractor:
 
 
 def load_extractor(path: str | Path, device: str = "cpu") -> Extractor:
-    """Load a checkpoint written by `save_extractor`; the stored hash must match the weights."""
+    """Load a checkpoint written by `save_extractor` (its stored hash must match the weights) or its exported
+    float16 weights (`u4d_aug.weights`: checked against their weights_hash, named by the checkpoint's hash)."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: extractor checkpoint not found")
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(ckpt, dict) or ckpt.get("kind") not in EXTRACTOR_KINDS or "state_dict" not in ckpt:
+    ckpt = load_checkpoint(path, "extractor checkpoint")
+    exported = is_exported(ckpt)
+    if ckpt.get("kind") not in EXTRACTOR_KINDS or not (exported or "state_dict" in ckpt):
         raise InputError(f"{path}: not an extractor checkpoint (expected keys kind, config, state_dict, hash)")
     cfg = load_config_dict(ckpt["config"], str(path))
-    digest = weights_hash(ckpt["kind"], cfg, ckpt["state_dict"])
-    if digest != ckpt.get("hash"):
-        raise InputError(f"{path}: stored hash {ckpt.get('hash')} does not match the weights ({digest})")
+    if exported:
+        state_dict, digest = exported_model(ckpt, str(path)), ckpt.get("hash")
+        if not isinstance(digest, str):
+            raise InputError(f"{path}: exported extractor weights without the hash of their checkpoint")
+    else:
+        state_dict, digest = ckpt["state_dict"], weights_hash(ckpt["kind"], cfg, ckpt["state_dict"])
+        if digest != ckpt.get("hash"):
+            raise InputError(f"{path}: stored hash {ckpt.get('hash')} does not match the weights ({digest})")
     model = build_model(ckpt["kind"], cfg.model)
-    model.load_state_dict(ckpt["state_dict"])
+    model.load_state_dict(state_dict)
     model.eval().to(device)
     sensor = get_sensor(cfg.data.sensor)
     return Extractor(ckpt["kind"], model, digest, sensor, cfg.data.height, cfg.data.width, cfg.data.row_mode, str(path))

@@ -1,0 +1,204 @@
+"""Shipped weights (issue 39 item 6): `u4d export-weights CKPT --out FILE` keeps a trained net's inference weights.
+
+The file is {kind, format, config, model, hash, weights_hash, trained}: `model` is the state dict inference uses
+with every floating tensor in float16 (non-float buffers unchanged), about half the size of the float32 weights,
+so that the nets committed under `weights/` fit their 25 MB budget. Inference weights per kind: a diffusion stage
+(`u4d train-diffusion`) its EMA weights, as `pipeline.load_generator` samples with; an FRD/FPD extractor
+(`u4d train-extractor`) its `state_dict`; a segmentor (`u4d seg-train`) its `model`, which `seg-predict` reads.
+`weights_hash` = sha256[:16] of the float16 weights + config, checked on load; `hash` names the net in results:
+the same, except for extractors, which keep the hash of their training checkpoint so FRD/FPD stay comparable.
+The loaders of the three kinds read either file and cast the weights back to float32 (`exported_model`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from u4d_aug.errors import InputError
+from u4d_aug.io import atomic_torch_save, load_checkpoint
+
+WEIGHTS_FORMAT = "u4d-weights-v1"
+# The checkpoint kinds, as their writers name them (tests/test_weights.py checks they agree; u4d_aug does not
+# import segmentation): u4d_aug.train.CHECKPOINT_KIND, u4d_aug.metrics.extractors.EXTRACTOR_KINDS,
+# segmentation.train.CHECKPOINT_FORMAT (seg-train checkpoints carry it as "format", not "kind").
+DIFFUSION_KIND = "u4d-diffusion"
+# buffers a loader rebuilds from the config (the ray-angle Fourier features of the sensor: 4.2 MB at 64x1024 in
+# float16), so they are not shipped; `load_exported` checks that only these are absent
+RECOMPUTED_BUFFERS = ("ray_features.features",)
+EXTRACTOR_KINDS = ("frd", "fpd")
+SEGMENTATION_KIND = "u4d-seg-checkpoint"
+
+
+def is_exported(state: dict) -> bool:
+    """Whether a loaded file was written by `export_weights` (else it is a training checkpoint)."""
+    return state.get("format") == WEIGHTS_FORMAT
+
+
+def checkpoint_kind(state: dict, source: str) -> str:
+    """'u4d-diffusion', 'frd', 'fpd' or 'u4d-seg-checkpoint': the kind of a training checkpoint."""
+    if state.get("kind") == DIFFUSION_KIND:
+        return DIFFUSION_KIND
+    elif state.get("kind") in EXTRACTOR_KINDS:
+        return state["kind"]
+    elif state.get("format") == SEGMENTATION_KIND:
+        return SEGMENTATION_KIND
+    raise InputError(
+        f"{source}: not a training checkpoint of u4d train-diffusion, train-extractor or seg-train "
+        f"(kind {state.get('kind')!r}, format {state.get('format')!r})"
+    )
+
+
+def inference_weights(state: dict, kind: str, source: str) -> dict[str, Tensor]:
+    """The state dict inference loads: diffusion EMA shadow under the net's state-dict names, extractor
+    `state_dict`, segmentor `model` (as `segmentation.predict.model_from_checkpoint`)."""
+    if kind == DIFFUSION_KIND:
+        ema, names = state.get("ema"), state.get("model")
+        if not isinstance(ema, dict) or not isinstance(names, dict):
+            raise InputError(f"{source}: diffusion checkpoint without its 'model' and 'ema' weights")
+        shadow = {**ema.get("buffers", {}), **ema.get("params", {})}  # EMA.copy_to, then net.state_dict()
+        missing = sorted(set(names) - set(shadow))
+        if missing:
+            raise InputError(f"{source}: the EMA weights lack {', '.join(missing[:3])}")
+        return {name: shadow[name] for name in names}
+    elif kind in EXTRACTOR_KINDS:
+        weights = state.get("state_dict")
+    elif kind == SEGMENTATION_KIND:
+        weights = state.get("model")
+    else:
+        raise ValueError(f"checkpoint kind {kind!r} is not one of {DIFFUSION_KIND}, frd, fpd, {SEGMENTATION_KIND}")
+    if not isinstance(weights, dict):
+        raise InputError(f"{source}: {kind} checkpoint without its weights")
+    return weights
+
+
+def half_state(model: dict[str, Tensor], source: str) -> dict[str, Tensor]:
+    """Floating tensors cast to float16, others copied; a weight beyond float16's range is an error, not an inf."""
+    limit = torch.finfo(torch.float16).max
+    out = {}
+    for name, tensor in model.items():
+        if not isinstance(tensor, Tensor):
+            raise InputError(f"{source}: weight {name} is a {type(tensor).__name__}, not a tensor")
+        tensor = tensor.detach().cpu()
+        if tensor.is_floating_point():
+            finite = tensor[torch.isfinite(tensor)]
+            if finite.numel() and float(finite.abs().max()) > limit:
+                raise InputError(f"{source}: weight {name} exceeds the float16 range (|w| > {limit:g})")
+            out[name] = tensor.to(torch.float16)
+        else:
+            out[name] = tensor.clone()
+    return out
+
+
+def float32_state(model: dict[str, Tensor]) -> dict[str, Tensor]:
+    """Floating tensors back to float32 (what the nets compute in), others unchanged."""
+    return {name: t.float() if t.is_floating_point() else t for name, t in model.items()}
+
+
+def weights_digest(model: dict[str, Tensor], config: dict) -> str:
+    """sha256[:16] of the config (sorted json) and every tensor's name, dtype, shape and bytes, in name order."""
+    digest = hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode())
+    for name in sorted(model):
+        tensor = model[name].detach().cpu().contiguous()
+        digest.update(f"{name}|{tensor.dtype}|{tuple(tensor.shape)}".encode())
+        digest.update(tensor.numpy().tobytes())
+    return digest.hexdigest()[:16]
+
+
+def file_sha256(path: str | Path) -> str:
+    """sha256 of a file, first 16 hex digits (as `segmentation.predict.checkpoint_hash`)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()[:16]
+
+
+def exported_model(state: dict, source: str) -> dict[str, Tensor]:
+    """The float32 weights of an exported file, after checking them against its `weights_hash`."""
+    model, config = state.get("model"), state.get("config")
+    if not isinstance(model, dict) or not isinstance(config, dict):
+        raise InputError(f"{source}: exported weights without 'model' and 'config'")
+    digest = weights_digest(model, config)
+    if digest != state.get("weights_hash"):
+        raise InputError(
+            f"{source}: stored weights_hash {state.get('weights_hash')} does not match the weights ({digest})"
+        )
+    return float32_state(model)
+
+
+def load_exported(net: torch.nn.Module, state: dict, source: str) -> None:
+    """Load exported weights into `net` (built from the file's config); only `RECOMPUTED_BUFFERS` may be absent."""
+    missing, unexpected = net.load_state_dict(exported_model(state, source), strict=False)
+    if unexpected or set(missing) - set(RECOMPUTED_BUFFERS):
+        raise InputError(
+            f"{source}: exported weights do not fit the net of their config (missing "
+            f"{sorted(set(missing) - set(RECOMPUTED_BUFFERS))[:3]}, unexpected {sorted(unexpected)[:3]})"
+        )
+
+
+def trained_info(state: dict, kind: str, source: Path) -> dict:
+    """Step (extractors: steps), wall-clock minutes when the checkpoint has them, sha256[:16] of the source file."""
+    info: dict = {"step": state.get("steps") if kind in EXTRACTOR_KINDS else state.get("step")}
+    if state.get("elapsed") is not None:
+        info["elapsed_minutes"] = round(float(state["elapsed"]) / 60.0, 3)
+    info["source_sha256"] = file_sha256(source)
+    return info
+
+
+def export_weights(checkpoint_path: str | Path, out_path: str | Path) -> dict:
+    """Write the float16 inference weights of a training checkpoint to `out_path` atomically; returns what it wrote."""
+    source, out = Path(checkpoint_path), Path(out_path)
+    state = load_checkpoint(source, "training checkpoint")
+    if is_exported(state):
+        raise InputError(f"{source}: already exported weights; export from the training checkpoint")
+    if out.exists() and out.resolve() == source.resolve():
+        raise InputError(f"{out}: --out would overwrite the training checkpoint itself")
+    kind = checkpoint_kind(state, str(source))
+    config = state.get("config")
+    if not isinstance(config, dict):
+        raise InputError(f"{source}: {kind} checkpoint without its resolved config")
+    model = half_state(inference_weights(state, kind, str(source)), str(source))
+    if kind == DIFFUSION_KIND:
+        model = {name: tensor for name, tensor in model.items() if name not in RECOMPUTED_BUFFERS}
+    digest = weights_digest(model, config)
+    identity = digest
+    if kind in EXTRACTOR_KINDS:
+        from u4d_aug.metrics.extractors import load_extractor  # it imports this module, so not at the top
+
+        identity = load_extractor(source).hash  # the stored hash, checked against the float32 weights
+    exported = {
+        "kind": kind,
+        "format": WEIGHTS_FORMAT,
+        "config": config,
+        "model": model,
+        "hash": identity,
+        "weights_hash": digest,
+        "trained": trained_info(state, kind, source),
+    }
+    atomic_torch_save(out, exported)
+    return exported
+
+
+def add_export_weights_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of `u4d export-weights CKPT --out FILE`."""
+    parser.add_argument(
+        "checkpoint", type=Path, help="training checkpoint of train-diffusion, train-extractor or seg-train"
+    )
+    parser.add_argument("--out", type=Path, required=True, help="the float16 weights file to write (e.g. weights/*.pt)")
+
+
+def run_export_weights(args: argparse.Namespace) -> int:
+    """`u4d export-weights`: float16 inference weights + config + hash of a training checkpoint."""
+    exported = export_weights(args.checkpoint, args.out)
+    size, before = args.out.stat().st_size, args.checkpoint.stat().st_size
+    print(
+        f"{exported['kind']} weights: {args.out} ({size / 1e6:.2f} MB; checkpoint {before / 1e6:.2f} MB), "
+        f"hash {exported['hash']}, step {exported['trained']['step']}"
+    )
+    return 0
