@@ -1,22 +1,20 @@
 """U4D vs the R2DM-style baseline on the simulated world: Table 1 metrics per seed, mean ± std, real-vs-real floor.
 
-    python benchmarks/bench_generation.py --root /work/runs/sim --stage1 runs/u4d_stage1 --stage2 runs/u4d_stage2 \
-        --baseline runs/baseline --reference 07 --floor 06 --num 64 --seeds 0 1 2 \
-        [--extractor-frd frd.pt --extractor-fpd fpd.pt] [--steps 32 --stage1-steps 8]
-    python benchmarks/bench_generation.py ... --quick            # 8 scans, seeds 0 1, 8 steps
+    python benchmarks/bench_generation.py --root data/sim_eval --stage1 weights/u4d_stage1.pt \
+        --stage2 weights/u4d_stage2.pt --baseline weights/baseline.pt --reference 00-11 --floor 12-23 \
+        --num 64 --seeds 0 1 2 --samplers dpmpp2m:20:6 ddpm:32:16 --metrics frd,fpd,jsd,mmd,points,rangejs \
+        --extractor-frd weights/extractor_frd.pt --extractor-fpd weights/extractor_fpd.pt \
+        --out benchmarks/results/generation_64x1024.json
+    python benchmarks/bench_generation.py ... --quick            # 8 scans, seeds 0 1, ddpm 8 steps (stage 1: 4)
 
-Train the generators first with one budget for each method (U4D's budget = stage 1 + stage 2; the baseline
-gets the same wall clock or steps x batch), e.g. `u4d train-diffusion configs/u4d/cpu.yaml stage=baseline
-max_minutes=40`; the training budgets read from the checkpoints are printed with the table.
-Per seed s: each method generates `--num` scans (sample i uses seed s * 100000 + i) into
-OUT/banks/<method>_s<s>, scored by `u4d_aug.metrics.evaluate.evaluate` against the held-out reference
-sequences; the floor draws `--num` scans of the `--floor` sequences (disjoint from the reference) with seed s
-and scores them the same way, so it is the value a perfect generator would get at this sample size.
-Sampler: ancestral DDPM by default, as R2DM samples (256 steps there). With nets trained for minutes on a CPU,
-deterministic DDIM at few steps keeps the high-frequency noise of x_1 (measured on the 4000-step CPU baseline,
-32x256: mean |horizontal depth difference| 0.18 with DDIM 16 steps and 0.21 with 256, 0.034 with DDPM 32,
-0.019 on simulated scans), so DDIM is for speed comparisons rather than quality.
-Writes benchmarks/results/generation.json and generation.md.
+Train the generators first with one budget for each method (U4D's budget = stage 1 + stage 2 = the baseline's
+steps x batch on the same net); the training budgets read from the checkpoints are printed with the table.
+Per sampler setting and seed s: each method generates `--num` scans (sample i uses seed s * 100000 + i) into
+WORK/<method>_<sampler tag>_s<s>, scored by `u4d_aug.metrics.evaluate.evaluate` against the reference sequences;
+the floor draws `--num` real scans of the `--floor` sequences (disjoint from the reference) with seed s and
+scores them the same way, so it is the value a perfect generator would get at this sample size. The json has
+`methods.<u4d|baseline|floor>.<metric>.{mean,std,values}` of the first (headline) sampler, `ratios` (U4D over
+the baseline and over the floor, points per scan over the floor's) and the same per sampler under `samplers`.
 """
 
 from __future__ import annotations
@@ -27,6 +25,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -36,7 +35,7 @@ from u4d_aug.errors import InputError
 from u4d_aug.generate import GenerateConfig, generate_bank
 from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json, atomic_write_text, load_checkpoint
-from u4d_aug.metrics.evaluate import evaluate
+from u4d_aug.metrics.evaluate import evaluate, parse_metrics
 from u4d_aug.pipeline import load_generator
 
 REPO = Path(__file__).resolve().parents[1]
@@ -81,12 +80,44 @@ def floor_bank(root: Path, sequences: list[str], num: int, seed: int, out: Path)
     return out
 
 
-def generate(method: str, args: argparse.Namespace, seed: int, out: Path) -> float:
+class SamplerSpec(NamedTuple):
+    """One sampler setting of the comparison: `name:steps:stage1_steps[:grid]`, e.g. dpmpp2m:20:6 or ddpm:32:16."""
+
+    name: str
+    steps: int
+    stage1_steps: int
+    grid: str = "time"
+
+    @property
+    def tag(self) -> str:
+        grid = "" if self.grid == "time" else f"-{self.grid}"
+        return f"{self.name}{grid}_{self.steps}_{self.stage1_steps}"
+
+
+def parse_sampler(text: str) -> SamplerSpec:
+    """'dpmpp2m:20:6' -> SamplerSpec; a one-line error naming the expected form otherwise."""
+    parts = text.split(":")
+    try:
+        if len(parts) not in (3, 4):
+            raise ValueError
+        spec = SamplerSpec(parts[0], int(parts[1]), int(parts[2]), *(parts[3:] or ["time"]))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected NAME:STEPS:STAGE1_STEPS[:GRID], e.g. dpmpp2m:20:6"
+        ) from None
+    if spec.steps < 1 or spec.stage1_steps < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: step counts must be >= 1")
+    return spec
+
+
+def generate(method: str, args: argparse.Namespace, spec: SamplerSpec, seed: int, out: Path) -> float:
     """Generate this method's bank for one seed (resumable); returns seconds per newly generated scan."""
-    overrides = [f"mode={method}", f"num={args.num}", f"seed={seed * SEED_STRIDE}", f"steps={args.steps}"]
-    overrides += [f"device={args.device}", f"sampler={args.sampler}"]
+    overrides = [f"mode={method}", f"num={args.num}", f"seed={seed * SEED_STRIDE}", f"steps={spec.steps}"]
+    overrides += [f"device={args.device}", f"sampler={spec.name}", f"batch_size={args.batch_size}"]
+    if spec.grid != "time":
+        overrides.append(f"sampler_grid={spec.grid}")
     if method == "u4d":
-        overrides += [f"stage1={args.stage1}", f"stage2={args.stage2}", f"stage1_steps={args.stage1_steps}"]
+        overrides += [f"stage1={args.stage1}", f"stage2={args.stage2}", f"stage1_steps={spec.stage1_steps}"]
     else:
         overrides.append(f"baseline={args.baseline}")
     cfg = load_config(GenerateConfig, None, overrides)
@@ -109,25 +140,46 @@ def summarise(values: list[float | None]) -> dict:
     return {"mean": statistics.fmean(kept), "std": std, "values": values}
 
 
-def to_markdown(result: dict) -> str:
-    """One table: rows = methods + floor, columns = metrics as mean ± std over seeds."""
-    metrics, sampler = result["metrics"], result["sampler"]
-    header = {"frd": "FRD ↓", "fpd": "FPD ↓", "jsd": "JSD ↓", "mmd": "MMD ×10⁴ ↓"}
-    lines = [
-        f"# Generation benchmark: {result['num']} scans per seed, seeds {result['seeds']}, "
-        f"reference sequences {result['reference']} of `{result['root']}`, "
-        f"{sampler['name']} {sampler['steps']} steps (stage 1: {sampler['stage1_steps']})",
-        "",
-        "| method | " + " | ".join(header[m] for m in metrics) + " | s/scan |",
-        "|---" * (len(metrics) + 2) + "|",
-    ]
-    for name, row in result["rows"].items():
+def ratio(a: dict, b: dict) -> float | None:
+    """mean(a) / mean(b), or None when either is missing."""
+    if a.get("mean") is None or not b.get("mean"):
+        return None
+    return a["mean"] / b["mean"]
+
+
+HEADER = {"frd": "FRD ↓", "fpd": "FPD ↓", "jsd": "JSD ↓", "mmd": "MMD ×10⁴ ↓", "points": "points/scan",
+          "rangejs": "range JS ↓"}  # fmt: skip
+
+
+def table(methods: dict, metrics: list[str]) -> list[str]:
+    """Markdown rows = methods, columns = metrics as mean ± std over seeds, then seconds per scan."""
+    lines = ["| method | " + " | ".join(HEADER[m] for m in metrics) + " | s/scan |", "|---" * (len(metrics) + 2) + "|"]
+    for name, row in methods.items():
         cells = []
         for metric in metrics:
             s = row[metric]
             cells.append("—" if s["mean"] is None else f"{s['mean']:.4g} ± {s['std']:.2g}")
         speed = row.get("seconds_per_scan", {}).get("mean")
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {'—' if speed is None else f'{speed:.2f}'} |")
+    return lines
+
+
+def to_markdown(result: dict) -> str:
+    """One table per sampler setting, the ratios the goals are judged on, and the training budgets."""
+    metrics = result["metrics"]
+    lines = [
+        f"# Generation benchmark: {result['num']} scans per method and seed, seeds {result['seeds']}",
+        "",
+        f"Reference: sequences {' '.join(result['reference'])} of `{result['root']}`; floor: {result['num']} real "
+        f"scans of sequences {' '.join(result['floor_sequences'])} drawn per seed and scored like a generator.",
+    ]
+    for block in result["samplers"].values():
+        spec = block["sampler"]
+        lines += ["", f"## {spec['name']} {spec['steps']} steps (stage 1: {spec['stage1_steps']}), grid "
+                  f"{spec['grid']}", ""]  # fmt: skip
+        lines += table(block["methods"], metrics)
+        lines += ["", "| ratio | " + " | ".join(block["ratios"]) + " |", "|---" * (len(block["ratios"]) + 1) + "|"]
+        lines.append("| value | " + " | ".join(_fmt_ratio(v) for v in block["ratios"].values()) + " |")
     lines += ["", "Training budgets:", ""]
     for name, budget in result["training"].items():
         lines.append(
@@ -137,55 +189,88 @@ def to_markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _fmt_ratio(value: float | None) -> str:
+    return "—" if value is None else f"{value:.3f}"
+
+
+def sampler_block(spec: SamplerSpec, rows: dict, speed: dict, metrics: tuple[str, ...]) -> dict:
+    """Summaries of one sampler setting: methods.<name>.<metric>.{mean,std,values} and the goal ratios."""
+    methods = {
+        name: {m: summarise(values[m]) for m in metrics}
+        | ({"seconds_per_scan": summarise(speed[name])} if name in speed else {})
+        for name, values in rows.items()
+    }
+    ratios = {}
+    for metric in ("frd", "fpd", "mmd", "jsd"):
+        if metric in metrics:
+            ratios[f"u4d/baseline {metric}"] = ratio(methods["u4d"][metric], methods["baseline"][metric])
+            ratios[f"u4d/floor {metric}"] = ratio(methods["u4d"][metric], methods["floor"][metric])
+    if "points" in metrics:
+        for name in METHODS:
+            ratios[f"{name} points/floor"] = ratio(methods[name]["points"], methods["floor"]["points"])
+    return {"sampler": spec._asdict(), "methods": methods, "ratios": ratios}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--root", type=Path, required=True, help="simulated SemanticKITTI root")
-    parser.add_argument("--stage1", type=Path, required=True, help="U4D stage-1 run folder or checkpoint")
-    parser.add_argument("--stage2", type=Path, required=True, help="U4D stage-2 run folder or checkpoint")
-    parser.add_argument("--baseline", type=Path, required=True, help="baseline run folder or checkpoint")
+    parser.add_argument("--root", type=Path, required=True, help="SemanticKITTI root of the reference and floor scans")
+    parser.add_argument("--stage1", type=Path, required=True, help="U4D stage-1 run folder, checkpoint or weights")
+    parser.add_argument("--stage2", type=Path, required=True, help="U4D stage-2 run folder, checkpoint or weights")
+    parser.add_argument("--baseline", type=Path, required=True, help="baseline run folder, checkpoint or weights")
     parser.add_argument("--reference", nargs="+", default=["07"], help="held-out sequences scored against")
     parser.add_argument("--floor", nargs="+", default=["06"], help="other held-out sequences: real-vs-real floor")
     parser.add_argument("--num", type=int, default=64, help="scans per method and seed")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--sampler", choices=("ddpm", "ddim", "dpmpp2m"), default="ddpm", help="R2DM samples with ddpm")
-    parser.add_argument("--steps", type=int, default=32, help="sampler steps (baseline and stage 2)")
-    parser.add_argument("--stage1-steps", type=int, default=8, help="sampler steps of stage 1")
-    parser.add_argument("--metrics", default="jsd,mmd", help="subset of frd,fpd,jsd,mmd")
+    parser.add_argument(
+        "--samplers", type=parse_sampler, nargs="+", default=[parse_sampler("ddpm:32:8")],
+        help="NAME:STEPS:STAGE1_STEPS[:GRID] settings, each scored on its own banks; the first is the headline "
+        "(`methods` in the json), e.g. dpmpp2m:20:6 ddpm:32:16",
+    )  # fmt: skip
+    parser.add_argument("--batch-size", type=int, default=1, help="scans per sampler call (1: fastest per scan on CPU)")
+    parser.add_argument("--metrics", default="jsd,mmd,points,rangejs", help="subset of frd,fpd,jsd,mmd,points,rangejs")
     parser.add_argument("--extractor-frd", type=Path, default=None)
     parser.add_argument("--extractor-fpd", type=Path, default=None)
     parser.add_argument("--device", default="auto")
     parser.add_argument("--work", type=Path, default=REPO / "runs" / "bench_generation", help="banks go here")
-    parser.add_argument("--quick", action="store_true", help="8 scans, seeds 0 1, 8 steps (stage 1: 4)")
+    parser.add_argument("--quick", action="store_true", help="8 scans, seeds 0 1, ddpm 8 steps (stage 1: 4)")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "generation.json")
     args = parser.parse_args(argv)
     if args.quick:
-        args.num, args.seeds, args.steps, args.stage1_steps = 8, [0, 1], 8, 4
-    metrics = tuple(m.strip() for m in args.metrics.split(",") if m.strip())
+        args.num, args.seeds, args.samplers = 8, [0, 1], [SamplerSpec("ddpm", 8, 4)]
+    metrics = parse_metrics(args.metrics)
     try:
         training = {
             "u4d stage 1": training_budget(args.stage1),
             "u4d stage 2": training_budget(args.stage2),
             "baseline": training_budget(args.baseline),
         }
-        rows: dict[str, dict[str, list]] = {name: {m: [] for m in metrics} for name in (*METHODS, "real floor")}
-        speed: dict[str, list[float]] = {name: [] for name in METHODS}
-        for seed in args.seeds:
-            tag = f"{args.sampler}{args.steps}"  # banks of another sampler or step count are not reused
-            banks = {name: args.work / f"{name}_{tag}_s{seed}" for name in METHODS}
-            for name in METHODS:
-                print(f"seed {seed}: generating {args.num} scans with {name}", flush=True)
-                speed[name].append(generate(name, args, seed, banks[name]))
-            banks["real floor"] = floor_bank(args.root, args.floor, args.num, seed, args.work / f"floor_s{seed}")
-            for name, bank in banks.items():
-                result = evaluate(
-                    bank, args.root, metrics, None, args.extractor_frd, args.extractor_fpd, args.reference
-                )
-                for metric in metrics:
-                    rows[name][metric].append(result["table1"][metric]["value"])
-                print(f"seed {seed} {name}: " + ", ".join(f"{m}={rows[name][m][-1]}" for m in metrics), flush=True)
+        floor_rows: dict[str, list] = {m: [] for m in metrics}
+        blocks = {}
+        for spec in args.samplers:
+            rows: dict[str, dict[str, list]] = {name: {m: [] for m in metrics} for name in METHODS}
+            speed: dict[str, list[float]] = {name: [] for name in METHODS}
+            for seed in args.seeds:
+                banks = {name: args.work / f"{name}_{spec.tag}_s{seed}" for name in METHODS}
+                for name in METHODS:
+                    print(f"{spec.tag} seed {seed}: generating {args.num} scans with {name}", flush=True)
+                    speed[name].append(generate(name, args, spec, seed, banks[name]))
+                for name, bank in banks.items():
+                    values = score(bank, args, metrics)
+                    for metric in metrics:
+                        rows[name][metric].append(values[metric])
+                    print(f"{spec.tag} seed {seed} {name}: {values}", flush=True)
+            if not floor_rows[metrics[0]]:  # the floor does not depend on the sampler: scored once per seed
+                for seed in args.seeds:
+                    bank = floor_bank(args.root, args.floor, args.num, seed, args.work / f"floor_n{args.num}_s{seed}")
+                    values = score(bank, args, metrics)
+                    for metric in metrics:
+                        floor_rows[metric].append(values[metric])
+                    print(f"floor seed {seed}: {values}", flush=True)
+            blocks[spec.tag] = sampler_block(spec, rows | {"floor": floor_rows}, speed, metrics)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    headline = blocks[args.samplers[0].tag]
     result = {
         "benchmark": "generation",
         "command": " ".join(sys.argv),
@@ -195,20 +280,24 @@ def main(argv: list[str] | None = None) -> int:
         "floor_sequences": args.floor,
         "num": args.num,
         "seeds": args.seeds,
-        "sampler": {"name": args.sampler, "steps": args.steps, "stage1_steps": args.stage1_steps},
         "metrics": list(metrics),
         "training": training,
-        "rows": {
-            name: {m: summarise(values[m]) for m in metrics}
-            | ({"seconds_per_scan": summarise(speed[name])} if name in speed else {})
-            for name, values in rows.items()
-        },
+        "headline_sampler": headline["sampler"],
+        "methods": headline["methods"],
+        "ratios": headline["ratios"],
+        "samplers": blocks,
     }
     text = to_markdown(result)
     print(text)
     atomic_write_json(args.out, result)
     atomic_write_text(args.out.with_suffix(".md"), text)
     return 0
+
+
+def score(bank: Path, args: argparse.Namespace, metrics: tuple[str, ...]) -> dict[str, float | None]:
+    """Table-1 values of one bank against the reference sequences."""
+    result = evaluate(bank, args.root, metrics, None, args.extractor_frd, args.extractor_fpd, args.reference)
+    return {metric: result["table1"][metric]["value"] for metric in metrics}
 
 
 if __name__ == "__main__":
