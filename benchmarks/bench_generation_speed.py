@@ -65,7 +65,7 @@ ANCHOR_PRESET = REPO / "configs" / "u4d" / "full_hdl64.yaml"
 ANCHOR_STEPS = 256  # R2DM's DDPM sampling steps
 WEIGHTS = REPO / "weights"
 WEIGHT_FILES = {"stage1": "u4d_stage1.pt", "stage2": "u4d_stage2.pt", "baseline": "baseline.pt"}
-DEFAULT_STEPS = {"ddpm": (32, 16), "ddim": (32, 16), "dpmpp2m": (20, 10)}  # (steps, stage-1 steps)
+DEFAULT_STEPS = {"ddpm": (32, 16), "ddim": (32, 16), "dpmpp2m": (20, 10), "dpmpp2m-sde": (20, 10)}  # (steps, stage 1)
 QUICK_STEPS = (4, 2)
 GOAL_RATIO = 1.3
 GOAL_FRACTION = 0.5
@@ -636,7 +636,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--stage1-overrides", nargs="*", default=[], metavar="KEY=VALUE", help="applied to the stage-1 preset only"
     )
-    parser.add_argument("--sampler", choices=["ddpm", "ddim", "dpmpp2m"], default="dpmpp2m", help="timed sampler")
+    parser.add_argument(
+        "--sampler", choices=["ddpm", "ddim", "dpmpp2m", "dpmpp2m-sde"], default="dpmpp2m", help="timed sampler"
+    )
     parser.add_argument("--steps", type=int, default=None, help="steps of stage 2 and the baseline (dpmpp2m 20)")
     parser.add_argument("--stage1-steps", type=int, default=None, help="steps of stage 1 (dpmpp2m 10)")
     parser.add_argument("--compare-ddpm-steps", type=int, default=None, help="also DDPM with these steps (32; 0 off)")

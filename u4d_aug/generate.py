@@ -36,6 +36,7 @@ from u4d_aug.data.sensors import get_sensor
 from u4d_aug.distributed import barrier, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.pipeline import Sampler, complete, generate_baseline, generate_u4d, load_generator, to_points
+from u4d_aug.sampling import Grid, check_grid
 from u4d_aug.train import DiffusionTrainConfig
 from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
 
@@ -51,8 +52,10 @@ class GenerateConfig:
     stage2: str = ""  # u4d and complete modes
     baseline: str = ""  # baseline mode
     # ddpm: ancestral, as R2DM; ddim: DDIM at few steps keeps x_1 noise with briefly trained nets; dpmpp2m:
-    # DPM-Solver++(2M), deterministic 2nd order, the same t grid and one net call per step
+    # DPM-Solver++(2M), deterministic 2nd order, the same t grid and one net call per step; dpmpp2m-sde: its
+    # stochastic (SDE, η = 1) form, which like ddpm adds fresh noise at every step
     sampler: Sampler = "ddpm"
+    sampler_grid: Grid = "time"  # "logsnr": steps uniform in log-SNR (dpmpp2m and dpmpp2m-sde only)
     steps: int = 32
     stage1_steps: int | None = None  # None = steps; the uncertain region allows fewer
     num: int = 64
@@ -75,6 +78,10 @@ class GenerateConfig:
             raise InputError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.frames is not None and self.frames < 1:
             raise InputError(f"frames must be >= 1 or null (the generator's own), got {self.frames}")
+        try:
+            check_grid(self.sampler, self.sampler_grid)
+        except ValueError as exc:
+            raise InputError(f"sampler_grid: {exc}") from None
 
 
 def _checkpoint_paths(cfg: GenerateConfig) -> dict[str, Path]:
@@ -104,6 +111,8 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
     config = config_to_dict(cfg)
     identity = {"mode": cfg.mode, "checkpoints": hashes, "seed": cfg.seed,
                 "sampling": {k: config[k] for k in ("sampler", "steps", "stage1_steps")}}  # fmt: skip
+    if cfg.sampler_grid != "time":  # banks written before the grid option (all "time") stay compatible
+        identity["sampling"]["sampler_grid"] = cfg.sampler_grid
     if cfg.mode == "complete":
         identity["source"] = {k: config[k] for k in ("data_root", "sequences", "probs_root")}
     check_compatible(Path(out), identity)
@@ -161,11 +170,21 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
         masks = uncertainty = x0_u = None  # per sample and frame: (n, L, H, W), (n, L, H, W), (n, L, 2, H, W)
         if cfg.mode == "u4d":
             result = generate_u4d(
-                nets["stage1"], nets["stage2"], n, cfg.steps, generators, cfg.sampler, cfg.stage1_steps, frames
+                nets["stage1"],
+                nets["stage2"],
+                n,
+                cfg.steps,
+                generators,
+                cfg.sampler,
+                cfg.stage1_steps,
+                frames,
+                grid=cfg.sampler_grid,
             )
             masks, x0_u = _per_sample(result["m_u_pred"], n)[:, :, 0], _per_sample(result["x0_u"], n)
         elif cfg.mode == "baseline":
-            result = generate_baseline(nets["baseline"], n, cfg.steps, generators, cfg.sampler, frames)
+            result = generate_baseline(
+                nets["baseline"], n, cfg.steps, generators, cfg.sampler, frames, grid=cfg.sampler_grid
+            )
         else:
             parts = [
                 _real_sample_condition(scans, i, generator, frames, main[1], cfg)
@@ -177,7 +196,7 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
             x0_u, m_u, entropy_image = (torch.stack([part[k] for part in parts]) for k in range(3))  # (n, L, ...)
             if frames == 1:
                 x0_u, m_u = x0_u[:, 0], m_u[:, 0]  # single scans: (n, C, H, W)
-            result = complete(nets["stage2"], x0_u, m_u, cfg.steps, generators, cfg.sampler)
+            result = complete(nets["stage2"], x0_u, m_u, cfg.steps, generators, cfg.sampler, grid=cfg.sampler_grid)
             masks, uncertainty, x0_u = _per_sample(m_u, n)[:, :, 0], entropy_image.numpy(), _per_sample(x0_u, n)
         clouds = to_points(result["x0"], sensor, main[1].row_mode)  # n·L point clouds, samples then frames
         for j, i in enumerate(block):
@@ -266,7 +285,10 @@ def add_generate_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `u4d generate CONFIG --out BANK [--num N] [--mode ...] [--steps S] [--seed S] [key=value ..]`."""
     parser.add_argument("config", type=Path, help="yaml naming the checkpoints, sampler and steps")
     parser.add_argument(
-        "overrides", nargs="*", help="key=value overrides, e.g. stage1=runs/s1 sampler=dpmpp2m (ddpm|ddim|dpmpp2m)"
+        "overrides",
+        nargs="*",
+        help="key=value overrides, e.g. stage1=runs/s1 sampler=dpmpp2m (ddpm|ddim|dpmpp2m|dpmpp2m-sde) "
+        "sampler_grid=logsnr (time|logsnr)",
     )
     parser.add_argument("--out", type=Path, required=True, help="bank folder (SemanticKITTI layout)")
     parser.add_argument("--num", type=int, default=None, help="number of scans (default: the config's num)")

@@ -25,12 +25,13 @@ from u4d_aug.errors import InputError
 from u4d_aug.io import load_checkpoint
 from u4d_aug.nn.unet import RangeUNet
 from u4d_aug.range_view import RowMode, unproject
-from u4d_aug.sampling import SAMPLER_NAMES, Generators, Sample
+from u4d_aug.sampling import SAMPLER_NAMES, Generators, Grid, Sample, check_grid
 from u4d_aug.sampling import sample as sample_named
 from u4d_aug.train import DiffusionTrainConfig, build_net, config_from_checkpoint, find_checkpoint
 from u4d_aug.weights import is_exported, load_exported
 
-Sampler = Literal["ddim", "ddpm", "dpmpp2m"]  # u4d_aug.sampling.sample: DDIM, ancestral DDPM, DPM-Solver++(2M)
+# u4d_aug.sampling.sample: DDIM, ancestral DDPM, DPM-Solver++(2M) and its SDE form; the last two also on grid="logsnr"
+Sampler = Literal["ddim", "ddpm", "dpmpp2m", "dpmpp2m-sde"]
 Loaded = tuple[RangeUNet, DiffusionTrainConfig]
 
 
@@ -69,13 +70,18 @@ def _sample(
     generator: Generators,
     cond: Tensor | None,
     sampler: Sampler,
+    grid: Grid = "time",
 ) -> Sample:
     net, cfg = loaded
     device = next(net.parameters()).device
     shape = (*batch_shape, cfg.net.in_channels, cfg.height, cfg.width)
     if sampler not in SAMPLER_NAMES:
         raise InputError(f"sampler {sampler!r} is not one of {', '.join(repr(n) for n in SAMPLER_NAMES)}")
-    return sample_named(sampler, net, shape, steps, generator, cond=cond, device=device)
+    try:
+        check_grid(sampler, grid)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    return sample_named(sampler, net, shape, steps, generator, cond=cond, device=device, grid=grid)
 
 
 def mask_from_logits(logits: Tensor, pos_weight: float = 1.0) -> Tensor:
@@ -96,13 +102,14 @@ def generate_stage1(
     generator: Generators,
     sampler: Sampler = "ddim",
     frames: int | None = None,
+    grid: Grid = "time",
 ) -> dict[str, Tensor]:
     """x0_u (n, [L,] 2, H, W) from stage 1: pixels of the predicted mask m_p (`mask_from_logits`) keep x̂0, others −1.
 
     `frames` = L (None: the L stage 1 was trained with; a single-frame net makes L independent frames).
     """
     _check_stage(stage1, "stage1", "stage 1")
-    sample = _sample(stage1, _batch_shape(n, frames or stage1[1].frames), steps, generator, None, sampler)
+    sample = _sample(stage1, _batch_shape(n, frames or stage1[1].frames), steps, generator, None, sampler, grid)
     m_u = mask_from_logits(sample.extra, stage1[1].diffusion.mask_pos_weight)  # (n, [L,] 1, H, W), last step
     x0_u = torch.where(m_u.bool(), sample.x0, torch.full_like(sample.x0, -1.0))
     return {"x0_u": x0_u, "m_u_pred": m_u}
@@ -115,6 +122,7 @@ def complete(
     steps: int,
     generator: Generators,
     sampler: Sampler = "ddim",
+    grid: Grid = "time",
 ) -> dict[str, Tensor]:
     """Stage 2: x0 (B, [L,] 2, H, W) ~ p(x0 | x0_u (B, [L,] 2, H, W), m_u (B, [L,] 1, H, W)), e.g. from real scans."""
     _check_stage(stage2, "stage2", "stage 2")
@@ -130,7 +138,7 @@ def complete(
         )
     device = next(net.parameters()).device
     cond = stage_cond(x0_u.to(device), m_u.to(device))  # (B, [L,] 3, H, W)
-    sample = _sample(stage2, tuple(x0_u.shape[:-3]), steps, generator, cond, sampler)
+    sample = _sample(stage2, tuple(x0_u.shape[:-3]), steps, generator, cond, sampler, grid)
     return {"x0": sample.x0, "x0_u": x0_u, "m_u": m_u}
 
 
@@ -143,6 +151,7 @@ def generate_u4d(
     sampler: Sampler = "ddim",
     stage1_steps: int | None = None,
     frames: int | None = None,
+    grid: Grid = "time",
 ) -> dict[str, Tensor]:
     """Hard-to-easy: x0_u ~ stage 1 (mask from its head), then x0 ~ stage 2 given it -> dict(x0, x0_u, m_u_pred).
 
@@ -151,8 +160,8 @@ def generate_u4d(
     if (stage1[1].height, stage1[1].width) != (stage2[1].height, stage2[1].width):
         raise InputError("stage 1 and stage 2 checkpoints were trained on different image sizes")
     frames = frames or stage2[1].frames
-    first = generate_stage1(stage1, n, stage1_steps or steps, generator, sampler, frames=frames)
-    second = complete(stage2, first["x0_u"], first["m_u_pred"], steps, generator, sampler)
+    first = generate_stage1(stage1, n, stage1_steps or steps, generator, sampler, frames=frames, grid=grid)
+    second = complete(stage2, first["x0_u"], first["m_u_pred"], steps, generator, sampler, grid=grid)
     return {"x0": second["x0"], "x0_u": first["x0_u"], "m_u_pred": first["m_u_pred"]}
 
 
@@ -163,10 +172,12 @@ def generate_baseline(
     generator: Generators,
     sampler: Sampler = "ddim",
     frames: int | None = None,
+    grid: Grid = "time",
 ) -> dict[str, Tensor]:
     """R2DM-style unconditional x0 (n, [L,] 2, H, W) (L = `frames`, None: the frames the net was trained with)."""
     _check_stage(net, "baseline", "baseline")
-    return {"x0": _sample(net, _batch_shape(n, frames or net[1].frames), steps, generator, None, sampler).x0}
+    shape = _batch_shape(n, frames or net[1].frames)
+    return {"x0": _sample(net, shape, steps, generator, None, sampler, grid).x0}
 
 
 def to_points(x0: Tensor, sensor: Sensor | str, row_mode: RowMode = "beam") -> list[np.ndarray]:

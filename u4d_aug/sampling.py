@@ -3,9 +3,10 @@
 `denoise_fn(x_t, log_snr, cond)` returns ε̂, or a tuple (ε̂, extra) whose `extra` (e.g. the stage-1 mask logits)
 from the last network call is handed back with the sample. A `RangeUNet` is itself such a function.
 All samplers make `steps` network calls on the cosine log-SNR of `u4d_aug.diffusion`, at the first `steps` points
-of t = linspace(1, 0, steps + 1) (DPM-Solver++(2M) can instead space them uniformly in log-SNR), clamp
+of t = linspace(1, 0, steps + 1) (the DPM-Solver++ samplers can instead space them uniformly in log-SNR), clamp
 x̂0 = (x_t − σ ε̂)/α to [−1, 1] at every step (`clip`) and return the last x̂0 (R2DM
-`ContinuousTimeGaussianDiffusion.sample`, generation_protocols.md §2.2). `sample(name, ...)` picks one by name.
+`ContinuousTimeGaussianDiffusion.sample`, generation_protocols.md §2.2). `sample(name, ..., grid=)` picks one by
+name. Only DDPM and DPM-Solver++(2M) SDE draw noise after x_1 (with the generators that drew x_1).
 """
 
 from __future__ import annotations
@@ -33,8 +34,11 @@ class Sample(NamedTuple):
     extra: Any
 
 
-SamplerName = Literal["ddpm", "ddim", "dpmpp2m"]
+SamplerName = Literal["ddpm", "ddim", "dpmpp2m", "dpmpp2m-sde"]
 SAMPLER_NAMES: tuple[str, ...] = get_args(SamplerName)
+Grid = Literal["time", "logsnr"]
+GRID_NAMES: tuple[str, ...] = get_args(Grid)
+GRID_SAMPLERS: tuple[str, ...] = ("dpmpp2m", "dpmpp2m-sde")  # the samplers that also run on the "logsnr" grid
 
 
 def sample(
@@ -47,15 +51,28 @@ def sample(
     device: torch.device | str | None = None,
     progress: bool = False,
     clip: bool = True,
+    grid: Grid = "time",
 ) -> Sample:
-    """The sampler called `name`: ddpm | ddim | dpmpp2m (on its default time grid), same arguments as each."""
+    """The sampler called `name`: ddpm | ddim | dpmpp2m | dpmpp2m-sde (η = 1), on `grid` (see `check_grid`)."""
+    check_grid(name, grid)
     if name == "ddpm":
         return ddpm_sample(denoise_fn, shape, steps, generator, cond, device, progress, clip)
     elif name == "ddim":
         return ddim_sample(denoise_fn, shape, steps, generator, cond, device, progress, clip)
     elif name == "dpmpp2m":
-        return dpmpp_2m_sample(denoise_fn, shape, steps, generator, cond, device, progress, clip)
+        return dpmpp_2m_sample(denoise_fn, shape, steps, generator, cond, device, progress, clip, grid=grid)
+    elif name == "dpmpp2m-sde":
+        return dpmpp_2m_sde_sample(denoise_fn, shape, steps, generator, cond, device, progress, clip, grid=grid)
     raise ValueError(f"sampler {name!r} is not one of {', '.join(repr(n) for n in SAMPLER_NAMES)}")
+
+
+def check_grid(name: str, grid: str) -> None:
+    """ValueError unless `grid` is "time" or "logsnr" and sampler `name` runs on it (ddpm, ddim: "time" only)."""
+    if grid not in GRID_NAMES:
+        raise ValueError(f"grid {grid!r} is not one of {', '.join(repr(g) for g in GRID_NAMES)}")
+    if grid != "time" and name not in GRID_SAMPLERS:
+        accepting = ", ".join(repr(n) for n in GRID_SAMPLERS)
+        raise ValueError(f"grid {grid!r} is accepted only by the samplers {accepting}; {name!r} runs on 'time'")
 
 
 @torch.no_grad()
@@ -98,7 +115,7 @@ def dpmpp_2m_sample(
     device: torch.device | str | None = None,
     progress: bool = False,
     clip: bool = True,
-    grid: Literal["time", "logsnr"] = "time",
+    grid: Grid = "time",
 ) -> Sample:
     """DPM-Solver++(2M), multistep 2nd order in x̂0 on λ = log(α/σ) (Lu et al. 2022, Alg. 2; k-diffusion).
 
@@ -127,6 +144,60 @@ def dpmpp_2m_sample(
             r = 0.5 * (lams[i] - lams[i - 1]) / h  # r_i = h_{i−1} / h_i
             d = (1.0 + 0.5 / r) * x0_hat - (0.5 / r) * x0_prev  # D_i, the 2nd-order x̂0 over [λ_t, λ_s]
         x = (sigma_s / sigma_t) * x - alpha_s * math.expm1(-h) * d  # x_s = σ_s/σ_t x_t − α_s (e^{−h} − 1) D_i
+        x0_prev = x0_hat
+    return Sample(x, extra)
+
+
+@torch.no_grad()
+def dpmpp_2m_sde_sample(
+    denoise_fn: DenoiseFn,
+    shape: tuple[int, ...],
+    steps: int,
+    generator: Generators,
+    cond: Tensor | None = None,
+    device: torch.device | str | None = None,
+    progress: bool = False,
+    clip: bool = True,
+    eta: float = 1.0,
+    grid: Grid = "time",
+) -> Sample:
+    """DPM-Solver++(2M) SDE, midpoint form, in x̂0 on λ = log(α/σ) (Lu et al. 2022; k-diffusion `sample_dpmpp_2m_sde`).
+
+    Update from the noisier t to s (h = λ_s − λ_t > 0; VP x_t = α_t x0 + σ_t ε, so σ_s α_t / σ_t = α_s e^{−h}):
+    keep the share e^{−ηh} of the noise direction ε̂ = (x_t − α_t x̂0)/σ_t and replace the rest by fresh noise z,
+        x_s = α_s x̂0 + σ_s (e^{−ηh} ε̂ + sqrt(1 − e^{−2ηh}) z)
+            = σ_s/σ_t e^{−ηh} x_t + α_s (1 − e^{−(1+η)h}) x̂0 + σ_s sqrt(1 − e^{−2ηh}) z,
+    which keeps x_s ~ N(α_s x0, σ_s²) when x̂0 = x0 (k-diffusion's σ is our σ/α, its x our x/α: the same step).
+    2M puts D = (1 + 1/(2r)) x̂0 − 1/(2r) x̂0_prev, r = h_prev / h, in place of x̂0 from the second step on.
+    η = 0 is `dpmpp_2m_sample` and draws no noise; with η = 1 the first step is ancestral DDPM's, the posterior
+    q(x_s | x_t, x̂0). z is drawn at every step but the last, like `ddpm_sample` (independent per step, not
+    k-diffusion's Brownian tree); the last call's x̂0 is returned. `grid` as in `dpmpp_2m_sample`.
+    """
+    if eta < 0:
+        raise ValueError(f"eta must be >= 0, got {eta}")
+    lams = _grid(steps, grid)  # log-SNR = 2λ at the steps + 1 grid points, rising
+    batch, device, x = _start(shape, steps, generator, device)
+    extra: Any = None
+    x0_prev: Tensor | None = None
+    for i in tqdm(range(steps), disable=not progress, desc="dpmpp2m-sde sampling", leave=False):
+        eps, extra = _denoise(denoise_fn, x, lams[i], batch, device, cond)
+        alpha_t, sigma_t = _alpha_sigma(lams[i])
+        x0_hat = (x - sigma_t * eps) / alpha_t
+        if clip:
+            x0_hat.clamp_(-1.0, 1.0)
+        if i == steps - 1:
+            x = x0_hat
+            break
+        alpha_s, sigma_s = _alpha_sigma(lams[i + 1])
+        h = 0.5 * (lams[i + 1] - lams[i])
+        d = x0_hat
+        if x0_prev is not None:
+            r = 0.5 * (lams[i] - lams[i - 1]) / h
+            d = (1.0 + 0.5 / r) * x0_hat - (0.5 / r) * x0_prev
+        # x_s = σ_s/σ_t e^{−ηh} x_t − α_s (e^{−(1+η)h} − 1) D [+ σ_s sqrt(1 − e^{−2ηh}) z]
+        x = (sigma_s / sigma_t * math.exp(-eta * h)) * x - alpha_s * math.expm1(-(1.0 + eta) * h) * d
+        if eta > 0:
+            x = x + sigma_s * math.sqrt(-math.expm1(-2.0 * eta * h)) * _randn(shape, generator, device)
         x0_prev = x0_hat
     return Sample(x, extra)
 
@@ -178,7 +249,7 @@ def _start(
     return batch, device, _randn(shape, generator, device)
 
 
-def _grid(steps: int, kind: Literal["time", "logsnr"]) -> list[float]:
+def _grid(steps: int, kind: Grid) -> list[float]:
     """log-SNR at steps + 1 points from t = 1 to t = 0, uniform in t or in log-SNR (float64: exact at the ends)."""
     if kind == "time":
         return log_snr(torch.linspace(1.0, 0.0, steps + 1, dtype=torch.float64)).tolist()
