@@ -238,3 +238,62 @@ def test_config_checks():
     with pytest.raises(InputError, match="most_cv_weight"):
         DiffusionConfig(most_cv_weight=-0.1)
     assert tiny(most_levels=[2, 0, 2]).most_levels == (0, 2)
+
+
+@pytest.mark.parametrize("fusion", ["cascade", "add", "concat"])
+def test_fusion_variants_start_as_identity_and_train_every_parameter(fusion, generator):
+    block = MoSTBlock(8, E, groups=4, fusion=fusion)
+    x = torch.randn(6, 8, H, W, generator=generator)  # 2 sequences of 3 frames
+    emb = torch.randn(6, E, generator=generator)
+    assert torch.equal(block(x, emb, 3), x)  # a new block of any fusion is the identity
+    assert block.last_gates is None and block.last_cv is None  # only gating has gates
+    assert not hasattr(block, "gate")
+    for _ in range(2):  # step 1 moves the zero-initialised layers; step 2 reaches everything behind them
+        out = block(x, emb, 3)
+        assert out.shape == x.shape
+        out.square().mean().backward()
+        with torch.no_grad():
+            for p in block.parameters():
+                p -= 0.1 * p.grad
+    block.zero_grad()
+    block(x, emb, 3).square().mean().backward()
+    dead = [name for name, p in block.named_parameters() if p.grad is None or p.grad.abs().max() == 0]
+    assert not dead, dead
+
+
+def test_fusion_variants_compute_what_they_name(generator):
+    """add = x + F^s + F^t; concat = x + W[F^s; F^t]; cascade = the temporal branch on x + F^s(x)."""
+    x = torch.randn(4, 8, H, W, generator=generator)  # 2 sequences of 2 frames
+    emb = torch.randn(4, E, generator=generator)
+    blocks = {f: randomized(MoSTBlock(8, E, groups=4, fusion=f), seed=1) for f in ("add", "concat", "cascade")}
+    add = blocks["add"]
+    h = F.silu(add.norm(x))
+    f_s, f_t = add.spatial(h), temporal_conv(h, add.temporal.weight, add.temporal.bias, 2)
+    torch.testing.assert_close(add(x, emb, 2), x + f_s + f_t)
+    concat = blocks["concat"]  # same seed: same norm / branch weights as add, plus the fuse conv
+    torch.testing.assert_close(concat(x, emb, 2), x + concat.fuse(torch.cat([f_s, f_t], dim=1)))
+    cascade = blocks["cascade"]
+    x_s = x + cascade.spatial(F.silu(cascade.norm(x)))
+    h_t = F.silu(cascade.norm_t(x_s))
+    expected = x_s + temporal_conv(h_t, cascade.temporal.weight, cascade.temporal.bias, 2)
+    torch.testing.assert_close(cascade(x, emb, 2), expected)
+
+
+@pytest.mark.parametrize("fusion", ["gating", "cascade", "add", "concat"])
+def test_every_fusion_mixes_frames_in_the_unet(fusion, generator):
+    net = randomized(RangeUNet(tiny(most=True, most_fusion=fusion))).eval()
+    x_t = torch.randn(1, 3, 2, H, W, generator=generator)
+    changed = x_t.clone()
+    changed[:, 0] += torch.randn(1, 2, H, W, generator=generator)
+    with torch.no_grad():
+        eps, eps_changed = net(x_t, torch.tensor([0.5]))[0], net(changed, torch.tensor([0.5]))[0]
+    assert eps.shape == (1, 3, 2, H, W)
+    assert float((eps[:, 1] - eps_changed[:, 1]).abs().max()) > 1e-3
+    assert net.gate_weights().shape == ((len(net.most_names), 2) if fusion == "gating" else (0, 2))
+
+
+def test_fusion_is_checked():
+    with pytest.raises(ValueError, match="fusion"):
+        MoSTBlock(8, E, groups=4, fusion="mul")
+    with pytest.raises(InputError, match="most_fusion"):
+        tiny(most=True, most_fusion="mul")

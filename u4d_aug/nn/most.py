@@ -15,6 +15,8 @@ the identity and a net with MoST starts out as the same function as one without.
 
 from __future__ import annotations
 
+from typing import Literal
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -42,8 +44,16 @@ def temporal_conv(x: Tensor, weight: Tensor, bias: Tensor | None, frames: int) -
     return F.conv2d(stacked.flatten(0, 1), weight, bias)
 
 
+Fusion = Literal["gating", "cascade", "add", "concat"]
+FUSIONS: tuple[str, ...] = ("gating", "cascade", "add", "concat")
+
+
 class MoSTBlock(nn.Module):
     """x + α^s ⊙ F^s + α^t ⊙ F^t on (B·L, C, H, W) with per-sequence gates (α^s, α^t) (U4D MoST block).
+
+    `fusion` picks the paper's ablation of how the branches meet (U4D §4, MoST fusion): "gating" (the block above),
+    "cascade" (spatial then temporal: h = x + F^s(x), out = h + F^t(h)), "add" (x + F^s + F^t) or "concat"
+    (x + 1×1 conv of concat(F^s, F^t)); only "gating" has gates, the others leave `last_gates`/`last_cv` None.
 
     F^s = RingConv3×3(SiLU(GN(x))) (circular along azimuth as the rest of the UNet), F^t = the k_t-tap temporal
     conv of the same activation. Gate logits = MLP(concat(mean of x over L, H, W; mean over L of the timestep
@@ -60,8 +70,12 @@ class MoSTBlock(nn.Module):
         noise_std: float = 0.5,
         groups: int = 8,
         hidden: int | None = None,
+        fusion: Fusion = "gating",
     ):
         super().__init__()
+        if fusion not in FUSIONS:
+            raise ValueError(f"MoSTBlock: fusion must be one of {', '.join(FUSIONS)}, got {fusion!r}")
+        self.fusion = fusion
         if kernel_t < 1 or kernel_t % 2 == 0:
             raise ValueError(f"MoSTBlock: kernel_t must be a positive odd number, got {kernel_t}")
         if noise_std < 0:
@@ -71,9 +85,17 @@ class MoSTBlock(nn.Module):
         self.norm = group_norm(channels, groups)
         self.spatial = RingConv2d(channels, channels, 3)
         self.temporal = nn.Conv2d(kernel_t * channels, channels, 1)  # see temporal_conv for the layout
-        hidden = hidden or max(channels, 16)
-        self.gate = nn.Sequential(nn.Linear(channels + time_emb_dim, hidden), nn.SiLU(), nn.Linear(hidden, 2))
-        for layer in (self.spatial, self.temporal, self.gate[-1]):  # identity block, gates start at (½, ½)
+        zeroed: list[nn.Module] = [self.spatial, self.temporal]  # the block starts as the identity
+        if fusion == "gating":
+            hidden = hidden or max(channels, 16)
+            self.gate = nn.Sequential(nn.Linear(channels + time_emb_dim, hidden), nn.SiLU(), nn.Linear(hidden, 2))
+            zeroed.append(self.gate[-1])  # gates start at (½, ½)
+        elif fusion == "cascade":
+            self.norm_t = group_norm(channels, groups)  # the temporal branch reads the spatial branch's output
+        elif fusion == "concat":
+            self.fuse = nn.Conv2d(2 * channels, channels, 1)
+            zeroed = [self.fuse]  # zero branches behind a zero fuse would get no gradient: only the fuse starts at 0
+        for layer in zeroed:
             nn.init.zeros_(layer.weight)
             nn.init.zeros_(layer.bias)
         self.last_gates: Tensor | None = None
@@ -98,7 +120,15 @@ class MoSTBlock(nn.Module):
             raise ValueError(f"MoSTBlock: batch {x.shape[0]} is not a whole number of {frames}-frame sequences")
         h = F.silu(self.norm(x))
         f_s = self.spatial(h)  # (B·L, C, H, W) intra-frame
+        if self.fusion == "cascade":
+            x_s = x + f_s
+            h_t = F.silu(self.norm_t(x_s))
+            return x_s + temporal_conv(h_t, self.temporal.weight, self.temporal.bias, frames)
         f_t = temporal_conv(h, self.temporal.weight, self.temporal.bias, frames)  # (B·L, C, H, W) across frames
+        if self.fusion == "add":
+            return x + f_s + f_t
+        if self.fusion == "concat":
+            return x + self.fuse(torch.cat([f_s, f_t], dim=1))
         gates = self.gates(x, emb, frames, generator)  # (B, 2)
         alpha = gates.to(x.dtype).repeat_interleave(frames, dim=0)[:, :, None, None, None]  # (B·L, 2, 1, 1, 1)
         self.last_gates = gates.detach()

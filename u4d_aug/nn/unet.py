@@ -19,7 +19,7 @@ from u4d_aug.nn.layers import (
     Upsample,
     group_norm,
 )
-from u4d_aug.nn.most import MoSTBlock
+from u4d_aug.nn.most import FUSIONS, Fusion, MoSTBlock
 
 
 @dataclass
@@ -42,6 +42,7 @@ class UNetConfig:
     most_levels: tuple[int, ...] | None = None  # levels with a MoST (enc + dec; mid with the lowest); None = all
     most_kernel_t: int = 3  # taps of the temporal conv along L (odd; zero padding beyond the clip)
     most_gate_noise: float = 0.5  # std of the Gaussian noise on the gate logits in training
+    most_fusion: Fusion = "gating"  # how a MoST block joins its branches: gating | cascade | add | concat
 
     def __post_init__(self) -> None:
         if self.base_channels < 1:
@@ -69,6 +70,8 @@ class UNetConfig:
                 )
         if self.most_kernel_t < 1 or self.most_kernel_t % 2 == 0:
             raise InputError(f"net.most_kernel_t must be a positive odd number, got {self.most_kernel_t}")
+        if self.most_fusion not in FUSIONS:
+            raise InputError(f"net.most_fusion must be one of {', '.join(FUSIONS)}, got {self.most_fusion!r}")
         if self.most_gate_noise < 0:
             raise InputError(f"net.most_gate_noise must be >= 0, got {self.most_gate_noise}")
 
@@ -191,7 +194,9 @@ class RangeUNet(nn.Module):
 
     def _most_block(self, channels: int, embed_channels: int) -> MoSTBlock:
         cfg = self.cfg
-        return MoSTBlock(channels, embed_channels, cfg.most_kernel_t, cfg.most_gate_noise, cfg.gn_groups)
+        return MoSTBlock(
+            channels, embed_channels, cfg.most_kernel_t, cfg.most_gate_noise, cfg.gn_groups, fusion=cfg.most_fusion
+        )
 
     def most_blocks(self) -> list[MoSTBlock]:
         """The MoST blocks in depth order (input -> output), named by `most_names`; empty without `most`."""
