@@ -297,3 +297,41 @@ def test_fusion_is_checked():
         MoSTBlock(8, E, groups=4, fusion="mul")
     with pytest.raises(InputError, match="most_fusion"):
         tiny(most=True, most_fusion="mul")
+
+
+@pytest.mark.parametrize("most", [False, True])
+def test_ego_motion_conditions_each_frame_and_crosses_frames_only_with_most(most, generator):
+    """A frame's pose changes that frame's output; other frames see it only through the temporal branch."""
+    net = randomized(RangeUNet(tiny(most=most, pose_dim=4))).eval()
+    x_t = torch.randn(1, 3, 2, H, W, generator=generator)
+    poses = torch.tensor([[[0, 0, 0, 0], [1.2, 0.1, 0, 0.05], [2.4, 0.3, 0, 0.1]]])  # (B, L, 4)
+    moved = poses.clone()
+    moved[0, 2] = torch.tensor([3.5, -0.5, 0.1, -0.2])
+    with torch.no_grad():
+        eps, eps_moved = net(x_t, torch.tensor([0.5]), poses=poses)[0], net(x_t, torch.tensor([0.5]), poses=moved)[0]
+    assert float((eps[:, 2] - eps_moved[:, 2]).abs().max()) > 1e-3
+    other = float((eps[:, :2] - eps_moved[:, :2]).abs().max())
+    assert (other > 1e-4) if most else (other == 0.0)
+
+
+def test_pose_condition_starts_as_no_condition_and_is_required(generator):
+    torch.manual_seed(0)
+    plain = RangeUNet(tiny(most=True))
+    torch.manual_seed(0)
+    posed = RangeUNet(tiny(most=True, pose_dim=4))  # built last, zero-initialised output
+    randomized(plain)
+    with torch.no_grad():  # same weights everywhere but the pose MLP, whose output layer stays zero
+        for name, p in posed.named_parameters():
+            if not name.startswith("pose_embed."):
+                p.copy_(dict(plain.named_parameters())[name])
+            elif name.startswith("pose_embed.mlp.0"):
+                p.copy_(torch.randn(p.shape, generator=generator))
+    x_t = torch.randn(2, 3, 2, H, W, generator=generator)
+    poses = torch.randn(2, 3, 4, generator=generator)
+    torch.testing.assert_close(posed.eval()(x_t, torch.zeros(2), poses=poses)[0], plain.eval()(x_t, torch.zeros(2))[0])
+    with pytest.raises(ValueError, match="needs poses"):
+        posed(x_t, torch.zeros(2))
+    with pytest.raises(ValueError, match="needs poses"):
+        plain(x_t, torch.zeros(2), poses=poses)
+    with pytest.raises(ValueError, match=r"poses must be \(B, \[L,\] 4\)"):
+        posed(x_t, torch.zeros(2), poses=poses[:, :2])

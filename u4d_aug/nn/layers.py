@@ -96,6 +96,30 @@ class NoiseLevelEmbedding(nn.Module):
         return self.mlp(sinusoidal_embedding(log_snr, self.base_channels))
 
 
+class PoseEmbedding(nn.Module):
+    """Ego motion of a frame (P,) -> an addition to its noise-level embedding (E,): Fourier features, MLP.
+
+    Each pose component (metres, radians) is read at octave frequencies 2^k·π/16, k = 0..5 (periods 32 m down to
+    1 m; 0.1 rad resolves at the top octave), then Linear-SiLU-Linear. The last Linear starts at zero, so a net
+    with the pose condition starts as the same function as one without.
+    """
+
+    octaves = 6
+
+    def __init__(self, pose_dim: int, embed_channels: int):
+        super().__init__()
+        self.register_buffer("freqs", (2.0 ** torch.arange(self.octaves)) * (math.pi / 16.0), persistent=False)
+        self.mlp = nn.Sequential(
+            nn.Linear(2 * self.octaves * pose_dim, embed_channels), nn.SiLU(), nn.Linear(embed_channels, embed_channels)
+        )
+        nn.init.zeros_(self.mlp[-1].weight)
+        nn.init.zeros_(self.mlp[-1].bias)
+
+    def forward(self, poses: Tensor) -> Tensor:  # (N, P) -> (N, E)
+        args = poses.float()[:, :, None] * self.freqs  # (N, P, K)
+        return self.mlp(torch.cat([torch.sin(args), torch.cos(args)], dim=-1).flatten(1))
+
+
 def group_norm(channels: int, groups: int, affine: bool = True) -> nn.GroupNorm:
     """GroupNorm with a clear error when `channels` is not divisible by `groups`."""
     if channels % groups != 0:

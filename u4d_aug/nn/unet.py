@@ -13,6 +13,7 @@ from u4d_aug.nn.layers import (
     AttentionBlock,
     Downsample,
     NoiseLevelEmbedding,
+    PoseEmbedding,
     RayFourierFeatures,
     ResBlock,
     RingConv2d,
@@ -43,6 +44,7 @@ class UNetConfig:
     most_kernel_t: int = 3  # taps of the temporal conv along L (odd; zero padding beyond the clip)
     most_gate_noise: float = 0.5  # std of the Gaussian noise on the gate logits in training
     most_fusion: Fusion = "gating"  # how a MoST block joins its branches: gating | cascade | add | concat
+    pose_dim: int = 0  # > 0: each frame's ego motion (e.g. dx, dy, dz, dyaw from u4d_aug.trajectory) conditions it
 
     def __post_init__(self) -> None:
         if self.base_channels < 1:
@@ -68,6 +70,8 @@ class UNetConfig:
                     f"net.most_levels must name levels 0..{len(self.channel_multipliers) - 1} (or be null for all), "
                     f"got {self.most_levels}"
                 )
+        if self.pose_dim < 0:
+            raise InputError(f"net.pose_dim must be >= 0 (0 = no ego-motion condition), got {self.pose_dim}")
         if self.most_kernel_t < 1 or self.most_kernel_t % 2 == 0:
             raise InputError(f"net.most_kernel_t must be a positive odd number, got {self.most_kernel_t}")
         if self.most_fusion not in FUSIONS:
@@ -192,6 +196,9 @@ class RangeUNet(nn.Module):
                 self.most_up[str(up_ends[level])] = self._most_block(widths[level], embed_channels)
                 self.most_names.append(f"dec{level}")
 
+        # built last for the same reason as the MoST blocks; zero-initialised output, so it starts as no condition
+        self.pose_embed = PoseEmbedding(cfg.pose_dim, embed_channels) if cfg.pose_dim > 0 else None
+
     def _most_block(self, channels: int, embed_channels: int) -> MoSTBlock:
         cfg = self.cfg
         return MoSTBlock(
@@ -219,9 +226,11 @@ class RangeUNet(nn.Module):
         cond: Tensor | None = None,
         generator: torch.Generator | None = None,
         crop_offsets: Tensor | None = None,
+        poses: Tensor | None = None,
     ) -> tuple[Tensor, Tensor | None]:
         """x_t (B, [L,] C_in, H, W), log_snr (B,) or (), cond (B, [L,] C_cond, H, W) -> (ε̂, mask logits).
 
+        `poses` (B, [L,] pose_dim): each frame's ego motion, needed exactly when net.pose_dim > 0.
         `generator` draws the MoST gate noise in training mode (torch's CPU default generator if None).
         `crop_offsets` (B,) int: x_t is an azimuth crop of width W < the net's full width starting at these columns
         of the panorama (wrapping around); the ray features are read at the crop's columns (`crop_columns`) and the
@@ -232,6 +241,10 @@ class RangeUNet(nn.Module):
             raise ValueError(f"RangeUNet: x_t must be (B, C, H, W) or (B, L, C, H, W), got {tuple(x_t.shape)}")
         batch = x_t.shape[0]
         log_snr = torch.as_tensor(log_snr, device=x_t.device, dtype=torch.float32).reshape(-1).expand(batch)
+        if (poses is None) != (self.pose_embed is None):
+            raise ValueError(f"RangeUNet: net.pose_dim = {self.cfg.pose_dim} needs poses exactly when it is > 0")
+        if poses is not None and poses.shape != (*x_t.shape[:-3], self.cfg.pose_dim):
+            raise ValueError(f"RangeUNet: poses must be (B, [L,] {self.cfg.pose_dim}), got {tuple(poses.shape)}")
         frames = 1
         if sequence:
             # (B, L) is folded into the batch, frames of a sequence adjacent, and unfolded at the end; only the
@@ -241,7 +254,8 @@ class RangeUNet(nn.Module):
             cond = cond.flatten(0, 1) if cond is not None else None
             log_snr = log_snr.repeat_interleave(frames)
             crop_offsets = crop_offsets.repeat_interleave(frames) if crop_offsets is not None else None
-        eps, mask_logits = self._forward_frames(x_t, log_snr, cond, frames, generator, crop_offsets)
+            poses = poses.flatten(0, 1) if poses is not None else None
+        eps, mask_logits = self._forward_frames(x_t, log_snr, cond, frames, generator, crop_offsets, poses)
         if sequence:
             eps = eps.unflatten(0, (batch, frames))
             mask_logits = mask_logits.unflatten(0, (batch, frames)) if mask_logits is not None else None
@@ -255,6 +269,7 @@ class RangeUNet(nn.Module):
         frames: int,
         generator: torch.Generator | None,
         crop_offsets: Tensor | None = None,
+        poses: Tensor | None = None,
     ) -> tuple[Tensor, Tensor | None]:
         cfg = self.cfg
         _, channels, height, width = x_t.shape
@@ -271,7 +286,10 @@ class RangeUNet(nn.Module):
         elif cond is not None:
             raise ValueError("RangeUNet: got cond but net.cond_channels = 0")
 
-        emb = F.silu(self.embed(log_snr))  # (N, E); every ResBlock applies its own Linear after this SiLU
+        emb = self.embed(log_snr)  # (N, E)
+        if self.pose_embed is not None:
+            emb = emb + self.pose_embed(poses)  # each frame its own ego motion
+        emb = F.silu(emb)  # every ResBlock applies its own Linear after this SiLU
         h = self.stem(x_t)  # (N, C0, H, W)
         if self.ray_features is not None:
             full_height, full_width = self.ray_features.size
