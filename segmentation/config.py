@@ -13,6 +13,7 @@ from typing import Literal
 from segmentation.data import AugmentConfig
 from segmentation.mean_teacher import MeanTeacherConfig
 from segmentation.models import SegModelConfig
+from u4d_aug.validate import check_finite_config
 
 Sequences = str | list[str | int] | None  # split name ('train' / 'val' / 'test'), a list of sequences, or all
 
@@ -36,6 +37,7 @@ class SegDataConfig:
     val_max_scans: int | None = None  # evenly spaced subset of the val scans for the periodic evaluation
 
     def __post_init__(self) -> None:
+        check_finite_config(self, "data.")
         # yaml reads 00 and 01 as integers: store sequence names as the folder names '00', '01'
         for name in ("train_sequences", "val_sequences"):
             value = getattr(self, name)
@@ -75,6 +77,13 @@ class OptimConfig:
     restart_lr: float | None = None
 
     def __post_init__(self) -> None:
+        check_finite_config(self, "optim.")
+        if self.weight_decay < 0 or self.grad_clip < 0:
+            raise ValueError(
+                f"optim.weight_decay and optim.grad_clip must be >= 0, got {self.weight_decay}, {self.grad_clip}"
+            )
+        if not all(0.0 <= beta < 1.0 for beta in self.betas):
+            raise ValueError(f"optim.betas must be in [0, 1), got {list(self.betas)}")
         if self.anneal_to not in ("steps", "budget"):
             raise ValueError(f"optim.anneal_to must be 'steps' or 'budget'; got {self.anneal_to!r}")
         if self.restart_step and not self.warmup_steps <= self.restart_step < self.steps:
@@ -115,6 +124,9 @@ class LossConfig:
     point_fraction: float = 1.0
 
     def __post_init__(self) -> None:
+        check_finite_config(self, "loss.")
+        if min(self.ce_weight, self.lovasz_weight) < 0 or not 0.0 <= self.label_smoothing < 1.0:
+            raise ValueError("loss.ce_weight and loss.lovasz_weight must be >= 0 and loss.label_smoothing in [0, 1)")
         if self.class_weighting not in ("none", "inverse_sqrt"):
             raise ValueError(f"loss.class_weighting must be 'none' or 'inverse_sqrt'; got {self.class_weighting!r}")
         if self.max_class_weight < 1.0:
@@ -150,6 +162,7 @@ class SemiConfig(MeanTeacherConfig):
     oracle_labels: bool = False
 
     def __post_init__(self) -> None:
+        check_finite_config(self, "semi.")
         ratios = [bank.ratio for bank in self.banks]
         if any(r < 0 for r in ratios) or sum(ratios) > 1.0 + 1e-9:
             raise ValueError(f"semi.banks ratios must be >= 0 and sum to <= 1; got {ratios}")
@@ -193,6 +206,7 @@ class SegTrainConfig:
     out_dir: Path = Path("runs/seg")
 
     def __post_init__(self) -> None:
+        check_finite_config(self)
         for name in ("eval_every", "checkpoint_every", "log_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")

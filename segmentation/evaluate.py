@@ -8,7 +8,6 @@ Under torchrun each rank evaluates every world_size-th scan and the counts are g
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from collections.abc import Sequence
@@ -42,6 +41,7 @@ from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
 from u4d_aug.distributed import DistInfo, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.io import check_output_file, dumps_json
 
 
 def accumulate(
@@ -194,12 +194,15 @@ def add_seg_eval_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     add_views_argument(parser)
     add_readout_argument(parser)
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run_seg_eval(args: argparse.Namespace) -> int:
     """`u4d seg-eval`: print per-class IoU, mIoU and both ECEs; optionally the reliability diagram."""
     if args.max_scans is not None and args.max_scans < 1:
         raise InputError(f"--max-scans must be >= 1, got {args.max_scans}")
+    check_output_file(args.png, "reliability diagram")
+    check_output_file(args.confusion_png, "confusion matrix")
     info = init_distributed(args.device)
     try:
         summary = evaluate(
@@ -210,14 +213,14 @@ def run_seg_eval(args: argparse.Namespace) -> int:
             reliability_png=args.png,
             confusion_png=args.confusion_png,
             dist_info=info,
-            progress=not args.json,
+            progress=not (args.json or args.no_progress),
             views=args.views,
             readout=args.readout,
         )
     finally:
         cleanup()
     if info.is_main:
-        print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
+        print(dumps_json(summary, indent=2) if args.json else format_summary(summary))  # NaN as null
     return 0
 
 

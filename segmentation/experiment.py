@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
-import shutil
 import sys
 import time
 from collections.abc import Sequence
@@ -35,10 +35,22 @@ from segmentation.evaluate import evaluate
 from segmentation.metrics import ReliabilityBins
 from segmentation.plots import plot_paired, plot_reliability
 from segmentation.train import train
+from u4d_aug.cmdline import parse_command_line
 from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.errors import InputError, exit_code_of
-from u4d_aug.io import atomic_torch_save, atomic_write_json, atomic_write_text, load_checkpoint, read_jsonl
+from u4d_aug.io import (
+    atomic_torch_save,
+    atomic_write_json,
+    atomic_write_text,
+    load_checkpoint,
+    make_folder,
+    read_jsonl,
+)
+from u4d_aug.runlock import run_lock
+from u4d_aug.validate import check_plain_name
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -51,6 +63,11 @@ class ArmConfig:
     bank_ratio: float = 0.5  # share of the unlabeled scans drawn from the bank
     # key=value overrides of this arm only, after the experiment's (ablations, e.g. semi.pseudo_threshold=0.75)
     overrides: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        check_plain_name(self.name, "arm name")  # it names the folder OUT/runs/NAME
+        if not 0.0 <= self.bank_ratio <= 1.0:
+            raise InputError(f"arm {self.name}: bank_ratio must be in [0, 1], got {self.bank_ratio}")
 
 
 def default_arms() -> list[ArmConfig]:
@@ -204,16 +221,12 @@ def run_metrics(run: SegTrainConfig, final_eval: bool, progress: bool) -> dict |
 
 
 def run_one(run: SegTrainConfig, progress: bool) -> None:
-    """Train (or resume, or skip when finished) one run: afterwards RUN/metrics.json exists."""
-    out = Path(run.out_dir)
-    metrics_path = out / "metrics.json"
-    if not metrics_path.is_file():
-        resume = "last" if any((out / "checkpoints").glob("step_*.pt")) else None
-        if resume is None:  # interrupted before its first checkpoint: start over
-            (out / "log.jsonl").unlink(missing_ok=True)
-            if (out / "checkpoints").is_dir():
-                shutil.rmtree(out / "checkpoints")  # no step_*.pt in it (at most a partial temp file)
-        train(run, resume=resume, progress=progress)
+    """Train (or resume, or skip when finished) one run: afterwards RUN/metrics.json exists.
+
+    A run interrupted before its first checkpoint starts again from step 0 (`u4d_aug.runfolder`).
+    """
+    if not (Path(run.out_dir) / "metrics.json").is_file():
+        train(run, resume="last", progress=progress)
 
 
 def finished_metrics(out: Path) -> dict | None:
@@ -303,8 +316,11 @@ def run_experiment_config(
     unknown = [name for name in train_arms or () if name not in names]
     if unknown:
         raise InputError(f"--arms: {unknown[0]!r} is not an arm of the experiment; its arms are {names}")
-    out = Path(cfg.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    for arm in cfg.arms:
+        problem = bank_problem(arm)
+        if train_arms is not None and not report_only and arm.name in train_arms and problem is not None:
+            raise InputError(f"--arms: arm {arm.name!r} cannot run: {problem}")
+    out = make_folder(cfg.out_dir)
     save_config(cfg, out / "experiment.yaml")
     results: dict = {"config": config_to_dict(cfg), "arms": []}
     for arm in cfg.arms:
@@ -322,27 +338,25 @@ def run_experiment_config(
             if problem is not None:
                 entry.update(status="missing", reason=problem)
                 results["arms"].append(entry)
-                print(f"{arm.name} / {backbone}: missing ({problem})", file=sys.stderr)
+                logger.warning("%s / %s: missing (%s)", arm.name, backbone, problem)
                 continue
             runs = []
             for seed in cfg.seeds:
                 run = run_config(cfg, arm, backbone, seed)
                 t0 = time.perf_counter()
                 if train:
-                    print(f"{arm.name} / {backbone} / seed {seed} -> {run.out_dir}", file=sys.stderr)
-                    donor = start_from_burn_in(run, donors_on_disk(out)) if cfg.share_burn_in else None
-                    if donor is not None:
-                        print(
-                            f"  starts at step {run.semi.burn_in_steps} from {donor} (the same burn-in)",
-                            file=sys.stderr,
-                        )
-                    run_one(run, progress)
+                    logger.info("%s / %s / seed %d -> %s", arm.name, backbone, seed, run.out_dir)
+                    with run_lock(run.out_dir):  # per run folder: other processes may train other arms or seeds
+                        donor = start_from_burn_in(run, donors_on_disk(out)) if cfg.share_burn_in else None
+                        if donor is not None:
+                            logger.info("  starts at step %d from %s (the same burn-in)", run.semi.burn_in_steps, donor)
+                        run_one(run, progress)
                 metrics = run_metrics(run, cfg.final_eval, progress)
                 if metrics is None:  # not trained here and not finished
                     continue
                 runs.append({"seed": seed, "out_dir": str(run.out_dir), **metrics})
                 if train:
-                    print(f"  done in {time.perf_counter() - t0:.1f} s (mIoU {metrics.get('miou')})", file=sys.stderr)
+                    logger.info("  done in %.1f s (mIoU %s)", time.perf_counter() - t0, metrics.get("miou"))
             if not runs:
                 entry.update(status="not run", reason="no finished run")
                 results["arms"].append(entry)
@@ -512,7 +526,8 @@ def main(argv: list[str] | None = None) -> int:
     """`python -m segmentation.experiment CONFIG ...`: the same as `u4d experiment`."""
     parser = argparse.ArgumentParser(prog="python -m segmentation.experiment", description=run_experiment.__doc__)
     add_experiment_arguments(parser)
-    return exit_code_of(lambda args: run_experiment(parser.parse_args(args)), argv)
+    argv = sys.argv[1:] if argv is None else argv
+    return exit_code_of(lambda args: run_experiment(parse_command_line(parser, args)), argv)
 
 
 if __name__ == "__main__":

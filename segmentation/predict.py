@@ -2,10 +2,12 @@
 
 `u4d seg-predict CKPT DATA --out DIR` writes, for every scan `DATA/sequences/XX/velodyne/NNNNNN.bin`,
 `DIR/sequences/XX/probs/NNNNNN.npy`: float16 (N, K) softmax probabilities, rows in the order of the scan's
-points (all N rows of the .bin; a NaN/inf point gets the uniform 1/K row), plus `DIR/manifest.json` naming the
+points (NaN/inf points are dropped with a counted warning, as `load_kitti_frame` drops them for every reader of
+these files), plus `DIR/manifest.json` naming the
 checkpoint (sha256[:16]), its config and the test-time views (`--views N`: mean softmax over the scan's mirror
 and turned views). Any segmentor that writes these files can drive U4D. Files are written atomically and existing ones
-are skipped, so a re-run resumes; under torchrun each rank takes every world_size-th scan.
+are skipped, so a re-run resumes; under torchrun each rank takes every world_size-th scan. Rank 0 holds the run lock
+of DIR (`u4d_aug.runlock`).
 """
 
 from __future__ import annotations
@@ -25,15 +27,17 @@ from segmentation.mean_teacher import mean_view_probs, scan_views, view_count_er
 from segmentation.models import SegModelConfig, build_model
 from u4d_aug.config import config_from_dict
 from u4d_aug.data.datasets import SEMANTICKITTI_SPLITS, list_frames, resolve_sequences, scan_path
-from u4d_aug.data.formats import read_kitti_scan
+from u4d_aug.data.formats import load_kitti_frame
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES
 from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError, exit_code_of
-from u4d_aug.io import atomic_save_npy, atomic_write_json
+from u4d_aug.io import atomic_save_npy, atomic_write_json, remove_temp_files
 from u4d_aug.io import load_checkpoint as load_torch_checkpoint
+from u4d_aug.runlock import run_lock
 from u4d_aug.weights import SEGMENTATION_KIND, exported_model, is_exported
 
 MANIFEST_FORMAT = "u4d-seg-probs"
+SEG_CHECKPOINT_FORMAT = "u4d-seg-checkpoint"  # segmentation.train.CHECKPOINT_FORMAT (train imports this module)
 
 
 def load_checkpoint(path: str | Path) -> dict:
@@ -46,6 +50,10 @@ def load_checkpoint(path: str | Path) -> dict:
         if ckpt.get("kind") != SEGMENTATION_KIND:
             raise InputError(f"{path}: exported {ckpt.get('kind')} weights, not a segmentation checkpoint")
         ckpt = {**ckpt, "model": exported_model(ckpt, str(path)), "step": ckpt.get("trained", {}).get("step")}
+    elif ckpt.get("format") != SEG_CHECKPOINT_FORMAT:
+        kind = ckpt.get("kind") or ckpt.get("format")
+        found = f"a {kind} checkpoint" if isinstance(kind, str) else "another kind of checkpoint"
+        raise InputError(f"{path}: not a segmentation checkpoint ({found}; `u4d seg-train` writes model.pt)")
     return ckpt
 
 
@@ -59,7 +67,11 @@ def model_from_checkpoint(
         fields["readout"] = readout
     model_cfg = config_from_dict(SegModelConfig, fields, source=f"{source} config")
     model = build_model(model_cfg)
-    model.load_state_dict(ckpt["model"])
+    try:
+        model.load_state_dict(ckpt["model"])
+    except (RuntimeError, TypeError, AttributeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise InputError(f"{source}: its weights do not fit the net its config describes ({first})") from None
     return model.to(device).eval()
 
 
@@ -116,9 +128,23 @@ def predict_root(
     views > 1 average the softmax over mirror and turned views (predict_probs); the manifest records the count
     and the readout (`readout` replaces the checkpoint's, model_from_checkpoint).
     """
-    check_views(views)
     info = dist_info or init_distributed("auto")
-    out_dir = Path(out_dir)
+    with run_lock(out_dir, enabled=info.is_main):
+        return predict_locked(checkpoint, data_root, Path(out_dir), sequences, info, progress, views, readout)
+
+
+def predict_locked(
+    checkpoint: str | Path,
+    data_root: str | Path,
+    out_dir: Path,
+    sequences: str | list[str] | None,
+    info: DistInfo,
+    progress: bool,
+    views: int,
+    readout: str | None,
+) -> dict:
+    """The work of `predict_root` once the output folder is locked."""
+    check_views(views)
     ckpt = load_checkpoint(checkpoint)
     model = model_from_checkpoint(ckpt, info.device, str(checkpoint), readout)
     num_classes = int(ckpt["config"].get("model", {}).get("num_classes", SegModelConfig.num_classes))
@@ -145,6 +171,7 @@ def predict_root(
     manifest_path = out_dir / "manifest.json"
     _check_manifest(manifest_path, manifest)
     if info.is_main:
+        remove_temp_files(out_dir)  # of killed writes; the other ranks start writing after the barrier
         atomic_write_json(manifest_path, manifest)
     barrier()
 
@@ -155,7 +182,7 @@ def predict_root(
         if target.is_file():
             skipped += 1
             continue
-        points = read_kitti_scan(scan_path(data_root, seq, frame))
+        points = load_kitti_frame(scan_path(data_root, seq, frame)).points  # NaN/inf points dropped (warning)
         atomic_save_npy(target, scan_probs(model, points, info.device, num_classes, views))
         written += 1
     barrier()

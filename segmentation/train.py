@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import sys
 import time
@@ -51,6 +52,7 @@ from segmentation.semi import (
     unlabeled_stream,
     update_teacher,
 )
+from u4d_aug.cmdline import parse_command_line
 from u4d_aug.config import add_run_arguments, config_to_dict, load_config, save_config
 from u4d_aug.data.datasets import ScanDataset, scan_path
 from u4d_aug.data.formats import label_path_for, read_kitti_label
@@ -67,6 +69,11 @@ from u4d_aug.distributed import (
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.host import host_info
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_json, atomic_write_text, read_jsonl
+from u4d_aug.runfolder import prepare, resume_point
+from u4d_aug.runlock import run_lock
+from u4d_aug.validate import check_finite_loss
+
+logger = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "u4d-seg-checkpoint"
 CURVE_KEYS = ("loss", "loss_ce", "loss_lovasz", "loss_sup", "loss_mix", "loss_mt")  # mode "semi": the last 3
@@ -256,19 +263,6 @@ def train_scans(cfg: SegTrainConfig, info: DistInfo) -> ScanDataset:
     return scans
 
 
-def find_checkpoint(out_dir: Path, resume: str | Path) -> Path:
-    """`--resume` without a path -> newest OUT/checkpoints/step_*.pt; with a path -> that file."""
-    if str(resume) != "last":
-        path = Path(resume)
-        if not path.is_file():
-            raise InputError(f"{path}: checkpoint to resume from not found")
-        return path
-    found = sorted((out_dir / "checkpoints").glob("step_*.pt"))
-    if not found:
-        raise InputError(f"{out_dir / 'checkpoints'}: no step_*.pt checkpoint to resume from")
-    return found[-1]
-
-
 def save_checkpoint(path: Path, state: dict, keep: int) -> None:
     """Write atomically, then delete all but the newest `keep` step_*.pt beside it (0 = keep all)."""
     atomic_torch_save(path, state)
@@ -313,15 +307,25 @@ def rewrite_log(path: Path, last_step: int) -> None:
 
 
 def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool = True) -> dict:
-    """Train as configured; returns the final evaluation summary (empty without val scans)."""
+    """Train as configured; returns the final evaluation summary (empty without val scans).
+
+    Rank 0 holds the run lock of OUT (`u4d_aug.runlock`) for the whole run: a second run on OUT is refused.
+    """
     info = init_distributed(cfg.device)
+    with run_lock(cfg.out_dir, enabled=info.is_main):
+        return train_locked(cfg, info, resume, progress)
+
+
+def train_locked(cfg: SegTrainConfig, info: DistInfo, resume: str | Path | None, progress: bool) -> dict:
+    """The run of `train` once OUT is locked: set-up, resume point, loop, final outputs."""
     device = info.device
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     out_dir = Path(cfg.out_dir)
     log_path = out_dir / "log.jsonl"
-    if resume is None and (log_path.exists() or (out_dir / "checkpoints").exists()):
-        raise InputError(f"{out_dir}: holds a previous run; pass --resume to continue it or choose another --out")
+    ckpt_path = resume_point(out_dir, resume)  # None: step 0 (also --resume before the first checkpoint)
+    if info.is_main:
+        prepare(out_dir, ckpt_path)
     if cfg.model.num_classes != len(SEMANTICKITTI_CLASSES):
         raise InputError(
             f"model.num_classes={cfg.model.num_classes}: the scans carry the "
@@ -351,8 +355,7 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
     evaluated = teacher if teacher is not None else model
     optimizer = make_optimizer(model, cfg.optim)
     start_step, elapsed_before, last_summary = 0, 0.0, None
-    if resume is not None:
-        ckpt_path = find_checkpoint(out_dir, resume)
+    if ckpt_path is not None:
         ckpt = load_checkpoint(ckpt_path)
         if ckpt.get("format") != CHECKPOINT_FORMAT or "optimizer" not in ckpt:
             raise InputError(
@@ -370,7 +373,7 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
         torch.set_rng_state(ckpt["rng"]["torch"])
         if info.is_main:
             rewrite_log(log_path, start_step)
-            print(f"resuming from {ckpt_path} at step {start_step}", file=sys.stderr)
+            logger.info("resuming from %s at step %d", ckpt_path, start_step)
     if info.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
         save_config(cfg, out_dir / "config.yaml")
@@ -411,11 +414,16 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
             losses = semi_step(ddp_model, teacher, batch, cfg, device, class_weight)
         else:
             raise ValueError(f"mode must be 'supervised' or 'semi'; got {cfg.mode!r}")
+        check_finite_loss(losses["loss"], step + 1)
         optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
         grad_norm = (
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip) if cfg.optim.grad_clip > 0 else None
         )
+        checked = grad_norm  # NaN weights would follow a non-finite gradient: stop before the step
+        if checked is None:  # no clipping: the norm is taken for this check only (not logged)
+            checked = torch.nn.utils.get_total_norm([p.grad for p in model.parameters() if p.grad is not None])
+        check_finite_loss(losses["loss"], step + 1, checked)
         optimizer.step()
         if teacher is not None:
             update_teacher(teacher, model, cfg.semi, step)
@@ -554,7 +562,8 @@ def main(argv: list[str] | None = None) -> int:
     """`python -m segmentation.train CONFIG ...`: the same as `u4d seg-train`, handy under torchrun."""
     parser = argparse.ArgumentParser(prog="python -m segmentation.train", description=run_seg_train.__doc__)
     add_seg_train_arguments(parser)
-    return exit_code_of(lambda args: run_seg_train(parser.parse_args(args)), argv)
+    argv = sys.argv[1:] if argv is None else argv
+    return exit_code_of(lambda args: run_seg_train(parse_command_line(parser, args)), argv)
 
 
 if __name__ == "__main__":

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import json
+import shlex
 
 import numpy as np
 import pytest
 
-from u4d_aug.cli import CONFIGS_DIR, DELEGATED, main
+from u4d_aug.cli import CONFIGS_DIR, DELEGATED, EXAMPLES, main
 
 
 def test_help_lists_every_command(capsys):
@@ -77,3 +78,77 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
         assert len(written) + len(manifest["empty"]) == 4
         evaluation = json.loads((out / f"eval_{method}" / "evaluation.json").read_text())
         assert 0.0 <= evaluation["table1"]["jsd"]["value"] <= np.sqrt(np.log(2)) + 1e-9
+
+
+# ---------------------------------------------------------------------------------------------------- conventions
+
+COMMANDS = ["info", "show", "demo", *dict(DELEGATED)]
+
+
+@pytest.mark.parametrize("name", COMMANDS)
+def test_help_of_every_command_shows_an_example(name, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main([name, "--help"])
+    assert exit_info.value.code == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line for line in lines if line.startswith(f"example: u4d {name} ")] == [f"example: {EXAMPLES[name]}"]
+    assert "--quiet" in "\n".join(lines)
+
+
+def config_class(name: str) -> type | None:
+    """The config dataclass a command reads its CONFIG (or bare overrides) with."""
+    from segmentation.config import SegTrainConfig
+    from segmentation.experiment import ExperimentConfig
+    from u4d_aug.data.sim.config import SimConfig
+    from u4d_aug.generate import GenerateConfig
+    from u4d_aug.metrics.extractors import ExtractorConfig
+    from u4d_aug.train import DiffusionTrainConfig
+
+    classes = {"seg-train": SegTrainConfig, "train-diffusion": DiffusionTrainConfig, "generate": GenerateConfig,
+               "experiment": ExperimentConfig, "train-extractor": ExtractorConfig, "simulate": SimConfig}  # fmt: skip
+    return classes.get(name)
+
+
+@pytest.mark.parametrize("name", COMMANDS)
+def test_every_example_parses_and_its_overrides_load(name, tmp_path, monkeypatch):
+    from u4d_aug.cli import build_parser, delegated_parser
+    from u4d_aug.cmdline import parse_command_line
+    from u4d_aug.config import load_config
+    from u4d_aug.train import split_stage_override
+
+    monkeypatch.chdir(tmp_path)  # presets are found from any folder
+    words = shlex.split(EXAMPLES[name])
+    assert words[:2] == ["u4d", name]
+    if name in dict(DELEGATED):
+        args = parse_command_line(delegated_parser(name)[0], words[2:])
+    else:
+        args = build_parser().parse_args(words[1:])
+    cls = config_class(name)
+    if cls is not None:
+        overrides = split_stage_override(args.overrides) if name == "train-diffusion" else args.overrides
+        assert overrides, "the example shows a key=value override"
+        load_config(cls, getattr(args, "config", None), overrides)
+
+
+def test_overrides_after_flags_reach_the_config(tmp_path, capsys):
+    missing = tmp_path / "missing.pt"
+    argv = ["generate", "u4d/generate_cpu", "--out", str(tmp_path / "bank"), "mode=baseline", f"baseline={missing}"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"error: {missing}: baseline checkpoint not found"
+
+
+def test_unknown_flag_is_still_refused_in_one_line(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["seg-train", "seg/tiny", "optim.steps=1", "--bogus"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "unrecognized arguments: --bogus" in err
+
+
+def test_quiet_and_verbose_anywhere(tmp_path, capsys):
+    (tmp_path / "sequences" / "00" / "velodyne").mkdir(parents=True)
+    np.zeros((3, 4), np.float32).tofile(tmp_path / "sequences" / "00" / "velodyne" / "000000.bin")
+    assert main(["info", str(tmp_path), "--quiet", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["frames"] == 1
+    assert main(["--verbose", "info", str(tmp_path)]) == 0

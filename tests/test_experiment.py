@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -63,6 +64,40 @@ def test_paired_differences_by_seed():
 def test_config_rejects_duplicate_arms():
     with pytest.raises(InputError, match="distinct"):
         load_config(ExperimentConfig, TINY, ["arms=[{name: a}, {name: a}]"])
+
+
+@pytest.mark.parametrize("name", ["../../escaped", "a/b", "..", ""])
+def test_arm_names_are_plain_names(name, tmp_path):
+    with pytest.raises(InputError, match="arm name .* must be a plain name"):
+        load_config(ExperimentConfig, TINY, [f"arms=[{{name: '{name}'}}]", f"out_dir={tmp_path}"])
+    assert list(tmp_path.iterdir()) == []  # nothing written, inside or outside out_dir
+
+
+def test_an_arm_asked_for_that_cannot_run_is_an_error(tmp_path):
+    parser = argparse.ArgumentParser()
+    add_experiment_arguments(parser)
+    argv = [str(TINY), f"arms=[{{name: u4d, mode: semi, bank: {tmp_path / 'no_bank'}}}]", "--out", str(tmp_path / "o")]
+    with pytest.raises(InputError, match="--arms: arm 'u4d' cannot run: bank .*no_bank not found"):
+        run_experiment(parser.parse_args([*argv, "--arms", "u4d"]))
+
+
+def test_a_run_folder_locked_by_another_process_is_refused(tmp_path):
+    """Runs lock their own folder (arm/backbone/seed), not the experiment's: a locked run stops this process."""
+    import os
+    import socket
+
+    root = write_toy_root(tmp_path / "toy")
+    out = tmp_path / "exp"
+    run_dir = out / "runs" / "sup-only" / "minkunet" / "seed0"
+    run_dir.mkdir(parents=True)
+    holder = {"pid": os.getppid(), "host": socket.gethostname(), "start": None}  # alive: the test runner's parent
+    (run_dir / ".lock").write_text(json.dumps(holder))
+    parser = argparse.ArgumentParser()
+    add_experiment_arguments(parser)
+    argv = [str(TINY), f"overrides=[data.root={root}, optim.steps=1]", "--out", str(out), "--no-progress"]
+    with pytest.raises(InputError, match="seed0: in use by another run"):
+        run_experiment(parser.parse_args([*argv, "--arms", "sup-only"]))
+    assert not (out / ".lock").exists() and not (run_dir / "log.jsonl").exists()
 
 
 def test_arm_overrides_change_only_their_arm():
@@ -142,8 +177,9 @@ def test_tiny_experiment_with_a_missing_bank_is_resumable(tmp_path):
     assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == ["step_0000003.pt"]
 
 
-def test_arms_share_their_burn_in_and_end_as_if_trained_alone(tmp_path, capsys):
+def test_arms_share_their_burn_in_and_end_as_if_trained_alone(tmp_path, caplog):
     """mt arms start from sup-only's burn_in.pt at step 2 and end with the weights of a run from scratch."""
+    caplog.set_level(logging.INFO, logger="segmentation.experiment")
     root = write_toy_root(tmp_path / "toy")
     parser = argparse.ArgumentParser()
     add_experiment_arguments(parser)
@@ -155,7 +191,7 @@ def test_arms_share_their_burn_in_and_end_as_if_trained_alone(tmp_path, capsys):
     shared, alone = tmp_path / "shared", tmp_path / "alone"
     argv = [str(TINY), *common, arms]
     assert run_experiment(parser.parse_args([*argv, "--no-progress", "--out", str(shared)])) == 0
-    shared_stderr = capsys.readouterr().err
+    shared_log = list(caplog.messages)
     assert run_experiment(parser.parse_args([*argv, "share_burn_in=false", "--no-progress", "--out", str(alone)])) == 0
 
     def run_dir(out: Path, arm: str) -> Path:
@@ -178,8 +214,8 @@ def test_arms_share_their_burn_in_and_end_as_if_trained_alone(tmp_path, capsys):
         for key in a:
             assert torch.equal(a[key], b[key]), (arm, key)
     # the EMA burn-in teacher is the run's own: never seeded from another run (it trained its own first steps)
-    started = [line.split(" -> ")[0] for line in shared_stderr.splitlines() if " -> " in line]
-    announced = [line for line in shared_stderr.splitlines() if "(the same burn-in)" in line]
+    started = [line.split(" -> ")[0] for line in shared_log if " -> " in line]
+    announced = [line for line in shared_log if "(the same burn-in)" in line]
     assert started == ["sup-only / minkunet / seed 0", "mt / minkunet / seed 0", "mt-ema / minkunet / seed 0"]
     assert len(announced) == 1 and str(run_dir(shared, "sup-only") / "burn_in.pt") in announced[0]
     ema_log = [r for r in read_jsonl(run_dir(shared, "mt-ema") / "log.jsonl") if "loss" in r]

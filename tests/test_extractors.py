@@ -22,6 +22,7 @@ from u4d_aug.metrics.extractors import (
     train_extractor,
 )
 from u4d_aug.metrics.frechet import frechet_from_features
+from u4d_aug.validate import NonFiniteLossError
 
 TINY_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "extractor" / "tiny.yaml"
 
@@ -231,3 +232,23 @@ def test_training_records_heldout_scores(trained, tmp_path):
     cfg.data.val_sequences = ("07",)
     with pytest.raises(InputError, match="07"):  # a missing held-out split fails before any training
         train_extractor("frd", cfg)
+
+
+def test_a_non_finite_loss_stops_extractor_training_without_a_checkpoint(trained, tmp_path, monkeypatch):
+    from u4d_aug.metrics.extractors import RangeSegNet
+
+    monkeypatch.setattr(RangeSegNet, "forward", lambda self, image, labels: torch.tensor(float("inf")))
+    out = tmp_path / "nan"
+    with pytest.raises(NonFiniteLossError, match="training step 1: the loss is inf"):
+        train_extractor("frd", _tiny_cfg(trained["root"], out))
+    assert not (out / "frd.pt").exists() and not (out / ".frd.lock").exists()
+
+
+@pytest.mark.parametrize(
+    ("override", "key"),
+    [("train.steps=0", "train.steps"), ("train.lr=.nan", "train.lr"), ("train.lr=-1e-3", "train.lr"),
+     ("train.batch_size=0", "train.batch_size"), ("data.width=0", "data.width"), ("model.levels=0", "model.levels")],
+)  # fmt: skip
+def test_degenerate_numbers_are_refused_at_config_time(tmp_path, override, key):
+    with pytest.raises(InputError, match=f"'{key}'"):
+        load_config(ExtractorConfig, TINY_CONFIG, [override])

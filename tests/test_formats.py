@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -141,6 +142,58 @@ def test_bad_kitti_bin_size(tmp_path):
     path.write_bytes(b"\0" * 17)
     msg = _raises_one_line("not a multiple of 16", read_kitti_scan, path)
     assert str(path) in msg
+
+
+def _ray_points(rng: np.random.Generator, num_points: int = 400) -> np.ndarray:
+    """(N, 4) float64: points 3-60 m away, intensity in [0, 1], as a KITTI scan holds them."""
+    xyz = rng.normal(size=(num_points, 3))
+    xyz *= rng.uniform(3, 60, (num_points, 1)) / np.linalg.norm(xyz, axis=1, keepdims=True)
+    return np.concatenate([xyz, rng.uniform(0, 1, (num_points, 1))], axis=1)
+
+
+@pytest.fixture
+def fresh_scan_warnings(monkeypatch):
+    """Scan warnings are limited per process; each test starts with none given."""
+    import u4d_aug.data.formats as formats
+
+    monkeypatch.setattr(formats, "_SCAN_WARNINGS", {})
+
+
+def test_a_nuscenes_scan_named_bin_is_refused(tmp_path, rng, fresh_scan_warnings):
+    points = _ray_points(rng, 400).astype(np.float32)
+    write_nuscenes_scan(tmp_path / "scan.pcd.bin", points, rng.integers(0, 32, len(points)))
+    (tmp_path / "scan.bin").write_bytes((tmp_path / "scan.pcd.bin").read_bytes())  # 400 x 20 bytes = 500 x 16
+    _raises_one_line("like a nuScenes scan, not KITTI's 4; name it \\*.pcd.bin", read_kitti_scan, tmp_path / "scan.bin")
+
+
+def test_float64_and_out_of_range_intensity_warn(tmp_path, rng, fresh_scan_warnings):
+    points = _ray_points(rng)
+    points.tofile(tmp_path / "f64.bin")  # float64: 32 bytes a point, a multiple of 16 too
+    with pytest.warns(UserWarning, match="f64.bin: its values look like float64"):
+        read_kitti_scan(tmp_path / "f64.bin")
+    scaled = points * np.array([1, 1, 1, 255])
+    write_kitti_scan(tmp_path / "i255.bin", scaled.astype(np.float32))
+    with pytest.warns(UserWarning, match="i255.bin: intensity up to 25[0-9.]*, on a 0-255 scale"):
+        read_kitti_scan(tmp_path / "i255.bin")
+    scaled[0, 3] = 1000.0
+    write_kitti_scan(tmp_path / "i1000.bin", scaled.astype(np.float32))
+    with pytest.warns(UserWarning, match="outside \\[0, 1\\] and \\[0, 255\\]"):
+        read_kitti_scan(tmp_path / "i1000.bin")
+    write_kitti_scan(tmp_path / "ok.bin", points.astype(np.float32))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(read_kitti_scan(tmp_path / "ok.bin"), points.astype(np.float32))
+
+
+def test_scan_warnings_stop_after_a_few_files(tmp_path, rng, fresh_scan_warnings):
+    scaled = (_ray_points(rng) * np.array([1, 1, 1, 255])).astype(np.float32)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for i in range(6):
+            write_kitti_scan(tmp_path / f"{i}.bin", scaled)
+            read_kitti_scan(tmp_path / f"{i}.bin")
+    messages = [str(w.message) for w in caught]
+    assert len(messages) == 3 and messages[-1].endswith("(further files with this problem are not reported)")
 
 
 def test_bad_nuscenes_bin_size(tmp_path):

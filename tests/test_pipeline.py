@@ -183,3 +183,39 @@ def test_mask_threshold_undoes_the_bce_positive_weight(pos_weight):
     assert mask_from_logits(fitted, pos_weight).tolist() == [0.0, 0.0, 0.0, 1.0, 1.0, 1.0]
     if pos_weight > 1:  # a plain sigmoid > 0.5 would also keep the q = 0.3 and 0.45 pixels
         assert (torch.sigmoid(fitted) > 0.5).sum() == 5
+
+
+def test_ego_motion_reaches_the_net_through_every_generator(tmp_path):
+    """A net trained with poses samples only with motion of the right shape, and the motion changes the sample."""
+    from u4d_aug.config import load_config
+    from u4d_aug.ema import EMA
+    from u4d_aug.errors import InputError
+    from u4d_aug.io import atomic_torch_save
+    from u4d_aug.pipeline import generate_baseline, generate_u4d, load_generator
+    from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state
+    from u4d_aug.trajectory import straight_motion
+
+    tiny_most = Path(__file__).resolve().parents[1] / "configs" / "u4d" / "tiny_most.yaml"
+    loaded = {}
+    for stage in ("stage1", "stage2", "baseline"):
+        cfg = load_config(DiffusionTrainConfig, tiny_most, [f"diffusion.stage={stage}", "net.pose_dim=4"])
+        net = build_net(cfg)
+        with torch.no_grad():  # random weights everywhere (zero-initialised outputs too), so the motion matters
+            weights = torch.Generator().manual_seed(1)
+            for p in net.parameters():
+                p.copy_(torch.randn(p.shape, generator=weights) * 0.1)
+        atomic_torch_save(tmp_path / f"{stage}.pt", checkpoint_state(cfg, 1, net, EMA(net)))
+        loaded[stage] = load_generator(tmp_path / f"{stage}.pt")
+    straight = torch.from_numpy(straight_motion(2, 1.2))[None]  # (1, L=2, 4)
+    turning = torch.from_numpy(straight_motion(2, 1.2, yaw_rate=0.3))[None]
+    a = generate_baseline(loaded["baseline"], 1, 3, torch.Generator().manual_seed(0), "ddim", motion=straight)["x0"]
+    b = generate_baseline(loaded["baseline"], 1, 3, torch.Generator().manual_seed(0), "ddim", motion=turning)["x0"]
+    assert a.shape == (1, 2, 2, 16, 64) and not torch.allclose(a, b)
+    u4d = generate_u4d(
+        loaded["stage1"], loaded["stage2"], 1, 2, torch.Generator().manual_seed(0), "ddim", motion=straight
+    )
+    assert u4d["x0"].shape == (1, 2, 2, 16, 64)
+    with pytest.raises(InputError, match="conditioned on ego motion"):
+        generate_baseline(loaded["baseline"], 1, 2, torch.Generator(), "ddim")
+    with pytest.raises(InputError, match="conditioned on ego motion"):
+        generate_baseline(loaded["baseline"], 2, 2, torch.Generator(), "ddim", motion=straight)  # 1 motion, 2 samples

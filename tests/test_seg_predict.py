@@ -35,9 +35,10 @@ from segmentation.predict import (
 from segmentation.train import train
 from u4d_aug.config import load_config
 from u4d_aug.data.datasets import ScanDataset
-from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
+from u4d_aug.data.formats import load_kitti_frame, read_kitti_scan, write_kitti_scan
 from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
 from u4d_aug.errors import InputError
+from u4d_aug.uncertainty import load_probs
 
 
 @pytest.fixture(autouse=True)
@@ -97,7 +98,7 @@ def test_predict_writes_float16_probs_in_scan_order_and_resumes(trained, tmp_pat
     assert probs_path(out, "01", "000000").stat().st_mtime_ns == stamp
 
 
-def test_predict_refuses_to_mix_checkpoints_and_keeps_nan_rows(trained, tmp_path):
+def test_predict_refuses_to_mix_checkpoints_and_drops_nan_points(trained, tmp_path):
     root, ckpt = trained
     out = tmp_path / "probs"
     predict_root(ckpt, root, out, sequences=["01"], progress=False)
@@ -108,15 +109,30 @@ def test_predict_refuses_to_mix_checkpoints_and_keeps_nan_rows(trained, tmp_path
     with pytest.raises(InputError, match="manifest.json"):
         predict_root(other, root, out, sequences=["01"], progress=False)
 
-    # a NaN point keeps its row (uniform), so row i is still point i of the .bin
+    # a NaN point is dropped with a counted warning: the rows follow the points every reader of the scan sees
+    # (load_kitti_frame drops them too), so U4D's load_probs(path, len(points)) matches
     nan_root = tmp_path / "nan"
     points = read_kitti_scan(root / "sequences" / "00" / "velodyne" / "000000.bin").copy()
     points[5] = np.nan
     write_kitti_scan(nan_root / "sequences" / "00" / "velodyne" / "000000.bin", points)
-    predict_root(ckpt, nan_root, tmp_path / "nan_probs", progress=False)
-    probs = np.load(probs_path(tmp_path / "nan_probs", "00", "000000")).astype(np.float32)
-    assert probs.shape == (len(points), 19)
-    np.testing.assert_allclose(probs[5], 1 / 19, rtol=1e-3)
+    with pytest.warns(UserWarning, match="dropped 1 of 3000 points with NaN/inf values"):
+        predict_root(ckpt, nan_root, tmp_path / "nan_probs", progress=False)
+    kept = load_kitti_frame(nan_root / "sequences" / "00" / "velodyne" / "000000.bin").points
+    probs = load_probs(probs_path(tmp_path / "nan_probs", "00", "000000"), len(kept)).astype(np.float32)
+    assert probs.shape == (len(points) - 1, 19) and np.isfinite(probs).all()
+
+
+def test_a_checkpoint_of_another_kind_is_refused_in_one_line(trained, tmp_path):
+    root, ckpt = trained
+    state = torch.load(ckpt, weights_only=True)
+    diffusion = {"kind": "u4d-diffusion", "config": {"net": {}}, "model": state["model"], "step": 4}
+    torch.save(diffusion, tmp_path / "diffusion.pt")
+    with pytest.raises(InputError, match="diffusion.pt: not a segmentation checkpoint \\(a u4d-diffusion checkpoint"):
+        predict_root(tmp_path / "diffusion.pt", root, tmp_path / "o", progress=False)
+    wrong = {**state, "model": {key: value.reshape(-1)[:1] for key, value in state["model"].items()}}
+    torch.save(wrong, tmp_path / "wrong.pt")
+    with pytest.raises(InputError, match="wrong.pt: its weights do not fit the net its config describes"):
+        predict_root(tmp_path / "wrong.pt", root, tmp_path / "o", progress=False)
 
 
 def test_predict_rejects_bad_inputs(trained, tmp_path):

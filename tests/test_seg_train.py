@@ -6,8 +6,11 @@ import argparse
 import itertools
 import json
 import os
+import re
+import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +38,7 @@ from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
 from u4d_aug.distributed import DistInfo
 from u4d_aug.errors import InputError
 from u4d_aug.io import read_jsonl
+from u4d_aug.validate import NonFiniteLossError
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = REPO / "configs" / "seg" / "tiny.yaml"
@@ -432,6 +436,80 @@ def test_resume_in_a_fresh_process_is_bit_exact(toy_root, tmp_path):
     hosts = read_jsonl(half / "hosts.jsonl")  # one machine record per start: here only the resume at step 3
     assert [h["step"] for h in hosts] == [3] and hosts[0]["cores"] >= 1 and hosts[0]["world_size"] == 1
     assert [h["step"] for h in read_jsonl(full / "hosts.jsonl")] == [0]
+
+
+def test_a_run_killed_before_its_first_checkpoint_starts_again_from_step_0(toy_root, tmp_path, caplog):
+    """Issue 44: config, log, a temp file of a half-written checkpoint and the lock of a dead process are all a
+    killed run left; a new run, with or without --resume, takes the folder over and trains from step 0."""
+    fresh = tmp_path / "fresh"
+    train(tiny_config(toy_root, fresh), progress=False)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    for resume in (None, "last"):
+        out = tmp_path / f"killed_{resume}"
+        (out / "checkpoints").mkdir(parents=True)
+        (out / "config.yaml").write_text("mode: supervised\n")
+        (out / "log.jsonl").write_text('{"step": 1, "loss": 9.0}\n{"step": 2, "lo')
+        (out / "checkpoints" / ".step_0000003.pt.k1ll3d.tmp").write_bytes(b"half a checkpoint")
+        holder = {"pid": dead.pid, "host": socket.gethostname(), "start": None, "started": 0}
+        (out / ".lock").write_text(json.dumps(holder))
+        with caplog.at_level("INFO"):
+            train(tiny_config(toy_root, out), resume=resume, progress=False)
+        assert "took over the lock" in caplog.text and "starting it again from step 0" in caplog.text
+        steps = [r["step"] for r in read_jsonl(out / "log.jsonl") if "loss" in r]
+        assert steps == list(range(1, 7))
+        assert not list(out.rglob("*.tmp")) and not (out / ".lock").exists()
+        a, b = _final_weights(fresh), _final_weights(out)
+        assert all(torch.equal(a[key], b[key]) for key in a)
+
+
+def test_a_second_run_on_the_folder_is_refused_while_the_first_holds_it(toy_root, tmp_path):
+    out = tmp_path / "busy"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", f"from u4d_aug.runlock import run_lock\nwith run_lock({str(out)!r}): input()"],
+        stdin=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        for _ in range(600):
+            if (out / ".lock").is_file() and (out / ".lock").read_text().strip():
+                break
+            time.sleep(0.05)
+        with pytest.raises(InputError, match=f"in use by another run \\(pid {holder.pid} on host"):
+            train(tiny_config(toy_root, out), progress=False)
+        assert not (out / "log.jsonl").exists()
+    finally:
+        holder.communicate("\n", timeout=60)
+    assert not (out / ".lock").exists()
+    assert train(tiny_config(toy_root, out, "optim.steps=1"), progress=False) is not None  # free again
+
+
+def test_a_non_finite_loss_stops_the_run_and_keeps_the_last_good_checkpoint(toy_root, tmp_path, monkeypatch):
+    import segmentation.train as seg_train
+
+    def nan_from_step_4(model, batch, *args, **kwargs):
+        losses = supervised_step(model, batch, *args, **kwargs)
+        return {**losses, "loss": losses["loss"] * (float("nan") if batch["step"] >= 3 else 1.0)}
+
+    monkeypatch.setattr(seg_train, "supervised_step", nan_from_step_4)
+    out = tmp_path / "nan"
+    with pytest.raises(NonFiniteLossError, match="training step 4: the loss is nan"):
+        train(tiny_config(toy_root, out), progress=False)
+    assert [c.name for c in (out / "checkpoints").glob("step_*.pt")] == ["step_0000003.pt"]
+    state = torch.load(out / "checkpoints" / "step_0000003.pt", weights_only=True)
+    assert all(torch.isfinite(value).all() for value in state["model"].values())
+    assert not (out / "model.pt").exists() and not (out / ".lock").exists()
+
+
+@pytest.mark.parametrize(
+    ("override", "key"),
+    [("optim.lr=.inf", "optim.lr"), ("optim.lr=.nan", "optim.lr"), ("optim.grad_clip=-1", "optim.grad_clip"),
+     ("data.sector_deg=.nan", "data.sector_deg"), ("loss.ce_weight=.inf", "loss.ce_weight"),
+     ("semi.consistency_weight=.nan", "semi.consistency_weight"), ("max_minutes=.inf", "max_minutes")],
+)  # fmt: skip
+def test_non_finite_or_negative_numbers_are_refused_at_config_time(toy_root, tmp_path, override, key):
+    with pytest.raises(InputError, match=re.escape(key)):
+        tiny_config(toy_root, tmp_path, override)
 
 
 def _overrides(cfg: SegTrainConfig) -> list[str]:

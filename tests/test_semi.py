@@ -25,6 +25,7 @@ from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
 from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
 from u4d_aug.errors import InputError
 from u4d_aug.io import read_jsonl
+from u4d_aug.validate import NonFiniteLossError
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_SEMI = REPO / "configs" / "seg" / "tiny_semi.yaml"
@@ -394,3 +395,21 @@ def test_labeled_and_unlabeled_scans_are_cut_to_a_sector(toy_root, tmp_path):
     full = semi_config(toy_root, tmp_path, "data.max_points=null", *still, "augment.scale_max=1")
     whole = TrainBatches(train_scans(full, CPU), full, 0, 1, unlabeled_stream(full))[3]
     assert all(largest_azimuth_gap_deg(scan) < 90.0 for scan in whole["points"] + whole["unlabeled"])
+
+
+def test_a_non_finite_mean_teacher_loss_stops_the_run_before_the_step(toy_root, tmp_path, monkeypatch):
+    import segmentation.train as seg_train
+
+    step = seg_train.semi_step
+
+    def nan_semi_step(student, teacher, batch, *args, **kwargs):
+        losses = step(student, teacher, batch, *args, **kwargs)
+        return {**losses, "loss": losses["loss"] * float("nan")}
+
+    monkeypatch.setattr(seg_train, "semi_step", nan_semi_step)
+    out = tmp_path / "nan"
+    with pytest.raises(NonFiniteLossError, match="training step 2: the loss is nan"):
+        train(semi_config(toy_root, out, "semi.burn_in_steps=1", "checkpoint_every=1"), progress=False)
+    assert [c.name for c in (out / "checkpoints").glob("step_*.pt")] == ["step_0000001.pt"]
+    state = torch.load(out / "checkpoints" / "step_0000001.pt", weights_only=True)
+    assert all(torch.isfinite(value).all() for value in [*state["model"].values(), *state["ema"].values()])

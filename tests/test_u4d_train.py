@@ -3,6 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import os
+import re
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +16,7 @@ import torch
 
 from u4d_aug.config import load_config
 from u4d_aug.data.formats import write_kitti_scan
+from u4d_aug.diffusion import GaussianDiffusion
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_save_npy, read_jsonl
 from u4d_aug.train import (
@@ -22,6 +28,7 @@ from u4d_aug.train import (
     split_stage_override,
     train,
 )
+from u4d_aug.validate import NonFiniteLossError
 
 TINY = Path(__file__).resolve().parents[1] / "configs" / "u4d" / "tiny.yaml"
 
@@ -104,6 +111,89 @@ def test_resume_continues_to_the_same_weights(tiny_world, tmp_path):
     b = torch.load(tmp_path / "part" / "checkpoints" / "step_0000004.pt", weights_only=False)
     for name, value in a["model"].items():
         torch.testing.assert_close(b["model"][name], value)
+
+
+def test_a_run_killed_before_its_first_checkpoint_starts_again_from_step_0(tiny_world, tmp_path, caplog):
+    """Issue 44: a process killed (SIGKILL) before its first checkpoint leaves config, log, lock and perhaps temp
+    files; the next run, with or without --resume, takes over the stale lock and trains from step 0."""
+    out = tmp_path / "killed"
+    code = (
+        "import sys; from u4d_aug.train import main; "
+        f"sys.exit(main([{str(TINY)!r}, 'stage=baseline', 'data_root={tiny_world[0]}', 'steps=100000', "
+        f"'log_every=1', 'checkpoint_every=100000', '--out', {str(out)!r}, '--no-progress']))"
+    )
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    process = subprocess.Popen([sys.executable, "-c", code], env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / "log.jsonl").is_file() or not (out / "log.jsonl").read_text().strip():
+            assert process.poll() is None, process.stderr.read()
+            assert time.monotonic() < deadline, "the run wrote no log line in 120 s"
+            time.sleep(0.2)
+        assert "in use by another run" in "".join(_refusal(tiny_world, out))  # a second run while it lives
+    finally:
+        process.kill()
+        process.wait()
+    assert (out / ".lock").is_file() and not (out / "checkpoints").exists()
+    (out / "checkpoints").mkdir()
+    (out / "checkpoints" / ".step_0000002.pt.k1ll3d.tmp").write_bytes(b"half a checkpoint")
+    with caplog.at_level("INFO"):
+        record = train(tiny_config(tiny_world, out, "baseline"), progress=False)
+    assert "took over the lock" in caplog.text and "starting it again from step 0" in caplog.text
+    assert record["step"] == 4 and [r["step"] for r in read_jsonl(out / "log.jsonl")] == [2, 4]
+    assert not list(out.rglob("*.tmp")) and not (out / ".lock").exists()
+
+    fresh = tmp_path / "fresh"
+    train(tiny_config(tiny_world, fresh, "baseline"), progress=False)
+    unfinished = tmp_path / "unfinished"  # --resume before the first checkpoint: step 0 as well
+    unfinished.mkdir()
+    (unfinished / "config.yaml").write_text("steps: 4\n")
+    (unfinished / "log.jsonl").write_text('{"step": 1, "loss": 9.0}\n')
+    assert train(tiny_config(tiny_world, unfinished, "baseline"), resume="last", progress=False)["step"] == 4
+    assert [r["step"] for r in read_jsonl(unfinished / "log.jsonl")] == [2, 4]
+    a = torch.load(fresh / "checkpoints" / "step_0000004.pt", weights_only=True)
+    for run in (out, unfinished):
+        b = torch.load(run / "checkpoints" / "step_0000004.pt", weights_only=True)
+        for name, value in a["model"].items():
+            torch.testing.assert_close(b["model"][name], value)
+
+
+def _refusal(tiny_world, out: Path) -> list[str]:
+    """The error a second `train` on `out` raises, as a list of one message (empty when it was not refused)."""
+    try:
+        train(tiny_config(tiny_world, out, "baseline"), progress=False)
+    except InputError as error:
+        return [str(error)]
+    return []
+
+
+def test_a_non_finite_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tiny_world, tmp_path, monkeypatch):
+    out = tmp_path / "nan"
+    train(tiny_config(tiny_world, out, "baseline", "steps=2"), progress=False)
+    forward = GaussianDiffusion.forward
+
+    def nan_at_step_3(self, x0, *args, **kwargs):
+        losses = forward(self, x0, *args, **kwargs)
+        return {**losses, "loss": losses["loss"] * float("nan")}
+
+    monkeypatch.setattr(GaussianDiffusion, "forward", nan_at_step_3)
+    with pytest.raises(NonFiniteLossError, match="training step 3: the loss is nan"):
+        train(tiny_config(tiny_world, out, "baseline", "checkpoint_every=1"), resume="last", progress=False)
+    assert [c.name for c in sorted((out / "checkpoints").glob("step_*.pt"))] == ["step_0000002.pt"]
+    state = torch.load(out / "checkpoints" / "step_0000002.pt", weights_only=True)
+    assert all(torch.isfinite(value).all() for value in state["model"].values())
+    assert not (out / ".lock").exists()  # released on the error
+
+
+@pytest.mark.parametrize(
+    ("override", "key"),
+    [("optim.lr=.inf", "optim.lr"), ("optim.lr=.nan", "optim.lr"), ("optim.lr=0", "optim.lr"),
+     ("ema_decay=.nan", "ema_decay"), ("optim.betas=[0.9, .inf]", "optim.betas[1]"), ("log_every=0", "log_every"),
+     ("diffusion.mask_weight=.nan", "diffusion.mask_weight"), ("net.dropout=.inf", "net.dropout")],
+)  # fmt: skip
+def test_non_finite_or_negative_numbers_are_refused_at_config_time(override, key):
+    with pytest.raises(InputError, match=re.escape(key)):
+        load_config(DiffusionTrainConfig, TINY, [override])
 
 
 def test_cli_entry_with_short_stage_override_and_sample_png(tiny_world, tmp_path):

@@ -12,7 +12,7 @@ from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.data.sensors import hdl64
 from u4d_aug.errors import InputError
 from u4d_aug.range_view import project
-from u4d_aug.uncertainty import entropy, select_uncertain, uncertain_range_view
+from u4d_aug.uncertainty import entropy, load_probs, select_uncertain, uncertain_range_view
 
 
 @pytest.fixture(autouse=True)
@@ -116,3 +116,29 @@ def test_real_scan_uncertain_region(kitti_root):
     assert 0 < float(m_u.sum()) <= 0.05 * points.shape[0] + 1
     with pytest.raises(InputError):
         uncertain_range_view(points, probs[:-1], hdl64(), k=0.05)
+
+
+def test_nan_or_inf_probabilities_are_refused_in_one_line(tmp_path):
+    probs = _random_probs(50, 4).numpy()
+    probs[3, 1] = np.nan
+    with pytest.raises(InputError, match="1 NaN/inf values"):
+        entropy(probs)
+    with pytest.raises(InputError, match="NaN/inf"):
+        uncertain_range_view(_ring_points(50), probs, hdl64(), k=5)
+    np.save(tmp_path / "nan.npy", probs.astype(np.float16))
+    with pytest.raises(InputError, match="nan.npy: 1 probabilities are NaN/inf"):
+        load_probs(tmp_path / "nan.npy", 50)
+
+
+def test_probability_files_of_objects_truncated_or_wrong_dtype_are_one_line(tmp_path):
+    np.save(tmp_path / "objects.npy", np.array([[0.5, 0.5]], dtype=object), allow_pickle=True)
+    with pytest.raises(InputError, match="objects.npy: refused as a probability file: it holds python objects"):
+        load_probs(tmp_path / "objects.npy")
+    np.save(tmp_path / "ok.npy", _random_probs(20, 3).numpy().astype(np.float16))
+    (tmp_path / "cut.npy").write_bytes((tmp_path / "ok.npy").read_bytes()[:-10])
+    with pytest.raises(InputError, match="cut.npy: not a readable probability file"):
+        load_probs(tmp_path / "cut.npy")
+    np.save(tmp_path / "ints.npy", np.zeros((20, 3), dtype=np.int64))
+    with pytest.raises(InputError, match="ints.npy: expected an \\(N, K\\) float array"):
+        load_probs(tmp_path / "ints.npy")
+    assert load_probs(tmp_path / "ok.npy", 20).shape == (20, 3)

@@ -7,8 +7,10 @@ BANK/sequences/00/stage1/NNNNNN.npy     (2, H, W) float16 x0_u in [-1, 1]: stage
                                         that stage 2 completed (complete mode)
 BANK/sequences/00/empty/NNNNNN         marker of a sample with no return at all (it gets no .bin: SemanticKITTI
                                         readers reject empty scans, and consumers should not see one)
-BANK/manifest.json                      config, per-sample seeds, checkpoint sha256[:16], empty samples, completion
-The .npy side files are written before the .bin (or marker), so its presence means the sample is complete.
+BANK/manifest.json                      config, per-sample seeds and file sha256[:16], checkpoint sha256[:16], empty
+                                        samples, completion
+The .npy side files are written before the .bin (or marker), so its presence means the sample is complete; the
+digests of a finished sample's files let a resumed run find a sample changed or truncated since (`changed_files`).
 
 Sequence banks (generators trained on L > 1 frames) hold one sequence per sample: sample i is
 BANK/sequences/NN/ (NN = i as %02d) with the same side folders and frames 000000 .. L-1 in velodyne/, so any
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,6 +33,8 @@ import numpy as np
 from u4d_aug.data.formats import write_calib, write_kitti_scan, write_poses
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_save_npy, atomic_write_bytes, atomic_write_json
+
+logger = logging.getLogger(__name__)
 
 BANK_SEQUENCE = "00"
 MANIFEST = "manifest.json"
@@ -102,6 +107,62 @@ def file_sha256(path: str | Path, length: int = 16) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()[:length]
+
+
+def sample_files(layout: BankLayout, index: int) -> list[Path]:
+    """The files of sample `index` that exist: per frame the side .npy files and the .bin (or empty marker), and
+    a sequence bank's poses.txt and calib.txt."""
+    paths = []
+    for frame in range(layout.frames):
+        paths += [
+            layout.mask_path(index, frame),
+            layout.uncertainty_path(index, frame),
+            layout.stage1_path(index, frame),
+            layout.scan_path(index, frame),
+            layout.empty_path(index, frame),
+        ]
+    if layout.frames > 1:
+        paths += [layout.poses_path(index), layout.calib_path(index)]
+    return [path for path in paths if path.is_file()]
+
+
+def sample_digests(layout: BankLayout, index: int) -> dict[str, str]:
+    """{path relative to the bank: sha256[:16]} of every file of sample `index` (the manifest's record)."""
+    return {path.relative_to(layout.root).as_posix(): file_sha256(path) for path in sample_files(layout, index)}
+
+
+def changed_files(layout: BankLayout, recorded: dict[str, str]) -> list[str]:
+    """Recorded files of a sample that are missing or whose bytes no longer match their digest."""
+    changed = []
+    for name, digest in recorded.items():
+        path = Path(layout.root) / name
+        if not path.is_file() or file_sha256(path) != digest:
+            changed.append(name)
+    return changed
+
+
+def remove_sample(layout: BankLayout, index: int) -> None:
+    """Delete every file of sample `index`, so that a resumed `u4d generate` writes it again."""
+    for path in sample_files(layout, index):
+        path.unlink(missing_ok=True)
+
+
+def verify_samples(layout: BankLayout, manifest: dict[str, Any] | None) -> dict[int, dict[str, str]]:
+    """{index: digests} of the finished samples whose files match `manifest`; a changed sample is removed (warning)."""
+    verified = {}
+    for entry in (manifest or {}).get("samples", []):
+        index, recorded = entry.get("index"), entry.get("sha256")
+        if not isinstance(index, int) or not isinstance(recorded, dict) or not layout.is_done(index):
+            continue
+        changed = changed_files(layout, recorded)
+        if changed:
+            logger.warning(
+                "%s: sample %d changed since it was written (%s); generating it again", layout.root, index, changed[0]
+            )
+            remove_sample(layout, index)
+        else:
+            verified[index] = recorded
+    return verified
 
 
 def write_sample(

@@ -3,21 +3,33 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from u4d_aug import __version__
+from u4d_aug.cmdline import (
+    VERBOSITY_FLAGS,
+    CommandParser,
+    add_verbosity_arguments,
+    configure_logging,
+    parse_command_line,
+    split_verbosity,
+)
 from u4d_aug.errors import InputError
+from u4d_aug.io import check_output_file, dumps_json
+from u4d_aug.presets import configs_root
+from u4d_aug.runlock import run_lock
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `u4d` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    argv, level = split_verbosity(argv)  # --quiet / --verbose anywhere
+    configure_logging(level)
     parser = build_parser()
     if argv and argv[0] in dict(DELEGATED):
         # The implementing module parses everything after the command name (incl. its own --help).
@@ -27,12 +39,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return 0
+    args.log_level = level
     warnings.simplefilter("default")
     warnings.formatwarning = lambda message, category, *a, **k: f"warning: {message}\n"
     try:
         return int(args.func(args) or 0)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a file system refusal the command did not name itself: still one line
+        print(f"error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted; finished files are kept and a re-run resumes", file=sys.stderr)
@@ -41,19 +57,21 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """All sub-commands, in the order of the data flow (DESIGN.md §3)."""
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         prog="u4d",
         description="U4D: uncertainty-aware 4D LiDAR scene synthesis as segmentation data augmentation.",
+        epilog=f"example: {EXAMPLES['demo']}   (`u4d COMMAND --help` shows an example of each command)",
     )
     parser.add_argument("--version", action="version", version=f"u4d-aug {__version__}")
+    add_verbosity_arguments(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    p = sub.add_parser("info", help="summarise a SemanticKITTI-layout root: sequences, frames, points, classes")
+    p = _command(sub, "info", "summarise a SemanticKITTI-layout root: sequences, frames, points, classes")
     p.add_argument("root", type=Path)
     p.add_argument("--json", action="store_true", help="print json instead of a table")
     p.set_defaults(func=run_info)
 
-    p = sub.add_parser("show", help="render one scan: range image + BEV to PNG, .ply export, projection stats")
+    p = _command(sub, "show", "render one scan: range image + BEV to PNG, .ply export, projection stats")
     p.add_argument("scan", type=Path, help="a KITTI .bin or a nuScenes .pcd.bin")
     p.add_argument("--sensor", default=None, help="hdl64 | hdl32 | sensor yaml (default: from the file type)")
     p.add_argument("--width", type=int, default=None, help="range-image width (default: the sensor's)")
@@ -63,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print projection statistics as json")
     p.set_defaults(func=run_show)
 
-    p = sub.add_parser("demo", help="the main job end to end on the built-in simulated world (small, CPU)")
+    p = _command(sub, "demo", "the main job end to end on the built-in simulated world (small, CPU)")
     p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="everything goes here")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
@@ -81,6 +99,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _command(sub, name: str, help_text: str) -> argparse.ArgumentParser:
+    """A sub-command whose --help ends with its example line and the global options."""
+    parser = sub.add_parser(name, help=help_text, description=help_text, epilog=f"example: {EXAMPLES[name]}")
+    add_verbosity_arguments(parser)
+    return parser
+
+
 # Commands whose arguments live beside their implementation; each module is imported only when its command runs
 # (so `u4d --help` stays fast and u4d_aug never imports segmentation at import time).
 DELEGATED = (
@@ -94,6 +119,7 @@ DELEGATED = (
     ("gen-report", "real vs generated scans side by side: uncertainty, stage-1, stage-2, baseline; range + BEV PNG"),
     ("train-extractor", "train the FRD (range-view) or FPD (PointNet) feature extractor on labeled scans"),
     ("export-weights", "float16 inference weights + config + hash of a trained net (diffusion, extractor, segmentor)"),
+    ("gates", "MoST gate analysis: mean spatial / temporal gate per block over the sampling of a sequence net"),
     ("evaluate", "generation metrics of a bank vs real scans: FRD, FPD, BEV JSD/MMD (Table 1), TTCE/CTC (Table 2)"),
     ("experiment", "sup-only / LaserMix / +R2DM bank / +U4D bank comparison: mIoU and ECE over seeds"),
 )
@@ -123,6 +149,8 @@ def _delegated_module(name: str):
         return importlib.import_module("u4d_aug.metrics.extractors"), "train_extractor"
     elif name == "export-weights":
         return importlib.import_module("u4d_aug.weights"), "export_weights"
+    elif name == "gates":
+        return importlib.import_module("u4d_aug.gates"), "gates"
     elif name == "evaluate":
         return importlib.import_module("u4d_aug.metrics.evaluate"), "evaluate"
     elif name == "experiment":
@@ -130,13 +158,43 @@ def _delegated_module(name: str):
     raise ValueError(f"unknown command {name!r}; allowed: {', '.join(n for n, _ in DELEGATED)}")
 
 
+# One example line per command, shown at the end of its --help (tests/test_cli.py parses each of them).
+EXAMPLES = {
+    "info": "u4d info data/sim --json",
+    "show": "u4d show data/sim/sequences/00/velodyne/000000.bin --png scan.png --ply scan.ply",
+    "demo": "u4d demo --out outputs/demo",
+    "simulate": "u4d simulate --out data/sim --sequences 2 --frames 20 --seed 0 agents.cars_per_100m=3",
+    "sim-report": "u4d sim-report data/sim --real ../shared/data/real/semantickitti --png sim_vs_real.png",
+    "seg-train": "u4d seg-train seg/cpu_minkunet data.root=data/sim --out runs/seg optim.steps=100",
+    "seg-eval": "u4d seg-eval runs/seg/model.pt data/sim --sequences 02 --png reliability.png",
+    "seg-predict": "u4d seg-predict runs/seg/model.pt data/sim --out runs/probs",
+    "train-diffusion": "u4d train-diffusion u4d/cpu stage=stage1 data_root=data/sim probs_root=runs/probs "
+    "--out runs/u4d_stage1",
+    "generate": "u4d generate u4d/generate_cpu --out banks/u4d stage1=runs/u4d_stage1 stage2=runs/u4d_stage2 num=16",
+    "gen-report": "u4d gen-report data/sim --bank u4d=banks/u4d --bank baseline=banks/baseline --png generated.png",
+    "train-extractor": "u4d train-extractor frd extractor/cpu data.root=data/semantickitti train.steps=500",
+    "export-weights": "u4d export-weights runs/u4d_stage2 --out weights/u4d_stage2.pt",
+    "gates": "u4d gates runs/u4d_most_stage2 --png gates.png --json",
+    "evaluate": "u4d evaluate --bank banks/u4d --real data/sim --real-sequences 02 --metrics jsd,mmd,ctc --md "
+    "--out runs/eval_u4d",
+    "experiment": "u4d experiment experiment/cpu --arms sup-only 'seeds=[0]'",
+}
+
+
+def delegated_parser(name: str) -> tuple[argparse.ArgumentParser, Callable[[argparse.Namespace], int]]:
+    """The parser of a delegated command (the module's own arguments, its example, the global options)."""
+    module, stem = _delegated_module(name)
+    help_text = dict(DELEGATED)[name]
+    parser = CommandParser(prog=f"u4d {name}", description=help_text, epilog=f"example: {EXAMPLES[name]}")
+    getattr(module, f"add_{stem}_arguments")(parser)
+    add_verbosity_arguments(parser)
+    return parser, getattr(module, f"run_{stem}")
+
+
 def run_delegated(args: argparse.Namespace) -> int:
     """Parse the rest of the command line with the implementing module's own arguments, then run it."""
-    module, stem = _delegated_module(args.delegated)
-    help_text = dict(DELEGATED)[args.delegated]
-    parser = argparse.ArgumentParser(prog=f"u4d {args.delegated}", description=help_text)
-    getattr(module, f"add_{stem}_arguments")(parser)
-    return int(getattr(module, f"run_{stem}")(parser.parse_args(args.rest)) or 0)
+    parser, run = delegated_parser(args.delegated)
+    return int(run(parse_command_line(parser, args.rest)) or 0)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -180,7 +238,7 @@ def run_info(args: argparse.Namespace) -> int:
         "class_histogram": classes,
     }
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(dumps_json(summary, indent=2))
         return 0
     print(f"root: {root}")
     for s in per_sequence:
@@ -203,20 +261,21 @@ def run_info(args: argparse.Namespace) -> int:
 # demo
 
 
-# The yaml presets live at the top of the repository, beside the package.
-CONFIGS_DIR = Path(__file__).resolve().parents[1] / "configs"
+# The shipped presets (u4d_aug.presets): configs/ of the checkout, or the package data of an installed wheel.
+CONFIGS_DIR = configs_root()
+
+# The presets the demo runs with, named as `u4d` takes them from any folder (tests/test_presets_lookup.py).
+DEMO_PRESETS = {"seg": "seg/tiny", "diffusion": "u4d/demo", "generate": "u4d/generate_cpu"}
 
 
-def run_demo(args: argparse.Namespace) -> int:
-    """`u4d demo`: every stage that exists, in the order of DESIGN.md §3, each through its own command."""
-    out = args.out
+def demo_steps(out: Path, seed: int, real: Path) -> list[tuple[str, list[str]]]:
+    """(title, `u4d` command line) of every demo step, in the order of DESIGN.md §3."""
     world = out / "world"
-    real = args.real or Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "semantickitti"
     frame0 = world / "sequences" / "00" / "velodyne" / "000000.bin"
     steps = [
         (
             "simulate a small world (3 sequences x 6 frames, HDL-64E)",
-            ["simulate", "--out", str(world), "--sequences", "3", "--frames", "6", "--seed", str(args.seed)],
+            ["simulate", "--out", str(world), "--sequences", "3", "--frames", "6", "--seed", str(seed)],
         ),
         ("summarise it", ["info", str(world)]),
         ("picture of frame 0: range image + BEV", ["show", str(frame0), "--png", str(out / "frame0.png")]),
@@ -243,14 +302,14 @@ def run_demo(args: argparse.Namespace) -> int:
             "train a small MinkUNet-like segmentor (sequences 00-01, held-out 02)",
             [
                 "seg-train",
-                "configs/seg/tiny.yaml",
+                DEMO_PRESETS["seg"],
                 f"data.root={world}",
                 'data.train_sequences=["00", "01"]',
                 'data.val_sequences=["02"]',
                 "optim.steps=40",
                 "eval_every=20",
                 "checkpoint_every=20",
-                f"seed={args.seed}",
+                f"seed={seed}",
                 "--out",
                 str(seg_dir),
             ],
@@ -272,10 +331,10 @@ def run_demo(args: argparse.Namespace) -> int:
             ["seg-predict", str(seg_dir / "model.pt"), str(world), "--out", str(out / "probs")],
         ),
     ]
-    diffusion = ["configs/u4d/demo.yaml", f"data_root={world}", 'sequences=["00", "01"]', f"seed={args.seed}"]
+    diffusion = [DEMO_PRESETS["diffusion"], f"data_root={world}", 'sequences=["00", "01"]', f"seed={seed}"]
     probs = f"probs_root={out / 'probs'}"
     banks = {"u4d": out / "bank_u4d", "baseline": out / "bank_baseline"}
-    generate = ["configs/u4d/generate_cpu.yaml", "steps=16", "stage1_steps=8", "num=4", f"seed={args.seed}"]
+    generate = [DEMO_PRESETS["generate"], "steps=16", "stage1_steps=8", "num=4", f"seed={seed}"]
     steps += [
         ("U4D stage 1: diffusion of the uncertain region P_u + mask head",
          ["train-diffusion", *diffusion, "stage=stage1", probs, "--out", str(out / "u4d_stage1")]),
@@ -299,18 +358,27 @@ def run_demo(args: argparse.Namespace) -> int:
              ["evaluate", "--bank", str(bank), "--real", str(world), "--real-sequences", "02",
               "--metrics", "jsd,mmd,ctc", "--json", "--md", "--out", str(out / f"eval_{name}")])
         )  # fmt: skip
+    return steps
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    """`u4d demo`: every stage that exists, in the order of DESIGN.md §3, each through its own command."""
+    real = args.real or Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "semantickitti"
+    steps = demo_steps(args.out, args.seed, real)
+    verbosity = [flag for flag, level in VERBOSITY_FLAGS.items() if level == args.log_level and flag.startswith("--")]
     print(
         "u4d demo: every stage at toy size (minutes on 2 CPU cores). Not run here: the LaserMix mean-teacher "
         "comparison (`u4d experiment`, hours) and FRD/FPD (need trained extractors: `u4d train-extractor`)."
     )
-    for number, (title, command) in enumerate(steps, start=1):
-        command = _resume_if_started(command)
-        print(f"\n[{number}/{len(steps)}] {title}\n$ u4d {' '.join(command)}", flush=True)
-        status = main(command)
-        if status != 0:
-            print(f"demo stopped at step {number} (exit {status}); re-run to resume", file=sys.stderr)
-            return status
-    print(f"\ndemo done: outputs in {out}")
+    with run_lock(args.out):  # one demo per output folder; each step locks its own sub-folder too
+        for number, (title, command) in enumerate(steps, start=1):
+            command = _resume_if_started(command)
+            print(f"\n[{number}/{len(steps)}] {title}\n$ u4d {' '.join(command)}", flush=True)
+            status = main([*verbosity, *command])
+            if status != 0:
+                print(f"demo stopped at step {number} (exit {status}); re-run to resume", file=sys.stderr)
+                return status
+    print(f"\ndemo done: outputs in {args.out}")
     return 0
 
 
@@ -322,30 +390,23 @@ def _resume_if_started(command: list[str]) -> list[str]:
     return [*command, "--resume"] if any((out / "checkpoints").glob("step_*.pt")) else command
 
 
-def _load_any_scan(path: Path) -> tuple[np.ndarray, np.ndarray | None, str]:
-    """A KITTI .bin (with labels beside it when present) or a nuScenes .pcd.bin -> points, train ids, sensor name."""
-    from u4d_aug.data.formats import label_path_for, load_kitti_frame, read_nuscenes_scan
-    from u4d_aug.data.labels import map_semantickitti
-
-    if path.name.endswith(".pcd.bin"):
-        return read_nuscenes_scan(path).points, None, "hdl32"
-    label_path = label_path_for(path)
-    frame = load_kitti_frame(path, label_path if label_path.is_file() else None)
-    labels = map_semantickitti(frame.semantic) if frame.semantic is not None else None
-    return frame.points, labels, "hdl64"
-
-
 def run_show(args: argparse.Namespace) -> int:
     """`u4d show SCAN`: picture, .ply and projection round-trip statistics of one scan."""
     import torch
 
+    from u4d_aug.data.scan import read_scan
     from u4d_aug.data.sensors import get_sensor
     from u4d_aug.range_view import project, roundtrip_stats, scatter_to_image
 
-    points, labels, default_sensor = _load_any_scan(args.scan)
-    sensor = get_sensor(args.sensor or default_sensor)
-    width = args.width or sensor.width
+    scan = read_scan(args.scan)
+    points, labels = scan.points, scan.labels
+    sensor = get_sensor(args.sensor or scan.sensor)
+    width = sensor.width if args.width is None else args.width
     height = sensor.height
+    if args.png is not None:
+        check_output_file(args.png, "picture")
+    if args.ply is not None:
+        check_output_file(args.ply, ".ply export")
     stats = roundtrip_stats(torch.from_numpy(points), sensor, height, width, args.row_mode)
     stats = {
         "scan": str(args.scan),
@@ -376,7 +437,7 @@ def run_show(args: argparse.Namespace) -> int:
         _write_ply(args.ply, points, labels)
         stats["ply"] = str(args.ply)
     if args.json:
-        print(json.dumps(stats, indent=2))
+        print(dumps_json(stats, indent=2))
     else:
         for key, value in stats.items():
             print(f"{key}: {value}")

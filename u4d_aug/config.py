@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import re
 import types
 import typing
@@ -21,6 +22,7 @@ import yaml
 
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_text
+from u4d_aug.presets import configs_root, resolve_config_path
 
 _FLOAT_WITHOUT_DOT = re.compile(r"[-+]?\d+[eE][-+]?\d+")
 
@@ -40,10 +42,12 @@ def load_config(cls: type[T], yaml_path: str | Path | None = None, overrides: It
 
 
 def read_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a yaml mapping, with a one-line error for a missing file or bad syntax."""
-    path = Path(path)
+    """Read a yaml mapping (a file, or a preset named under configs/: `seg/tiny`); one-line error if missing or bad."""
+    path = resolve_config_path(path)
     if not path.is_file():
-        raise InputError(f"{path}: config file not found")
+        raise InputError(
+            f"{path}: config file not found, nor a preset of that name under {configs_root()} (e.g. seg/tiny)"
+        )
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as exc:
@@ -193,11 +197,16 @@ def _coerce(value: Any, tp: Any, key: str, source: str) -> Any:
             return value
         fail()
     if tp is float:
+        number = None
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-        if isinstance(value, str) and _FLOAT_WITHOUT_DOT.fullmatch(value.strip()):
-            return float(value)  # yaml 1.1 reads '1e-4' (no dot) as a string
-        fail()
+            number = float(value)
+        elif isinstance(value, str) and _FLOAT_WITHOUT_DOT.fullmatch(value.strip()):
+            number = float(value)  # yaml 1.1 reads '1e-4' (no dot) as a string
+        if number is None:
+            fail()
+        if not math.isfinite(number):
+            raise InputError(f"{source}: key '{key}' must be a finite number, got {value}")
+        return number
     if tp is str:
         if isinstance(value, str):
             return value

@@ -101,10 +101,12 @@ class GaussianDiffusion(nn.Module):
         m_u: Tensor | None = None,
         generator: torch.Generator | None = None,
         crop_offsets: Tensor | None = None,
+        poses: Tensor | None = None,
     ) -> dict[str, Tensor]:
         """Losses for clean x0 (B, [L,] 2, H, W) in [-1, 1].
 
         crop_offsets (B,): the inputs are azimuth crops starting at these panorama columns (`RangeUNet.forward`).
+        poses (B, [L,] P): each frame's ego motion, for nets with net.pose_dim = P > 0.
         stage1: x0 is x0_u, m_u (B, [L,] 1, H, W) is the BCE target; the net sees only x_t.
         stage2: x0 is the full scan, cond is x0_u and m_u its mask; the net sees concat(x_t, x0_u, m_u).
         baseline: x0 is the full scan, no condition.
@@ -134,8 +136,10 @@ class GaussianDiffusion(nn.Module):
         alpha, sigma = alpha_sigma(lam.view(batch, *([1] * (x0.dim() - 1))))
         x_t = alpha * x0 + sigma * eps
 
-        if crop_offsets is not None:
-            eps_pred, mask_logits = self.net(x_t, lam, net_cond, generator=generator, crop_offsets=crop_offsets)
+        if crop_offsets is not None or poses is not None:
+            eps_pred, mask_logits = self.net(
+                x_t, lam, net_cond, generator=generator, crop_offsets=crop_offsets, poses=poses
+            )
         elif self.most:
             eps_pred, mask_logits = self.net(x_t, lam, net_cond, generator=generator)
         else:

@@ -20,8 +20,10 @@ from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.errors import InputError
+from u4d_aug.io import check_output_file, load_npy
 from u4d_aug.range_view import RowMode, decode_depth, project
 from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
+from u4d_aug.validate import check_plain_name
 
 
 @dataclass(frozen=True)
@@ -60,7 +62,7 @@ def stage1_depth(layout: BankLayout, index: int, sensor: Sensor, frame: int = 0)
     path = layout.stage1_path(index, frame)
     if not path.is_file():
         return None
-    x0_u = torch.from_numpy(np.load(path).astype(np.float32))  # (2, H, W) in [-1, 1]
+    x0_u = torch.from_numpy(load_npy(path, "stage-1 image").astype(np.float32))  # (2, H, W) in [-1, 1]
     depth = decode_depth(x0_u[0], sensor.max_range).numpy()
     return np.where(x0_u[0].numpy() > -1.0, depth, np.nan)
 
@@ -156,6 +158,10 @@ def _bank_argument(text: str) -> tuple[str, Path]:
     name, sep, folder = text.partition("=")
     if not sep or not name or not folder:
         raise argparse.ArgumentTypeError(f"expected NAME=DIR (e.g. u4d=banks/u4d), got {text!r}")
+    try:
+        check_plain_name(name, "bank name")
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
     return name, Path(folder)
 
 
@@ -174,6 +180,9 @@ def add_gen_report_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_gen_report(args: argparse.Namespace) -> int:
     """`u4d gen-report`: write the side-by-side PNG."""
+    if args.index < 0 or args.frame < 0:
+        raise InputError(f"--index and --frame must be >= 0, got {args.index} and {args.frame}")
+    check_output_file(args.png, "figure")
     path = gen_report(args.real, dict(args.bank), args.png, args.sequences, args.probs, args.index, args.k, args.frame)
     print(f"wrote {path}")
     return 0

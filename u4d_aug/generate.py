@@ -3,7 +3,8 @@
 Writes a bank of generated scans (layout in `u4d_aug.bank`). Sample i is drawn with its own generator seeded
 seed + i, also inside a batch (`batch_size` samples per sampler call, fixed blocks of consecutive indices), so a
 bank does not depend on the number of torchrun ranks that share the work (rank r takes blocks r, r + world, ...);
-finished samples are skipped on a re-run. A generator trained on L > 1 frames writes each
+finished samples are skipped on a re-run, once their files match the digests the manifest records (a sample
+changed or truncated since is generated again). A generator trained on L > 1 frames writes each
 sample as an L-frame sequence (one bank sequence per sample); in completion mode sample i then completes the
 x0_u of window i of L real frames and keeps those frames' relative poses.
 """
@@ -11,6 +12,7 @@ x0_u of window i of L real frames and keeps those frames' relative poses.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +27,9 @@ from u4d_aug.bank import (
     check_compatible,
     file_sha256,
     read_manifest,
+    sample_digests,
     sequence_name,
+    verify_samples,
     write_manifest,
     write_sample,
     write_sequence_poses,
@@ -33,12 +37,16 @@ from u4d_aug.bank import (
 from u4d_aug.config import config_to_dict, load_config
 from u4d_aug.data.datasets import ScanDataset, SequenceDataset
 from u4d_aug.data.sensors import get_sensor
-from u4d_aug.distributed import barrier, cleanup, init_distributed, shard
+from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.io import remove_temp_files
 from u4d_aug.pipeline import Sampler, complete, generate_baseline, generate_u4d, load_generator, to_points
+from u4d_aug.runlock import run_lock
 from u4d_aug.sampling import Grid, check_grid
 from u4d_aug.train import DiffusionTrainConfig
 from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
+
+logger = logging.getLogger(__name__)
 
 Mode = Literal["u4d", "baseline", "complete"]
 
@@ -104,8 +112,18 @@ def _checkpoint_paths(cfg: GenerateConfig) -> dict[str, Path]:
 
 
 def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -> dict:
-    """Generate samples 0..num-1 not yet in the bank (this rank's share); rank 0 writes the manifest."""
+    """Generate samples 0..num-1 not yet in the bank (this rank's share); rank 0 writes the manifest.
+
+    Rank 0 holds the bank's run lock (`u4d_aug.runlock`), removes temp files of killed writes and checks the finished
+    samples against the digests of the manifest (a changed one is generated again) before any rank writes.
+    """
     info = init_distributed(cfg.device)
+    with run_lock(out, enabled=info.is_main):
+        return generate_locked(cfg, Path(out), info, progress)
+
+
+def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bool) -> dict:
+    """The work of `generate_bank` once the bank is locked."""
     paths = _checkpoint_paths(cfg)
     hashes = {name: file_sha256(path) for name, path in paths.items()}
     config = config_to_dict(cfg)
@@ -157,7 +175,16 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
     if old is not None and len(old.get("samples", [])) > cfg.num:
         manifest["samples"] = old["samples"]  # a re-run asking for fewer samples keeps the larger listing
     if info.is_main:
+        removed = remove_temp_files(layout.root)
+        if removed:
+            logger.info("%s: removed %d temp file(s) of a killed run", layout.root, removed)
+        verified = verify_samples(layout, old)  # samples changed since they were written are removed
+        for entry in manifest["samples"]:
+            entry.pop("sha256", None)
+            if entry["index"] in verified:
+                entry["sha256"] = verified[entry["index"]]
         write_manifest(layout.root, manifest)
+    barrier()  # the other ranks look at the samples once rank 0 has checked them
 
     # fixed blocks of batch_size consecutive samples, sharded across ranks: a block's scans do not depend on the
     # rank count, and a block with a missing sample is generated again whole (finished samples are not rewritten)
@@ -210,6 +237,9 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
 
     barrier()
     if info.is_main:
+        for entry in manifest["samples"]:
+            if "sha256" not in entry and layout.is_done(entry["index"]):
+                entry["sha256"] = sample_digests(layout, entry["index"])
         manifest["complete"] = all(layout.is_done(i) for i in range(cfg.num))
         if frames == 1:
             manifest["empty"] = [i for i in range(cfg.num) if layout.is_empty(i)]

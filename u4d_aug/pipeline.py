@@ -10,6 +10,7 @@ slide along L, so any L works, and a single-frame net then makes L independent f
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 from typing import Literal
@@ -71,17 +72,35 @@ def _sample(
     cond: Tensor | None,
     sampler: Sampler,
     grid: Grid = "time",
+    motion: Tensor | None = None,
 ) -> Sample:
     net, cfg = loaded
     device = next(net.parameters()).device
     shape = (*batch_shape, cfg.net.in_channels, cfg.height, cfg.width)
+    denoise = net
+    if cfg.net.pose_dim:  # the net reads each frame's ego motion: bind it into the sampler's denoise function
+        if motion is None or tuple(motion.shape) != (*batch_shape, cfg.net.pose_dim):
+            got = None if motion is None else tuple(motion.shape)
+            raise InputError(
+                f"this {cfg.diffusion.stage} net is conditioned on ego motion: expected motion {(*batch_shape, 4)} "
+                f"(x, y, z, yaw per frame, u4d_aug.trajectory), got {got}"
+            )
+        poses = motion.to(device, torch.float32)
+        denoise = functools.partial(_with_poses, net, poses)
+    elif motion is not None:
+        raise InputError(f"this {cfg.diffusion.stage} net has no ego-motion input (net.pose_dim = 0); drop motion")
     if sampler not in SAMPLER_NAMES:
         raise InputError(f"sampler {sampler!r} is not one of {', '.join(repr(n) for n in SAMPLER_NAMES)}")
     try:
         check_grid(sampler, grid)
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    return sample_named(sampler, net, shape, steps, generator, cond=cond, device=device, grid=grid)
+    return sample_named(sampler, denoise, shape, steps, generator, cond=cond, device=device, grid=grid)
+
+
+def _with_poses(net: RangeUNet, poses: Tensor, x_t: Tensor, log_snr: Tensor, cond: Tensor | None):
+    """The denoise function of a pose-conditioned net: ε̂, mask logits of (x_t, log-SNR, cond) given the poses."""
+    return net(x_t, log_snr, cond, poses=poses)
 
 
 def mask_from_logits(logits: Tensor, pos_weight: float = 1.0) -> Tensor:
@@ -103,13 +122,16 @@ def generate_stage1(
     sampler: Sampler = "ddim",
     frames: int | None = None,
     grid: Grid = "time",
+    motion: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """x0_u (n, [L,] 2, H, W) from stage 1: pixels of the predicted mask m_p (`mask_from_logits`) keep x̂0, others −1.
 
     `frames` = L (None: the L stage 1 was trained with; a single-frame net makes L independent frames).
+    `motion` (n, L, 4): the ego motion of each frame, for nets trained with it (net.pose_dim).
     """
     _check_stage(stage1, "stage1", "stage 1")
-    sample = _sample(stage1, _batch_shape(n, frames or stage1[1].frames), steps, generator, None, sampler, grid)
+    shape = _batch_shape(n, frames or stage1[1].frames)
+    sample = _sample(stage1, shape, steps, generator, None, sampler, grid, motion)
     m_u = mask_from_logits(sample.extra, stage1[1].diffusion.mask_pos_weight)  # (n, [L,] 1, H, W), last step
     x0_u = torch.where(m_u.bool(), sample.x0, torch.full_like(sample.x0, -1.0))
     return {"x0_u": x0_u, "m_u_pred": m_u}
@@ -123,8 +145,11 @@ def complete(
     generator: Generators,
     sampler: Sampler = "ddim",
     grid: Grid = "time",
+    motion: Tensor | None = None,
 ) -> dict[str, Tensor]:
-    """Stage 2: x0 (B, [L,] 2, H, W) ~ p(x0 | x0_u (B, [L,] 2, H, W), m_u (B, [L,] 1, H, W)), e.g. from real scans."""
+    """Stage 2: x0 (B, [L,] 2, H, W) ~ p(x0 | x0_u (B, [L,] 2, H, W), m_u (B, [L,] 1, H, W)), e.g. from real scans.
+
+    `motion` (B, L, 4): the ego motion of each frame, for nets trained with it (net.pose_dim)."""
     _check_stage(stage2, "stage2", "stage 2")
     net, cfg = stage2
     if (
@@ -138,7 +163,7 @@ def complete(
         )
     device = next(net.parameters()).device
     cond = stage_cond(x0_u.to(device), m_u.to(device))  # (B, [L,] 3, H, W)
-    sample = _sample(stage2, tuple(x0_u.shape[:-3]), steps, generator, cond, sampler, grid)
+    sample = _sample(stage2, tuple(x0_u.shape[:-3]), steps, generator, cond, sampler, grid, motion)
     return {"x0": sample.x0, "x0_u": x0_u, "m_u": m_u}
 
 
@@ -152,16 +177,22 @@ def generate_u4d(
     stage1_steps: int | None = None,
     frames: int | None = None,
     grid: Grid = "time",
+    motion: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """Hard-to-easy: x0_u ~ stage 1 (mask from its head), then x0 ~ stage 2 given it -> dict(x0, x0_u, m_u_pred).
 
-    Sequences have `frames` = L frames (None: stage 2's training L); stage 1 makes the same L frames.
+    Sequences have `frames` = L frames (None: stage 2's training L); stage 1 makes the same L frames. `motion`
+    (n, L, 4) conditions whichever stages were trained with an ego-motion input.
     """
     if (stage1[1].height, stage1[1].width) != (stage2[1].height, stage2[1].width):
         raise InputError("stage 1 and stage 2 checkpoints were trained on different image sizes")
     frames = frames or stage2[1].frames
-    first = generate_stage1(stage1, n, stage1_steps or steps, generator, sampler, frames=frames, grid=grid)
-    second = complete(stage2, first["x0_u"], first["m_u_pred"], steps, generator, sampler, grid=grid)
+    motion1 = motion if stage1[1].net.pose_dim else None
+    motion2 = motion if stage2[1].net.pose_dim else None
+    first = generate_stage1(
+        stage1, n, stage1_steps or steps, generator, sampler, frames=frames, grid=grid, motion=motion1
+    )
+    second = complete(stage2, first["x0_u"], first["m_u_pred"], steps, generator, sampler, grid=grid, motion=motion2)
     return {"x0": second["x0"], "x0_u": first["x0_u"], "m_u_pred": first["m_u_pred"]}
 
 
@@ -173,11 +204,13 @@ def generate_baseline(
     sampler: Sampler = "ddim",
     frames: int | None = None,
     grid: Grid = "time",
+    motion: Tensor | None = None,
 ) -> dict[str, Tensor]:
-    """R2DM-style unconditional x0 (n, [L,] 2, H, W) (L = `frames`, None: the frames the net was trained with)."""
+    """R2DM-style unconditional x0 (n, [L,] 2, H, W) (L = `frames`, None: the frames the net was trained with);
+    `motion` (n, L, 4) for a net trained with an ego-motion input."""
     _check_stage(net, "baseline", "baseline")
     shape = _batch_shape(n, frames or net[1].frames)
-    return {"x0": _sample(net, shape, steps, generator, None, sampler, grid).x0}
+    return {"x0": _sample(net, shape, steps, generator, None, sampler, grid, motion).x0}
 
 
 def to_points(x0: Tensor, sensor: Sensor | str, row_mode: RowMode = "beam") -> list[np.ndarray]:

@@ -175,6 +175,8 @@ def _project_flat(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Core of `project`/`project_batch`: concatenated points (N, 4), scan index `batch` (N,) or None."""
     _check_row_mode(row_mode)
+    if height < 1 or width < 1:
+        raise InputError(f"range image size must be at least 1x1, got height {height}, width {width}")
     if row_mode == "beam":
         _check_beam_height(sensor, height)
     if points.ndim != 2 or points.shape[1] < 4:

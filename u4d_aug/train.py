@@ -36,7 +36,10 @@ from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_text, load_checkpoint, read_jsonl
 from u4d_aug.nn.unet import RangeUNet, UNetConfig, crop_columns
 from u4d_aug.range_view import RowMode, project, ray_angles, to_image
+from u4d_aug.runfolder import prepare, resume_point
+from u4d_aug.runlock import run_lock
 from u4d_aug.uncertainty import Strategy, load_probs, probs_path, uncertain_range_view
+from u4d_aug.validate import check_finite_config, check_finite_loss, check_positive
 from u4d_aug.weights import is_exported
 
 CHECKPOINT_KIND = "u4d-diffusion"
@@ -60,6 +63,13 @@ class OptimConfig:
     weight_decay: float = 0.0
     warmup_steps: int = 100
     grad_clip: float = 1.0  # max grad norm; 0 = off
+
+    def __post_init__(self) -> None:
+        check_finite_config(self, "optim.")
+        check_positive(self, "lr", prefix="optim.")
+        check_positive(self, "weight_decay", "warmup_steps", "grad_clip", allow_zero=True, prefix="optim.")
+        if not all(0.0 <= beta < 1.0 for beta in self.betas):
+            raise InputError(f"optim.betas must be in [0, 1), got {list(self.betas)}")
 
 
 @dataclass
@@ -110,6 +120,11 @@ class DiffusionTrainConfig:
             )
         if self.frames < 1 or self.frame_stride < 1:
             raise InputError(f"frames and frame_stride must be >= 1, got {self.frames}, {self.frame_stride}")
+        check_finite_config(self)
+        check_positive(self, "log_every", "checkpoint_every", "sample_steps")
+        check_positive(self, "keep_checkpoints", "sample_every", "max_minutes", "ema_warmup_steps", allow_zero=True)
+        if not 0.0 <= self.ema_decay <= 1.0:
+            raise InputError(f"key 'ema_decay' must be in [0, 1], got {self.ema_decay}")
 
 
 def derived_seed(*parts: int) -> int:
@@ -331,12 +346,22 @@ def _save_gate_png(net: RangeUNet, gates: list[np.ndarray], step: int, path: Pat
 
 
 def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress: bool = True) -> dict:
-    """Train one stage; returns the last logged record. Writes OUT/{config.yaml, log.jsonl, checkpoints/}."""
+    """Train one stage; returns the last logged record. Writes OUT/{config.yaml, log.jsonl, checkpoints/}.
+
+    Rank 0 holds the run lock of OUT (`u4d_aug.runlock`) for the whole run: a second run on OUT is refused.
+    """
     info: DistInfo = init_distributed(cfg.device)
+    with run_lock(cfg.out, enabled=info.is_main):
+        return train_locked(cfg, info, resume, progress)
+
+
+def train_locked(cfg: DiffusionTrainConfig, info: DistInfo, resume: str | Path | None, progress: bool) -> dict:
+    """The run of `train` once OUT is locked: set-up, resume point, loop."""
     out_dir = Path(cfg.out)
     log_path = out_dir / "log.jsonl"
-    if resume is None and (log_path.exists() or (out_dir / "checkpoints").exists()):
-        raise InputError(f"{out_dir}: holds a previous run; pass --resume to continue it or choose another --out")
+    ckpt_path = resume_point(out_dir, resume)  # None: step 0 (also --resume before the first checkpoint)
+    if info.is_main:
+        prepare(out_dir, ckpt_path)
     images = RangeImages(cfg)
     net = build_net(cfg, info.device)
     diffusion = GaussianDiffusion(net, cfg.diffusion)
@@ -345,8 +370,7 @@ def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress:
     )
     ema = EMA(net, cfg.ema_decay, cfg.ema_warmup_steps)
     start, elapsed_before = 0, 0.0
-    if resume is not None:
-        ckpt_path = find_checkpoint(out_dir, resume)
+    if ckpt_path is not None:
         ckpt = load_checkpoint(ckpt_path, "diffusion checkpoint to resume from")
         old = config_from_checkpoint(ckpt, str(ckpt_path))
         if is_exported(ckpt):
@@ -395,11 +419,13 @@ def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress:
             group["lr"] = learning_rate(step, cfg.optim)
 
         losses = model(x0, cond, m_u, generator, offsets)
+        check_finite_loss(losses["loss"], step + 1)
         optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
         grad_norm = nn.utils.clip_grad_norm_(
             net.parameters(), cfg.optim.grad_clip if cfg.optim.grad_clip > 0 else float("inf")
         )
+        check_finite_loss(losses["loss"], step + 1, grad_norm)  # NaN weights would follow: stop before the step
         optimizer.step()
         ema.update(net)
 

@@ -16,6 +16,7 @@ from torch import Tensor
 
 from u4d_aug.data.sensors import Sensor
 from u4d_aug.errors import InputError
+from u4d_aug.io import load_npy
 from u4d_aug.range_view import RowMode, project, scatter_to_image, to_image
 
 Strategy = Literal["entropy", "confidence", "random", "none"]
@@ -32,17 +33,28 @@ def load_probs(path: str | Path, num_points: int | None = None) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: probability file not found (write it with `u4d seg-predict`)")
-    probs = np.load(path)
-    if probs.ndim != 2 or probs.shape[1] < 1:
-        raise InputError(f"{path}: expected an (N, K) array of class probabilities, got shape {probs.shape}")
+    probs = load_npy(path, "probability file")
+    if probs.ndim != 2 or probs.shape[1] < 1 or probs.dtype.kind != "f":
+        raise InputError(
+            f"{path}: expected an (N, K) float array of class probabilities, got shape {probs.shape} {probs.dtype}"
+        )
     if num_points is not None and probs.shape[0] != num_points:
         raise InputError(f"{path}: has {probs.shape[0]} rows but the scan has {num_points} points")
+    bad = int(np.count_nonzero(~np.isfinite(probs)))
+    if bad:
+        raise InputError(f"{path}: {bad} probabilities are NaN/inf; expected values in [0, 1]")
     return probs
 
 
 def entropy(probs: Tensor | np.ndarray) -> Tensor:
-    """Shannon entropy H = −Σ p log p (nats) per row of (N, K) probabilities, with 0·log 0 = 0 → (N,) float32."""
-    p = torch.as_tensor(probs).float().clamp(min=0.0)  # float16 files: compute in float32
+    """Shannon entropy H = −Σ p log p (nats) per row of (N, K) probabilities, with 0·log 0 = 0 → (N,) float32.
+
+    NaN/inf probabilities are refused (InputError): they would make an arbitrary region the uncertain one.
+    """
+    p = torch.as_tensor(probs).float()  # float16 files: compute in float32
+    if not bool(torch.isfinite(p).all()):
+        raise InputError(f"probabilities hold {int((~torch.isfinite(p)).sum())} NaN/inf values; expected [0, 1]")
+    p = p.clamp(min=0.0)
     return -torch.special.xlogy(p, p).sum(dim=-1)
 
 

@@ -38,6 +38,8 @@ SEMANTICKITTI_SPLITS: dict[str, tuple[str, ...]] = {
 
 
 def _sequences_dir(root: PathLike) -> Path:
+    if Path(root).is_file():
+        raise InputError(f"{root}: is a file; expected a SemanticKITTI-layout folder (root/sequences/XX/velodyne/)")
     path = Path(root) / "sequences"
     if not path.is_dir():
         raise InputError(f"{path}: folder not found (expected a SemanticKITTI layout root/sequences/XX/velodyne/)")

@@ -69,6 +69,8 @@ class NuscenesScan:
 def _read_records(path: PathLike, dtype: str, columns: int, what: str) -> np.ndarray:
     """Read a flat binary file as (N, columns) records; it must exist and its size divide evenly."""
     path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; expected a {what} file")
     if not path.is_file():
         raise InputError(f"{path}: {what} file not found")
     record = np.dtype(dtype).itemsize * columns
@@ -133,11 +135,90 @@ def label_path_for(scan_path: PathLike) -> Path:
 
 
 def read_kitti_scan(path: PathLike) -> np.ndarray:
-    """Read a KITTI velodyne `.bin` -> (N, 4) float32 x, y, z, remission (rows as stored, NaN kept)."""
+    """Read a KITTI velodyne `.bin` -> (N, 4) float32 x, y, z, remission (rows as stored, NaN kept).
+
+    Checked against what a KITTI scan holds (`check_kitti_scan`): a nuScenes file named `.bin` is an error,
+    float64 values or an intensity outside [0, 1] a warning.
+    """
     points = _read_records(path, "<f4", KITTI_COLUMNS, "KITTI scan")
     if len(points) == 0:
         raise InputError(f"{path}: empty scan (0 points)")
+    check_kitti_scan(path, points)
     return points
+
+
+def check_kitti_scan(path: PathLike, points: np.ndarray) -> None:
+    """Sanity of (N, 4) float32 records read from a KITTI `.bin`: coordinates within 10 km, intensity in [0, 1].
+
+    Where they are not, the file is looked at again: 5 float32 columns with an integral ring in the last (a nuScenes
+    `.pcd.bin` renamed) raise an InputError; values that are plausible read as float64 warn, as does an intensity
+    in [0, 255] (another scale) or beyond.
+    """
+    finite = np.isfinite(points).all(axis=1)
+    kept = points[finite]
+    coordinates_ok = bool((np.abs(kept[:, :3]) <= MAX_COORDINATE).all())
+    intensity = kept[:, 3]
+    intensity_ok = bool(((intensity >= 0.0) & (intensity <= 1.0)).all())
+    if coordinates_ok and intensity_ok:
+        return  # the common case: one pass over the points
+    if _looks_like_nuscenes(points):
+        raise InputError(
+            f"{path}: holds 5 float32 columns (x, y, z, intensity 0-255, ring) like a nuScenes scan, not KITTI's "
+            "4; name it *.pcd.bin to read it as nuScenes"
+        )
+    if len(points) % 2 == 0 and _implausible_share(points) > 0.1 and _implausible_share(points.view("<f8")) < 0.01:
+        _warn_scan(
+            "float64",
+            f"{path}: its values look like float64 (x, y, z, intensity), read here as KITTI's float32; convert it "
+            "with points.astype(np.float32).tofile(...)",
+        )
+    elif not intensity_ok and len(intensity):
+        low, high = float(intensity.min()), float(intensity.max())
+        if low >= 0.0 and high <= 255.0:
+            _warn_scan(
+                "intensity",
+                f"{path}: intensity up to {high:g}, on a 0-255 scale it seems; KITTI remission is in [0, 1] "
+                "(divide by 255)",
+            )
+        else:
+            _warn_scan(
+                "intensity",
+                f"{path}: intensity in [{low:g}, {high:g}], outside [0, 1] and [0, 255]; is this a KITTI scan?",
+            )
+
+
+MAX_COORDINATE = 1e4  # m: no LiDAR return is 10 km away
+_SCAN_WARNINGS: dict[str, int] = {}  # warnings given per kind of problem (a dataset would repeat one per file)
+_SCAN_WARNING_LIMIT = 3
+
+
+def _warn_scan(kind: str, message: str) -> None:
+    """Warn about a scan file, at most _SCAN_WARNING_LIMIT times per kind of problem in this process."""
+    count = _SCAN_WARNINGS.get(kind, 0)
+    _SCAN_WARNINGS[kind] = count + 1
+    if count < _SCAN_WARNING_LIMIT:
+        more = " (further files with this problem are not reported)" if count + 1 == _SCAN_WARNING_LIMIT else ""
+        warnings.warn(message + more, stacklevel=4)
+
+
+def _looks_like_nuscenes(points: np.ndarray) -> bool:
+    """Whether the float32 values read as 5 columns end each row with a ring number (integral, 0-255)."""
+    values = points.reshape(-1)
+    if values.size % NUSCENES_COLUMNS or values.size < 2 * NUSCENES_COLUMNS:
+        return False
+    rows = values.reshape(-1, NUSCENES_COLUMNS)
+    ring, intensity = rows[:, 4], rows[:, 3]
+    with np.errstate(invalid="ignore"):
+        ring_ok = np.isfinite(ring).all() and (ring == np.round(ring)).all() and ring.min() >= 0 and ring.max() < 256
+        return bool(ring_ok and np.isfinite(intensity).all() and intensity.min() >= 0 and intensity.max() <= 255)
+
+
+def _implausible_share(values: np.ndarray) -> float:
+    """Share of values no scan holds: NaN/inf, beyond 10 km, or tiny but not 0 (the bit patterns of another dtype)."""
+    with np.errstate(invalid="ignore", over="ignore"):  # the bit patterns of another dtype may be signalling NaNs
+        magnitude = np.abs(values.astype(np.float64, copy=False).reshape(-1))
+        bad = ~np.isfinite(magnitude) | (magnitude > MAX_COORDINATE) | ((magnitude > 0) & (magnitude < 1e-20))
+    return float(bad.mean()) if bad.size else 0.0
 
 
 def write_kitti_scan(path: PathLike, points: np.ndarray) -> None:

@@ -12,6 +12,7 @@ import numpy as np
 import yaml
 
 from u4d_aug.errors import InputError
+from u4d_aug.presets import resolve_config_path
 
 __all__ = [
     "SENSOR_NAMES",
@@ -170,8 +171,8 @@ def _check_type(path: Path, key: str, value: Any) -> Any:
 
 def load_sensor_yaml(path: str | Path) -> Sensor:
     """Sensor from a yaml file with the fields of `Sensor`; height defaults to the ring count, width to 1024,
-    the linear FOV to the ring table widened by half a ring spacing at each end."""
-    path = Path(path)
+    the linear FOV to the ring table widened by half a ring spacing at each end (presets: `sensors/NAME.yaml`)."""
+    path = resolve_config_path(path)
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except OSError as error:

@@ -22,7 +22,7 @@ import numpy as np
 from u4d_aug.data.datasets import list_frames, list_sequences
 from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.errors import InputError
-from u4d_aug.io import atomic_write_json, atomic_write_text
+from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder
 from u4d_aug.metrics import bev, temporal
 
 METRICS = ("frd", "fpd", "jsd", "mmd", "points", "rangejs", "ttce", "ctc")
@@ -326,7 +326,11 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
-    """Compute, print the markdown tables, write json/md atomically when asked."""
+    """Compute, print the markdown tables, write json/md atomically when asked (NaN as null in the json)."""
+    if args.max_scans is not None and args.max_scans < 1:
+        raise InputError(f"--max-scans must be >= 1, got {args.max_scans}")
+    if args.json or args.md:
+        make_folder(args.out)  # a file or an unwritable place in the way: one line before the long computation
     result = evaluate(
         args.bank,
         args.real,

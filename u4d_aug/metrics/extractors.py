@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import logging
 import random
 import time
 from dataclasses import dataclass, field
@@ -39,9 +40,13 @@ from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
 from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.errors import InputError
-from u4d_aug.io import append_jsonl, atomic_torch_save, load_checkpoint
+from u4d_aug.io import append_jsonl, atomic_torch_save, load_checkpoint, remove_temp_files
 from u4d_aug.range_view import encode_depth, project_batch, scatter_to_image, unproject
+from u4d_aug.runlock import run_lock
+from u4d_aug.validate import check_finite_config, check_finite_loss, check_positive
 from u4d_aug.weights import exported_model, is_exported
+
+logger = logging.getLogger(__name__)
 
 ExtractorKind = Literal["frd", "fpd"]
 EXTRACTOR_KINDS = ("frd", "fpd")
@@ -63,6 +68,9 @@ class ExtractorDataConfig:
     width: int = 1024
     row_mode: Literal["beam", "linear"] = "linear"
 
+    def __post_init__(self) -> None:
+        check_positive(self, "height", "width", prefix="data.")
+
 
 @dataclass
 class ExtractorModelConfig:
@@ -73,6 +81,9 @@ class ExtractorModelConfig:
     global_dim: int = 256  # FPD G
     fc1_dim: int = 128  # FPD F1
     fc2_dim: int = 64  # FPD F2
+
+    def __post_init__(self) -> None:
+        check_positive(self, "base_channels", "levels", "global_dim", "fc1_dim", "fc2_dim", prefix="model.")
 
 
 @dataclass
@@ -87,6 +98,11 @@ class ExtractorTrainConfig:
     log_every: int = 50
     val_scans: int = 40  # held-out scans (evenly spaced) scored after training; 0 = skip
     device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        check_finite_config(self, "train.")
+        check_positive(self, "steps", "batch_size", "lr", "log_every", prefix="train.")
+        check_positive(self, "weight_decay", "val_scans", allow_zero=True, prefix="train.")
 
 
 @dataclass
@@ -444,11 +460,20 @@ def _heldout_dataset(cfg: ExtractorConfig) -> Any:
 
 
 def train_extractor(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
-    """Train the FRD or FPD net on labelled training scans; writes out_dir/{kind}.pt + log; returns (path, hash)."""
-    from u4d_aug.data.datasets import ScanDataset
+    """Train the FRD or FPD net on labelled training scans; writes out_dir/{kind}.pt + log; returns (path, hash).
 
+    Holds out_dir/.KIND.lock (`u4d_aug.runlock`) while it runs: the other kind may train into the same folder.
+    """
     if kind not in EXTRACTOR_KINDS:
         raise InputError(f"extractor kind {kind!r} is not one of {', '.join(EXTRACTOR_KINDS)}")
+    with run_lock(cfg.out_dir, name=f".{kind}.lock"):
+        return train_extractor_locked(kind, cfg)
+
+
+def train_extractor_locked(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
+    """The run of `train_extractor` once its lock is held: data, net, loop, held-out scores, checkpoint."""
+    from u4d_aug.data.datasets import ScanDataset
+
     sequences = cfg.data.sequences if isinstance(cfg.data.sequences, str) else list(cfg.data.sequences)
     dataset = ScanDataset(cfg.data.root, sequences, labeled_only=True)
     if len(dataset) == 0:
@@ -461,9 +486,12 @@ def train_extractor(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
         model = build_model(kind, cfg.model).to(cfg.train.device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
     out_dir = Path(cfg.out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    removed = remove_temp_files(out_dir, kind)  # only this kind's: the other may be training
+    if removed:
+        logger.info("%s: removed %d temp file(s) of a killed run", out_dir, removed)
     save_config(cfg, out_dir / f"{kind}_config.yaml")
     log_path = out_dir / f"{kind}_log.jsonl"
+    log_path.unlink(missing_ok=True)  # no resume: a re-run writes its log afresh
     model.train()
     start = time.perf_counter()
     bar = tqdm(range(1, cfg.train.steps + 1), desc=f"train-extractor {kind}")
@@ -479,6 +507,7 @@ def train_extractor(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
         else:
             xyz = point_inputs(image, mask, sensor, cfg.data.row_mode)  # (B, H*W, 3)
             loss = model(xyz.to(cfg.train.device), target.flatten(1).to(cfg.train.device))
+        check_finite_loss(loss, step)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -494,7 +523,7 @@ def train_extractor(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
         scores = heldout_scores(frozen, *_heldout_scans(val_dataset, cfg.train.val_scans))
         extra["heldout"] = scores
         append_jsonl(log_path, {"step": cfg.train.steps, "heldout": scores})
-        print(
+        logger.info(
             f"held-out {scores['scans']} scans of {cfg.data.val_sequences}: pixel accuracy {scores['accuracy']:.3f}, "
             f"mIoU over present classes {scores['miou_present']:.3f}"
         )

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from u4d_aug.validate import check_finite_config, check_positive
+
 
 @dataclass
 class StreetConfig:
@@ -174,3 +176,7 @@ class SimConfig:
     lidar: LidarConfig = field(default_factory=LidarConfig)
     view_radius: float = 95.0  # m, world is built within this distance of the ego route
     frame_rate: float = 10.0  # Hz
+
+    def __post_init__(self) -> None:
+        check_finite_config(self)
+        check_positive(self, "view_radius", "frame_rate")

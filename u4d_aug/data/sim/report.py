@@ -12,8 +12,6 @@ starts where the azimuth wraps around), as in data/sensors.py.
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +20,7 @@ from scipy.spatial.distance import jensenshannon
 from u4d_aug.data.formats import load_kitti_frame
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE, map_semantickitti
 from u4d_aug.errors import InputError
+from u4d_aug.io import check_output_file, dumps_json
 
 RANGE_BINS = np.arange(0.0, 81.0, 1.0)  # 1 m bins, 0-80 m
 ELEVATION_BINS = np.arange(-26.0, 4.01, 0.5)  # degrees
@@ -235,12 +234,14 @@ def add_sim_report_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_sim_report(args: argparse.Namespace) -> int:
     """`u4d sim-report SIM_ROOT --real REAL_ROOT [--png OUT] [--json]`."""
+    if args.max_frames < 1:
+        raise InputError(f"--max-frames must be >= 1, got {args.max_frames}")
+    check_output_file(args.png, "figure")
     report, sim, real = compare(args.sim_root, args.real, args.max_frames)
     if args.png is not None:
         report["png"] = str(plot_report(args.png, report, sim, real))
     if args.json:
-        json.dump(report, sys.stdout, indent=2)
-        print()
+        print(dumps_json(report, indent=2))  # NaN as null
         return 0
     print(f"frames            sim {report['frames']['sim']:>8d}   real {report['frames']['real']:>8d}")
     pps = report["points_per_scan"]

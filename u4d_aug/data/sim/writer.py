@@ -12,6 +12,7 @@ frame f from [seed, k, 1, f]; files do not depend on --workers, and a re-run ski
 from __future__ import annotations
 
 import argparse
+import logging
 import multiprocessing
 import os
 import time
@@ -29,7 +30,10 @@ from u4d_aug.data.sim.raycast import LidarSimulator, Scan, ray_pattern
 from u4d_aug.data.sim.streets import make_hills, make_network
 from u4d_aug.data.sim.world import World, build_world
 from u4d_aug.errors import InputError
-from u4d_aug.io import atomic_write_json
+from u4d_aug.io import atomic_write_json, remove_temp_files
+from u4d_aug.runlock import run_lock
+
+logger = logging.getLogger(__name__)
 
 MANIFEST_FORMAT = "u4d-sim/1"
 
@@ -174,27 +178,30 @@ def simulate(
     cfg = config if config is not None else SimConfig()
     get_sensor(sensor)  # validate early
     out_dir = Path(out_dir)
-    manifest_path = out_dir / "manifest.json"
-    manifest = _manifest(seed, sequences, frames, str(sensor), cfg)
-    if manifest_path.is_file():
-        _check_manifest(manifest_path, manifest)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(manifest_path, manifest)
-    nthreads = max(1, (os.cpu_count() or 1) // workers)
-    start = time.perf_counter()
-    results = []
-    from tqdm import tqdm
+    with run_lock(out_dir):  # one run per folder: two would write the same frames
+        removed = remove_temp_files(out_dir)
+        if removed:
+            logger.info("%s: removed %d temp file(s) of a killed run", out_dir, removed)
+        manifest_path = out_dir / "manifest.json"
+        manifest = _manifest(seed, sequences, frames, str(sensor), cfg)
+        if manifest_path.is_file():
+            _check_manifest(manifest_path, manifest)
+        atomic_write_json(manifest_path, manifest)
+        nthreads = max(1, (os.cpu_count() or 1) // workers)
+        start = time.perf_counter()
+        results = []
+        from tqdm import tqdm
 
-    with tqdm(total=sequences * frames, desc="simulate", unit="frame", disable=not progress) as bar:
-        if workers == 1:
-            for k in range(sequences):
-                results.append(_simulate_sequence((out_dir, k, frames, seed, str(sensor), cfg, 0, bar)))
-        else:
-            tasks = [(out_dir, k, frames, seed, str(sensor), cfg, nthreads, None) for k in range(sequences)]
-            with multiprocessing.get_context("spawn").Pool(min(workers, sequences)) as pool:
-                for result in pool.imap_unordered(_simulate_sequence, tasks):
-                    bar.update(frames)
-                    results.append(result)
+        with tqdm(total=sequences * frames, desc="simulate", unit="frame", disable=not progress) as bar:
+            if workers == 1:
+                for k in range(sequences):
+                    results.append(_simulate_sequence((out_dir, k, frames, seed, str(sensor), cfg, 0, bar)))
+            else:
+                tasks = [(out_dir, k, frames, seed, str(sensor), cfg, nthreads, None) for k in range(sequences)]
+                with multiprocessing.get_context("spawn").Pool(min(workers, sequences)) as pool:
+                    for result in pool.imap_unordered(_simulate_sequence, tasks):
+                        bar.update(frames)
+                        results.append(result)
     written = sum(r[1] for r in results)
     elapsed = time.perf_counter() - start
     return {
@@ -214,20 +221,22 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--sensor", default="hdl64", help="hdl64 | hdl32 | sensor yaml")
     parser.add_argument("--workers", type=int, default=1, help="processes, one sequence each")
-    parser.add_argument("--config", type=Path, default=None, help="SimConfig yaml (configs/sim/*.yaml)")
+    parser.add_argument("--config", type=Path, default=None, help="SimConfig yaml (a file or a preset, e.g. sim/tiny)")
+    parser.add_argument("overrides", nargs="*", help="key=value config overrides, e.g. agents.cars_per_100m=3")
     parser.add_argument(
         "--set",
-        dest="overrides",
+        dest="set_overrides",
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="config override, e.g. agents.cars_per_100m=3 (repeatable)",
+        help="config override, as a bare KEY=VALUE does (repeatable)",
     )
 
 
 def run_simulate(args: argparse.Namespace) -> int:
-    """`u4d simulate --out DIR --sequences N --frames F --seed S [--sensor] [--workers K] [--config YAML]`."""
-    cfg = load_config(SimConfig, args.config, getattr(args, "overrides", []) or [])
+    """`u4d simulate --out DIR --sequences N --frames F --seed S [--config YAML] [key=value ...]`."""
+    overrides = [*(getattr(args, "set_overrides", None) or []), *(getattr(args, "overrides", None) or [])]
+    cfg = load_config(SimConfig, args.config, overrides)
     summary = simulate(args.out, args.sequences, args.frames, args.seed, args.sensor, args.workers, cfg)
     print(
         f"wrote {summary['written']} frames ({summary['skipped']} already there) to {summary['out']} "

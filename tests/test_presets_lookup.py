@@ -1,0 +1,116 @@
+"""Presets named by their path under configs/ resolve from any folder; the wheel ships configs/ as package data."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+import tomllib
+from setuptools import find_packages
+
+from segmentation.config import SegTrainConfig
+from segmentation.experiment import ExperimentConfig, run_config
+from u4d_aug.cli import DEMO_PRESETS, demo_steps
+from u4d_aug.config import load_config, read_yaml
+from u4d_aug.data.sensors import get_sensor
+from u4d_aug.errors import InputError
+from u4d_aug.generate import GenerateConfig
+from u4d_aug.presets import configs_root, list_presets, resolve_config_path
+from u4d_aug.train import DiffusionTrainConfig
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def elsewhere(tmp_path, monkeypatch) -> Path:
+    """An empty working folder outside the repository."""
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+def test_configs_root_is_the_top_level_folder_of_a_checkout():
+    assert configs_root() == REPO / "configs"
+
+
+@pytest.mark.parametrize("name", ["seg/tiny", "seg/tiny.yaml", "configs/seg/tiny.yaml", "./configs/seg/tiny"])
+def test_a_preset_by_name_from_any_folder(elsewhere, name):
+    assert resolve_config_path(name) == REPO / "configs" / "seg" / "tiny.yaml"
+    assert load_config(SegTrainConfig, name).model.voxel_size == 0.5
+
+
+def test_a_file_that_exists_wins_over_the_preset(elsewhere):
+    own = elsewhere / "configs" / "seg" / "tiny.yaml"
+    own.parent.mkdir(parents=True)
+    own.write_text("optim:\n  steps: 123\n")
+    assert load_config(SegTrainConfig, "configs/seg/tiny.yaml").optim.steps == 123
+    assert load_config(SegTrainConfig, "seg/tiny").optim.steps == 6  # not a path here: the preset
+    absolute = REPO / "configs" / "u4d" / "cpu_hdl64.yaml"
+    assert resolve_config_path(absolute) == absolute
+
+
+def test_unknown_preset_is_a_one_line_error(elsewhere):
+    with pytest.raises(InputError, match="seg/nope: config file not found, nor a preset") as error:
+        read_yaml("seg/nope")
+    assert "\n" not in str(error.value)
+
+
+def test_presets_that_name_presets_resolve_from_any_folder(elsewhere):
+    """Experiment configs name their seg-train preset (`base: configs/seg/cpu_semi.yaml`)."""
+    cfg = load_config(ExperimentConfig, "experiment/cpu")
+    run = run_config(cfg, cfg.arms[0], cfg.backbones[0], cfg.seeds[0])
+    assert run.mode == cfg.arms[0].mode
+    assert get_sensor("configs/sensors/example_sensor.yaml").height > 0
+
+
+def test_demo_presets_resolve_outside_the_repository(elsewhere):
+    assert load_config(SegTrainConfig, DEMO_PRESETS["seg"]).model.name == "minkunet"
+    assert load_config(DiffusionTrainConfig, DEMO_PRESETS["diffusion"], ["diffusion.stage=stage1"]).height > 0
+    assert load_config(GenerateConfig, DEMO_PRESETS["generate"]).num > 0
+    commands = [command for _, command in demo_steps(elsewhere / "demo", 0, elsewhere / "no-real")]
+    named = [word for command in commands for word in command if word in DEMO_PRESETS.values()]
+    assert sorted(set(named)) == sorted(DEMO_PRESETS.values())
+    assert not [word for command in commands for word in command if "configs/" in word]
+
+
+def test_list_presets_names_every_shipped_yaml():
+    presets = list_presets()
+    assert {"seg/tiny", "u4d/cpu_hdl64", "experiment/cpu", "sensors/example_sensor"} <= set(presets)
+    assert len(presets) == len(list((REPO / "configs").glob("*/*.yaml")))
+
+
+def test_pyproject_lists_every_package_and_maps_configs_into_the_wheel():
+    """`packages` is listed by hand (for the configs/ mapping): a new package must be added there."""
+    setuptools = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    found = set(find_packages(where=str(REPO), include=["u4d_aug*", "segmentation*"]))
+    assert set(setuptools["packages"]) == found | {"u4d_aug.configs"}
+    assert setuptools["package-dir"] == {"u4d_aug.configs": "configs"}
+    assert setuptools["package-data"]["u4d_aug.configs"] == ["**/*.yaml"]
+
+
+@pytest.mark.slow
+def test_the_wheel_holds_the_presets(tmp_path):
+    """Build the wheel from a copy of the sources (not in the checkout: setuptools writes build/ beside them)."""
+    source = tmp_path / "src"
+    files = subprocess.run(
+        ["git", "ls-files", "-co", "--exclude-standard", "pyproject.toml", "README.md", "configs", "u4d_aug",
+         "segmentation"],
+        cwd=REPO, capture_output=True, text=True, check=True,
+    ).stdout.split()  # fmt: skip
+    for name in files:
+        if (REPO / name).is_file():
+            (source / name).parent.mkdir(parents=True, exist_ok=True)
+            (source / name).write_bytes((REPO / name).read_bytes())
+    subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp_path), "."],
+        cwd=source, check=True,
+    )  # fmt: skip
+    (wheel,) = tmp_path.glob("u4d_aug-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    shipped = {
+        f"u4d_aug/configs/{p.relative_to(REPO / 'configs').as_posix()}" for p in (REPO / "configs").glob("**/*.yaml")
+    }
+    assert shipped <= names
+    assert "u4d_aug/presets.py" in names and not any(n.startswith("configs/") for n in names)
