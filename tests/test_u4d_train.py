@@ -387,3 +387,25 @@ def test_full_width_sample_of_a_crop_trained_net_closes_the_ring(tmp_path):
     assert (seam <= inner.quantile(0.9, dim=1)).all(), (seam, inner.median(dim=1).values)
     target = RangeImages(cfg)[0]["x0"]
     assert (x0 - target).abs().mean() < 0.2  # it learned the ring scan (a random image is ~0.7 away)
+
+
+def test_sequence_items_carry_the_ego_motion_that_reaches_the_net(tmp_path):
+    """With net.pose_dim, an L-frame item holds the frames' motion (x, y, z, yaw) from poses.txt; training runs."""
+    from u4d_aug.data.formats import write_calib, write_poses
+    from u4d_aug.trajectory import poses_from_motion, straight_motion
+
+    world = (tmp_path / "world", tmp_path / "probs")
+    write_tiny_world(*world, num_scans=4)
+    truth = straight_motion(4, 1.5, yaw_rate=0.1)  # the vehicle drives 1.5 m per frame, turning left
+    folder = world[0] / "sequences" / "00"
+    write_calib(folder / "calib.txt", {"P0": np.eye(4)[:3], "Tr": np.eye(4)[:3]})
+    write_poses(folder / "poses.txt", poses_from_motion(truth, poses_from_motion(np.array([[3.0, 4.0, 0, 1.0]]))[0]))
+    cfg = tiny_most_config(world, tmp_path / "run", "stage2", "net.pose_dim=4", "crop_width=32", "steps=2")
+    images = RangeImages(cfg)
+    item = images[1]  # frames 1, 2: motion in frame 1's sensor frame, which already heads 0.1 rad to the left
+    assert item["x0"].shape == (2, 2, 16, 64) and item["motion"].shape == (2, 4)
+    np.testing.assert_allclose(item["motion"].numpy(), [[0, 0, 0, 0], [1.5, 0, 0, 0.1]], atol=1e-5)
+    cropped = crop_batch({k: v[None] for k, v in item.items()}, torch.tensor([8]), 32)
+    assert cropped["x0"].shape[-1] == 32 and torch.equal(cropped["motion"][0], item["motion"])
+    record = train(cfg, progress=False)
+    assert record["step"] == 2 and np.isfinite(record["loss"])

@@ -38,6 +38,7 @@ from u4d_aug.nn.unet import RangeUNet, UNetConfig, crop_columns
 from u4d_aug.range_view import RowMode, project, ray_angles, to_image
 from u4d_aug.runfolder import prepare, resume_point
 from u4d_aug.runlock import run_lock
+from u4d_aug.trajectory import relative_motion
 from u4d_aug.uncertainty import Strategy, load_probs, probs_path, uncertain_range_view
 from u4d_aug.validate import check_finite_config, check_finite_loss, check_positive
 from u4d_aug.weights import is_exported
@@ -159,7 +160,9 @@ class RangeImages:
             raise InputError(f"{cfg.data_root}: no scans found")
         self.windows: SequenceDataset | None = None
         if cfg.frames > 1:
-            self.windows = SequenceDataset(cfg.data_root, cfg.frames, cfg.sequences, cfg.frame_stride, with_poses=False)
+            self.windows = SequenceDataset(
+                cfg.data_root, cfg.frames, cfg.sequences, cfg.frame_stride, with_poses=cfg.net.pose_dim > 0
+            )
         self.needs_probs = cfg.diffusion.stage in ("stage1", "stage2") and cfg.uncertainty.strategy != "none"
         if self.needs_probs and not cfg.probs_root:
             raise InputError(
@@ -184,7 +187,12 @@ class RangeImages:
         if self.windows is None:
             return self.scan_images(seq, frames[0], generator)
         items = [self.scan_images(seq, frame, generator) for frame in frames]
-        return {key: torch.stack([item[key] for item in items]) for key in items[0]}  # (L, C, H, W) each
+        out = {key: torch.stack([item[key] for item in items]) for key in items[0]}  # (L, C, H, W) each
+        if self.cfg.net.pose_dim:  # the ego motion of the window's frames, (L, 4) in the first frame's sensor frame
+            start = self.windows.windows[index][1]
+            positions = list(range(start, start + self.cfg.frames * self.cfg.frame_stride, self.cfg.frame_stride))
+            out["motion"] = torch.from_numpy(relative_motion(self.windows.poses[seq][positions]))
+        return out
 
     def scan_images(self, seq: str, frame: str, generator: torch.Generator | None = None) -> dict[str, Tensor]:
         """x0 (2, H, W) and, for stages 1 and 2, x0_u (2, H, W), m_u (1, H, W) of one scan (cached)."""
@@ -231,9 +239,13 @@ def crop_offsets(batch_size: int, cfg: DiffusionTrainConfig, generator: torch.Ge
 
 
 def crop_batch(batch: dict[str, Tensor], offsets: Tensor, crop_width: int) -> dict[str, Tensor]:
-    """Azimuth crops (B, [L,] C, H, crop_width) of every (B, [L,] C, H, W) tensor, wrapping around the ring."""
+    """Azimuth crops (B, [L,] C, H, crop_width) of every (B, [L,] C, H, W) image, wrapping around the ring; the rest
+    (the ego motion) as it is."""
     out = {}
     for key, value in batch.items():
+        if key == "motion":
+            out[key] = value
+            continue
         columns = crop_columns(offsets.to(value.device), crop_width, value.shape[-1])  # (B, w)
         index = columns.view(value.shape[0], *([1] * (value.dim() - 2)), crop_width).expand(*value.shape[:-1], -1)
         out[key] = torch.gather(value, -1, index)
@@ -418,7 +430,7 @@ def train_locked(cfg: DiffusionTrainConfig, info: DistInfo, resume: str | Path |
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(step, cfg.optim)
 
-        losses = model(x0, cond, m_u, generator, offsets)
+        losses = model(x0, cond, m_u, generator, offsets, batch.get("motion"))
         check_finite_loss(losses["loss"], step + 1)
         optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
