@@ -186,7 +186,8 @@ CASES = [
     ("show-short-pcd", ["show", "{short_pcd}"], "is not a multiple of 20"),
     ("show-nuscenes-as-kitti", ["show", "{nuscenes_bin}"], "name it *.pcd.bin"),
     ("show-unknown-sensor", ["show", "{scan}", "--sensor", "hdl99"], "hdl99"),
-    ("show-negative-width", ["show", "{scan}", "--width", "-5", "--row-mode", "linear"], "at least 1x1"),
+    ("show-negative-width", ["show", "{scan}", "--width", "-5", "--row-mode", "linear"], "at least 3 columns"),
+    ("show-zero-width", ["show", "{scan}", "--width", "0", "--row-mode", "linear"], "at least 3 columns"),
     ("show-png-is-folder", ["show", "{scan}", "--png", "{dir}"], "is a folder; expected a file path"),
     ("show-png-under-file", ["show", "{scan}", "--png", "{file}/x.png"], "is a file; expected an output folder"),
     # simulate, sim-report

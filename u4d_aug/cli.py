@@ -403,6 +403,8 @@ def run_show(args: argparse.Namespace) -> int:
     sensor = get_sensor(args.sensor or scan.sensor)
     width = sensor.width if args.width is None else args.width
     height = sensor.height
+    if width < 3:
+        raise InputError(f"--width {width}: a range image needs at least 3 columns")
     if args.png is not None:
         check_output_file(args.png, "picture")
     if args.ply is not None:
