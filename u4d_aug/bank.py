@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from u4d_aug.data.formats import write_calib, write_kitti_scan, write_poses
+from u4d_aug.data.formats import label_path_for, write_calib, write_kitti_scan, write_poses
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_save_npy, atomic_write_bytes, atomic_write_json
 
@@ -142,9 +142,12 @@ def changed_files(layout: BankLayout, recorded: dict[str, str]) -> list[str]:
 
 
 def remove_sample(layout: BankLayout, index: int) -> None:
-    """Delete every file of sample `index`, so that a resumed `u4d generate` writes it again."""
+    """Delete every file of sample `index` (and an exported label file, which would no longer fit the scan), so
+    that a resumed `u4d generate` writes it again."""
     for path in sample_files(layout, index):
         path.unlink(missing_ok=True)
+    for frame in range(layout.frames):
+        label_path_for(layout.scan_path(index, frame)).unlink(missing_ok=True)
 
 
 def verify_samples(layout: BankLayout, manifest: dict[str, Any] | None) -> dict[int, dict[str, str]]:

@@ -122,6 +122,7 @@ DELEGATED = (
     ("gates", "MoST gate analysis: mean spatial / temporal gate per block over the sampling of a sequence net"),
     ("evaluate", "generation metrics of a bank vs real scans: FRD, FPD, BEV JSD/MMD (Table 1), TTCE/CTC (Table 2)"),
     ("experiment", "sup-only / LaserMix / +R2DM bank / +U4D bank comparison: mIoU and ECE over seeds"),
+    ("export", "make a bank readable by other codebases: all-ignore .label files, mmdetection3d info .pkl"),
 )
 
 
@@ -155,6 +156,8 @@ def _delegated_module(name: str):
         return importlib.import_module("u4d_aug.metrics.evaluate"), "evaluate"
     elif name == "experiment":
         return importlib.import_module("segmentation.experiment"), "experiment"
+    elif name == "export":
+        return importlib.import_module("u4d_aug.export_bank"), "export"
     raise ValueError(f"unknown command {name!r}; allowed: {', '.join(n for n, _ in DELEGATED)}")
 
 
@@ -178,6 +181,7 @@ EXAMPLES = {
     "evaluate": "u4d evaluate --bank banks/u4d --real data/sim --real-sequences 02 --metrics jsd,mmd,ctc --md "
     "--out runs/eval_u4d",
     "experiment": "u4d experiment experiment/cpu --arms sup-only 'seeds=[0]'",
+    "export": "u4d export banks/u4d --labels --mmdet3d-infos",
 }
 
 
@@ -447,26 +451,31 @@ def run_show(args: argparse.Namespace) -> int:
 
 
 def _write_ply(path: Path, points: np.ndarray, labels: np.ndarray | None) -> None:
-    """Export points (coloured by label, else by intensity) with open3d, atomically."""
+    """Export positions, intensity and labels (when known) as .ply attributes with open3d's tensor API, atomically."""
+    import contextlib
     import os
     import tempfile
 
     import open3d as o3d
 
-    from u4d_aug.viz import label_colors
+    from u4d_aug.io import current_umask, make_folder
 
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[:, :3].astype(np.float64)))
-    colors = label_colors(labels) if labels is not None else np.repeat(points[:, 3:4], 3, axis=1)
-    cloud.colors = o3d.utility.Vector3dVector(np.asarray(colors, dtype=np.float64))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".ply", dir=path.parent)
-    os.close(fd)
+    cloud = o3d.t.geometry.PointCloud()
+    cloud.point.positions = o3d.core.Tensor(np.ascontiguousarray(points[:, :3], dtype=np.float32))  # (N, 3)
+    cloud.point.intensity = o3d.core.Tensor(np.ascontiguousarray(points[:, 3:4], dtype=np.float32))  # (N, 1)
+    if labels is not None:
+        cloud.point.labels = o3d.core.Tensor(np.asarray(labels, dtype=np.int32).reshape(-1, 1))  # (N, 1)
+    make_folder(path.parent)
+    # open3d picks the format from the name, so the temp file (same folder, for one os.replace) ends in .ply
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".ply", dir=path.parent)
     try:
-        if not o3d.io.write_point_cloud(tmp, cloud):
+        os.close(fd)
+        os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp makes 0600; the umask's mode like every other output
+        if not o3d.t.io.write_point_cloud(tmp, cloud):
             raise InputError(f"{path}: open3d could not write the .ply file")
         os.replace(tmp, path)
     finally:
-        if os.path.exists(tmp):
+        with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
 
 
