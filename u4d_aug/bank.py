@@ -15,8 +15,9 @@ digests of a finished sample's files let a resumed run find a sample changed or 
 Sequence banks (generators trained on L > 1 frames) hold one sequence per sample: sample i is
 BANK/sequences/NN/ (NN = i as %02d) with the same side folders and frames 000000 .. L-1 in velodyne/, so any
 SemanticKITTI reader sees L consecutive scans. Completion-mode sequences also get poses.txt (the real frames'
-poses relative to the first) and calib.txt with an identity Tr, which TTCE/CTC (`u4d evaluate`) read; generated
-sequences have no poses. Poses are written before the frames, and a sample is complete when all L frames are.
+poses relative to the first) and calib.txt with an identity Tr, which TTCE/CTC (`u4d evaluate`) read; so do
+sequences of nets with an ego-motion input (the motion they were conditioned on); other generated sequences have
+no poses. Poses are written before the frames, and a sample is complete when all L frames are.
 """
 
 from __future__ import annotations

@@ -6,7 +6,11 @@ bank does not depend on the number of torchrun ranks that share the work (rank r
 finished samples are skipped on a re-run, once their files match the digests the manifest records (a sample
 changed or truncated since is generated again). A generator trained on L > 1 frames writes each
 sample as an L-frame sequence (one bank sequence per sample); in completion mode sample i then completes the
-x0_u of window i of L real frames and keeps those frames' relative poses.
+x0_u of window i of L real frames and keeps those frames' relative poses. A sequence generator conditioned on ego
+motion (net.pose_dim > 0) gets, for sample i, the motion of an L-frame window of its training sequences' poses.txt
+(window drawn with seed + i) or of `motion_file`; the bank sequence's poses.txt holds the poses of that motion
+(`u4d_aug.trajectory.poses_from_motion`), so TTCE/CTC (`u4d evaluate`) can score it. Completion mode conditions on
+the real frames' own motion.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from u4d_aug.bank import (
 )
 from u4d_aug.config import config_to_dict, load_config
 from u4d_aug.data.datasets import ScanDataset, SequenceDataset
+from u4d_aug.data.formats import read_calib, read_poses
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError, exit_code_of
@@ -44,6 +49,7 @@ from u4d_aug.pipeline import Sampler, complete, generate_baseline, generate_u4d,
 from u4d_aug.runlock import run_lock
 from u4d_aug.sampling import Grid, check_grid
 from u4d_aug.train import DiffusionTrainConfig
+from u4d_aug.trajectory import POSE_DIM, poses_from_motion, relative_motion
 from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
 
 logger = logging.getLogger(__name__)
@@ -78,6 +84,10 @@ class GenerateConfig:
     data_root: str = ""
     sequences: list[str] | None = None
     probs_root: str = ""
+    # sequence generators with an ego-motion input (net.pose_dim > 0), u4d and baseline modes: a .npy of (L, 4) or
+    # (N, L, 4) motions (x, y, z, yaw per frame; sample i takes motion i mod N) or a KITTI poses.txt of L lines
+    # (with calib.txt beside it if there is one); "" = windows of the training sequences' poses.txt
+    motion_file: str = ""
 
     def __post_init__(self) -> None:
         if self.num < 0 or self.steps < 1 or (self.stage1_steps is not None and self.stage1_steps < 1):
@@ -133,11 +143,23 @@ def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bo
         identity["sampling"]["sampler_grid"] = cfg.sampler_grid
     if cfg.mode == "complete":
         identity["source"] = {k: config[k] for k in ("data_root", "sequences", "probs_root")}
-    check_compatible(Path(out), identity)
     nets = {name: load_generator(path, info.device) for name, path in paths.items()}
     main = nets["stage2"] if "stage2" in nets else nets["baseline"]
     sensor = get_sensor(main[1].sensor)
     frames = cfg.frames or main[1].frames  # L: 1 = single scans in sequence 00, > 1 = one sequence per sample
+    # configs of the nets with an ego-motion input, the final stage's first (its training sequences give the motion)
+    posed = [loaded[1] for loaded in (main, *nets.values()) if loaded[1].net.pose_dim > 0] if frames > 1 else []
+    motions: np.ndarray | None = None  # (num, L, 4) ego motion of each sample (u4d and baseline modes)
+    motion_sources: list[dict] = []
+    if posed and cfg.mode == "complete":
+        if cfg.motion_file:
+            raise InputError("motion_file: completion mode conditions on the motion of the real frames it completes")
+    elif posed:
+        motions, motion_sources = sample_motions(cfg, posed[0], frames)
+        identity["motion"] = {"file": file_sha256(cfg.motion_file)} if cfg.motion_file else "training sequences"
+    elif cfg.motion_file:
+        raise InputError("motion_file: these generators have no ego-motion input (net.pose_dim = 0 or one frame)")
+    check_compatible(Path(out), identity)
     layout = BankLayout(Path(out), frames)
     old = read_manifest(layout.root)
     if old is not None and old.get("frames", 1) != frames:
@@ -169,11 +191,13 @@ def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bo
         "width": main[1].width,
         "row_mode": main[1].row_mode,
         "frames": frames,
-        "samples": [_sample_entry(cfg, i, scans, frames) for i in range(cfg.num)],
+        "samples": [_sample_entry(cfg, i, scans, frames, motion_sources) for i in range(cfg.num)],
         "complete": False,
     }
     if old is not None and len(old.get("samples", [])) > cfg.num:
         manifest["samples"] = old["samples"]  # a re-run asking for fewer samples keeps the larger listing
+    if old is not None and "export" in old:
+        manifest["export"] = old["export"]  # what `u4d export` wrote beside the samples stays recorded
     if info.is_main:
         removed = remove_temp_files(layout.root)
         if removed:
@@ -195,6 +219,11 @@ def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bo
         n = len(block)
         generators = [torch.Generator().manual_seed(cfg.seed + i) for i in block]  # sample i: seed + i
         masks = uncertainty = x0_u = None  # per sample and frame: (n, L, H, W), (n, L, H, W), (n, L, 2, H, W)
+        motion = None if motions is None else torch.from_numpy(motions[block])  # (n, L, 4)
+        if motions is not None:
+            for i in block:
+                if not layout.is_done(i):  # poses first, frames last (a sample is done once all its frames are)
+                    write_sequence_poses(layout, i, poses_from_motion(motions[i]))
         if cfg.mode == "u4d":
             result = generate_u4d(
                 nets["stage1"],
@@ -206,11 +235,12 @@ def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bo
                 cfg.stage1_steps,
                 frames,
                 grid=cfg.sampler_grid,
+                motion=motion,
             )
             masks, x0_u = _per_sample(result["m_u_pred"], n)[:, :, 0], _per_sample(result["x0_u"], n)
         elif cfg.mode == "baseline":
             result = generate_baseline(
-                nets["baseline"], n, cfg.steps, generators, cfg.sampler, frames, grid=cfg.sampler_grid
+                nets["baseline"], n, cfg.steps, generators, cfg.sampler, frames, grid=cfg.sampler_grid, motion=motion
             )
         else:
             parts = [
@@ -223,7 +253,11 @@ def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bo
             x0_u, m_u, entropy_image = (torch.stack([part[k] for part in parts]) for k in range(3))  # (n, L, ...)
             if frames == 1:
                 x0_u, m_u = x0_u[:, 0], m_u[:, 0]  # single scans: (n, C, H, W)
-            result = complete(nets["stage2"], x0_u, m_u, cfg.steps, generators, cfg.sampler, grid=cfg.sampler_grid)
+            if posed:  # the real frames' own motion, (n, L, 4)
+                motion = torch.from_numpy(np.stack([relative_motion(part[3]) for part in parts]))
+            result = complete(
+                nets["stage2"], x0_u, m_u, cfg.steps, generators, cfg.sampler, grid=cfg.sampler_grid, motion=motion
+            )
             masks, uncertainty, x0_u = _per_sample(m_u, n)[:, :, 0], entropy_image.numpy(), _per_sample(x0_u, n)
         clouds = to_points(result["x0"], sensor, main[1].row_mode)  # n·L point clouds, samples then frames
         for j, i in enumerate(block):
@@ -274,8 +308,84 @@ def _real_sample_condition(
     return x0_u, m_u, entropy_image, (item["poses"] if frames > 1 else None)
 
 
-def _sample_entry(cfg: GenerateConfig, index: int, scans: ScanDataset | SequenceDataset | None, frames: int) -> dict:
+def load_motion_file(path: str | Path, frames: int) -> np.ndarray:
+    """(N, L, 4) float32 ego motions from a .npy of (L, 4) or (N, L, 4), or from a KITTI poses.txt of L lines."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: motion_file not found")
+    if path.suffix == ".npy":
+        try:
+            motion = np.load(path, allow_pickle=False)
+        except ValueError as exc:
+            raise InputError(f"{path}: not a numeric .npy ({exc})") from None
+        if not np.issubdtype(motion.dtype, np.number):
+            raise InputError(f"{path}: expected numbers, got a {motion.dtype} array")
+        if motion.ndim == 2:
+            motion = motion[None]
+    elif path.suffix == ".txt":
+        calib_path = path.parent / "calib.txt"
+        poses = read_poses(path, read_calib(calib_path) if calib_path.is_file() else None)  # (T, 4, 4) LiDAR poses
+        if len(poses) != frames:
+            raise InputError(f"{path}: {len(poses)} poses, expected the {frames} of one sequence")
+        motion = relative_motion(poses)[None]
+    else:
+        raise InputError(f"{path}: motion_file must be a .npy of (L, 4) or (N, L, 4) motions or a poses .txt")
+    if motion.ndim != 3 or motion.shape[1:] != (frames, POSE_DIM) or len(motion) == 0:
+        raise InputError(
+            f"{path}: expected ({frames}, {POSE_DIM}) or (N, {frames}, {POSE_DIM}) motion, got {motion.shape}"
+        )
+    if not np.isfinite(motion).all():
+        raise InputError(f"{path}: motion holds non-finite values")
+    return motion.astype(np.float32)
+
+
+def training_windows(train_cfg: DiffusionTrainConfig, frames: int) -> SequenceDataset:
+    """L-frame windows (and poses, no scans) of the sequences a pose-conditioned generator was trained on."""
+    if not train_cfg.data_root:
+        raise InputError("the generator's config names no data_root to draw trajectories from")
+    return SequenceDataset(train_cfg.data_root, frames, train_cfg.sequences, train_cfg.frame_stride, with_poses=True)
+
+
+def window_motion(windows: SequenceDataset, index: int) -> tuple[np.ndarray, list[str]]:
+    """(L, 4) ego motion of window `index` of `windows` and its frames as 'seq/frame' names."""
+    seq, start = windows.windows[index]
+    positions = list(range(start, start + windows.num_frames * windows.stride, windows.stride))
+    assert windows.poses is not None  # built with_poses=True
+    return relative_motion(windows.poses[seq][positions]), [f"{seq}/{windows.frames[seq][p]}" for p in positions]
+
+
+def sample_motions(cfg: GenerateConfig, train_cfg: DiffusionTrainConfig, frames: int) -> tuple[np.ndarray, list[dict]]:
+    """(num, L, 4) ego motion of every sample and where it came from; sample i's depends only on seed + i."""
+    if cfg.motion_file:
+        motions = load_motion_file(cfg.motion_file, frames)
+        rows = [i % len(motions) for i in range(cfg.num)]
+        return motions[rows].reshape(cfg.num, frames, POSE_DIM), [{"file": cfg.motion_file, "row": r} for r in rows]
+    try:
+        windows = training_windows(train_cfg, frames)
+    except InputError as exc:
+        raise InputError(
+            f"motion_file: the generator is conditioned on ego motion and no trajectory source was found ({exc}); "
+            "set motion_file=PATH (.npy of (L, 4) or (N, L, 4) x, y, z, yaw, or a poses.txt of L lines)"
+        ) from None
+    motions, sources = [np.zeros((0, frames, POSE_DIM), dtype=np.float32)], []
+    for i in range(cfg.num):
+        index = int(np.random.default_rng(cfg.seed + i).integers(len(windows)))  # sample i: seed + i
+        motion, names = window_motion(windows, index)
+        motions.append(motion[None])
+        sources.append({"window": names})
+    return np.concatenate(motions), sources
+
+
+def _sample_entry(
+    cfg: GenerateConfig,
+    index: int,
+    scans: ScanDataset | SequenceDataset | None,
+    frames: int,
+    motion_sources: list[dict],
+) -> dict:
     entry: dict = {"index": index, "seed": cfg.seed + index}
+    if motion_sources:  # the trajectory this sample was generated for (its poses.txt)
+        entry["motion"] = motion_sources[index]
     if frames == 1:
         entry["file"] = f"sequences/00/velodyne/{index:06d}.bin"
     else:
@@ -318,7 +428,7 @@ def add_generate_arguments(parser: argparse.ArgumentParser) -> None:
         "overrides",
         nargs="*",
         help="key=value overrides, e.g. stage1=runs/s1 sampler=dpmpp2m (ddpm|ddim|dpmpp2m|dpmpp2m-sde) "
-        "sampler_grid=logsnr (time|logsnr)",
+        "sampler_grid=logsnr (time|logsnr) motion_file=trajectory.npy (ego-motion-conditioned sequence nets)",
     )
     parser.add_argument("--out", type=Path, required=True, help="bank folder (SemanticKITTI layout)")
     parser.add_argument("--num", type=int, default=None, help="number of scans (default: the config's num)")
