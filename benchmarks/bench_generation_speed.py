@@ -371,7 +371,7 @@ def time_anchor(nets: dict[str, Loaded], args: argparse.Namespace) -> dict | Non
     if args.anchor_reps < 1:
         return None
     matmul_before = matmul_gflops(2048, args.reps)["gflop_per_s"]
-    cfg = preset_config(args.anchor_preset, "baseline", [])
+    cfg = preset_config(args.anchor_preset, "baseline", list(args.anchor_overrides))
     net = build_net(cfg).requires_grad_(False).eval()
     flops = forward_flops(net, 1, cfg.height, cfg.width)
     base, base_cfg = nets["baseline"]
@@ -387,6 +387,7 @@ def time_anchor(nets: dict[str, Loaded], args: argparse.Namespace) -> dict | Non
     median = statistics.median(seconds["anchor"])
     return {
         "source": shown(args.anchor_preset),
+        "overrides": list(args.anchor_overrides),
         "height": cfg.height,
         "width": cfg.width,
         "params": sum(p.numel() for p in net.parameters()),
@@ -414,11 +415,11 @@ def net_sizes(nets: dict[str, Loaded], sources: dict[str, str]) -> list[dict]:
     return [size_row(stage, source, cfg, height, width) for (stage, source, height, width), cfg in cases.items()]
 
 
-def anchor_sizes(preset: Path) -> list[dict]:
+def anchor_sizes(preset: Path, overrides: list[str]) -> list[dict]:
     """Params and GFLOP of a one-scan forward of each stage's net built from the anchor preset, at its size."""
     rows = []
     for stage in STAGES:
-        cfg = preset_config(preset, stage, [])
+        cfg = preset_config(preset, stage, overrides)
         rows.append(size_row(stage, shown(preset), cfg, cfg.height, cfg.width))
     return rows
 
@@ -649,6 +650,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--forward-calls", type=int, default=3, help="UNet forwards per repetition")
     parser.add_argument("--matmul-size", type=int, default=None, help="square matmul size (2048)")
     parser.add_argument("--anchor-preset", type=Path, default=ANCHOR_PRESET, help="R2DM-sized preset of the anchor")
+    parser.add_argument(
+        "--anchor-overrides", nargs="*", default=["net.num_res_blocks=1"],
+        help="key=value changes of the anchor preset; the default makes full_hdl64 R2DM-sized (265 GFLOP, 44 M "
+        "params per forward against R2DM's 235 GFLOP, 31 M; with 2 blocks per level it is 375 GFLOP, 63 M)",
+    )  # fmt: skip
     parser.add_argument("--anchor-reps", type=int, default=None, help="timed anchor forwards, 0 skips (3; quick 0)")
     parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
     parser.add_argument("--quick", action="store_true", help="tiny preset, 4 (2) steps, 3 reps, matmul 512")
@@ -713,7 +719,7 @@ def main(argv: list[str] | None = None) -> int:
         print("anchor ...", flush=True)
         anchor = time_anchor(nets, args)
         names = source_names(sources, args.config)
-        sizes = net_sizes(nets, names) + anchor_sizes(args.anchor_preset)
+        sizes = net_sizes(nets, names) + anchor_sizes(args.anchor_preset, list(args.anchor_overrides))
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
