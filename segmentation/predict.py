@@ -13,7 +13,6 @@ of DIR (`u4d_aug.runlock`).
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import sys
 from pathlib import Path
@@ -31,7 +30,7 @@ from u4d_aug.data.formats import load_kitti_frame
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES
 from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError, exit_code_of
-from u4d_aug.io import atomic_save_npy, atomic_write_json, remove_temp_files
+from u4d_aug.io import atomic_save_npy, atomic_write_json, file_sha256, remove_temp_files
 from u4d_aug.io import load_checkpoint as load_torch_checkpoint
 from u4d_aug.runlock import run_lock
 from u4d_aug.weights import SEGMENTATION_KIND, exported_model, is_exported
@@ -77,11 +76,7 @@ def model_from_checkpoint(
 
 def checkpoint_hash(path: str | Path) -> str:
     """sha256 of the checkpoint file, first 16 hex digits (names the segmentor in manifests)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()[:16]
+    return file_sha256(path)
 
 
 @torch.no_grad()

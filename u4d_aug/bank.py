@@ -22,7 +22,6 @@ no poses. Poses are written before the frames, and a sample is complete when all
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 from dataclasses import dataclass
@@ -33,7 +32,7 @@ import numpy as np
 
 from u4d_aug.data.formats import label_path_for, write_calib, write_kitti_scan, write_poses
 from u4d_aug.errors import InputError
-from u4d_aug.io import atomic_save_npy, atomic_write_bytes, atomic_write_json
+from u4d_aug.io import atomic_save_npy, atomic_write_bytes, atomic_write_json, file_sha256
 
 logger = logging.getLogger(__name__)
 
@@ -99,15 +98,6 @@ class BankLayout:
     def is_done(self, index: int) -> bool:
         """Each frame's .bin (or empty marker) is written last: all present means every file of the sample is."""
         return all(self.scan_path(index, f).is_file() or self.is_empty(index, f) for f in range(self.frames))
-
-
-def file_sha256(path: str | Path, length: int = 16) -> str:
-    """Hex sha256 of a file's bytes, first `length` characters (checkpoint identity in the manifest)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()[:length]
 
 
 def sample_files(layout: BankLayout, index: int) -> list[Path]:

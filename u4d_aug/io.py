@@ -209,6 +209,17 @@ def load_npy(path: str | os.PathLike, what: str) -> np.ndarray:
     return array
 
 
+def file_sha256(path: str | os.PathLike, length: int = 16) -> str:
+    """Hex sha256 of a file's bytes, first `length` characters (names checkpoints and bank files)."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()[:length]
+
+
 def load_checkpoint(path: str | os.PathLike, what: str) -> dict:
     """torch.load(weights_only=True) of a dict: tensors and plain python only, nothing in the file runs (issue 44).
 

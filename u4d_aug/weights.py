@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from u4d_aug.errors import InputError
-from u4d_aug.io import atomic_torch_save, load_checkpoint
+from u4d_aug.io import atomic_torch_save, file_sha256, load_checkpoint
 
 WEIGHTS_FORMAT = "u4d-weights-v1"
 # The checkpoint kinds, as their writers name them (tests/test_weights.py checks they agree; u4d_aug does not
@@ -107,15 +107,6 @@ def weights_digest(model: dict[str, Tensor], config: dict) -> str:
         tensor = model[name].detach().cpu().contiguous()
         digest.update(f"{name}|{tensor.dtype}|{tuple(tensor.shape)}".encode())
         digest.update(tensor.numpy().tobytes())
-    return digest.hexdigest()[:16]
-
-
-def file_sha256(path: str | Path) -> str:
-    """sha256 of a file, first 16 hex digits (as `segmentation.predict.checkpoint_hash`)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
     return digest.hexdigest()[:16]
 
 
