@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         from u4d_aug.io import load_checkpoint
         from u4d_aug.pipeline import load_generator
-        from u4d_aug.train import find_checkpoint
+        from u4d_aug.stage import find_checkpoint
 
         if args.num < 1:
             raise InputError(f"--num must be >= 1, got {args.num}")

@@ -29,13 +29,13 @@ from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.errors import InputError
+from u4d_aug.seeding import derived_seed
 
 # seed domains of the semi-supervised streams (train.py uses 1..3)
 _SOURCE, _UNLABELED, _MIX = 4, 5, 6
 
 
 def _seed(*parts: int) -> int:
-    from segmentation.train import derived_seed  # late import: train.py imports this module
 
     return derived_seed(*parts)
 

@@ -71,6 +71,7 @@ from u4d_aug.host import host_info
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_json, atomic_write_text, read_jsonl
 from u4d_aug.runfolder import prepare, resume_point
 from u4d_aug.runlock import run_lock
+from u4d_aug.seeding import derived_seed
 from u4d_aug.validate import check_finite_loss
 
 logger = logging.getLogger(__name__)
@@ -83,11 +84,6 @@ _EPOCH, _SCAN, _STEP = 1, 2, 3
 
 
 # ---------------------------------------------------------------------------------------------------- helpers
-
-
-def derived_seed(*parts: int) -> int:
-    """A 63-bit seed hashed from non-negative integers (numpy SeedSequence; no global state)."""
-    return int(np.random.SeedSequence(list(parts)).generate_state(1, np.uint64)[0] >> np.uint64(1))
 
 
 def batch_indices(step: int, num_scans: int, batch_size: int, seed: int) -> list[int]:

@@ -25,12 +25,12 @@ from segmentation.train import train as train_segmentor
 from u4d_aug.config import load_config
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
+from u4d_aug.export_weights import export_weights
 from u4d_aug.io import atomic_torch_save
 from u4d_aug.metrics.extractors import load_extractor, train_extractor
 from u4d_aug.pipeline import load_generator
 from u4d_aug.train import build_net, checkpoint_state
 from u4d_aug.train import train as train_diffusion
-from u4d_aug.weights import export_weights
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -30,12 +30,13 @@ from u4d_aug.cli import main as cli_main
 from u4d_aug.config import load_config
 from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.errors import InputError
+from u4d_aug.export_weights import export_weights
 from u4d_aug.metrics import extractors
 from u4d_aug.metrics.extractors import extract_features, load_extractor, train_extractor
 from u4d_aug.pipeline import complete, generate_baseline, generate_u4d, load_generator
 from u4d_aug.train import CHECKPOINT_KIND
 from u4d_aug.train import train as train_diffusion
-from u4d_aug.weights import WEIGHTS_FORMAT, export_weights
+from u4d_aug.weights import WEIGHTS_FORMAT
 
 STAGES = ("stage1", "stage2", "baseline")
 CPU = torch.device("cpu")

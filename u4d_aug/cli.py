@@ -149,7 +149,7 @@ def _delegated_module(name: str):
     elif name == "train-extractor":
         return importlib.import_module("u4d_aug.metrics.extractors"), "train_extractor"
     elif name == "export-weights":
-        return importlib.import_module("u4d_aug.weights"), "export_weights"
+        return importlib.import_module("u4d_aug.export_weights"), "export_weights"
     elif name == "gates":
         return importlib.import_module("u4d_aug.gates"), "gates"
     elif name == "evaluate":

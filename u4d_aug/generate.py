@@ -48,7 +48,7 @@ from u4d_aug.io import remove_temp_files
 from u4d_aug.pipeline import Sampler, complete, generate_baseline, generate_u4d, load_generator, to_points
 from u4d_aug.runlock import run_lock
 from u4d_aug.sampling import Grid, check_grid
-from u4d_aug.train import DiffusionTrainConfig
+from u4d_aug.stage import DiffusionTrainConfig
 from u4d_aug.trajectory import POSE_DIM, poses_from_motion, relative_motion
 from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
 

@@ -28,7 +28,7 @@ from u4d_aug.nn.unet import RangeUNet
 from u4d_aug.range_view import RowMode, unproject
 from u4d_aug.sampling import SAMPLER_NAMES, Generators, Grid, Sample, check_grid
 from u4d_aug.sampling import sample as sample_named
-from u4d_aug.train import DiffusionTrainConfig, build_net, config_from_checkpoint, find_checkpoint
+from u4d_aug.stage import DiffusionTrainConfig, build_net, config_from_checkpoint, find_checkpoint
 from u4d_aug.weights import is_exported, load_exported
 
 # u4d_aug.sampling.sample: DDIM, ancestral DDPM, DPM-Solver++(2M) and its SDE form; the last two also on grid="logsnr"

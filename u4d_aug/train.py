@@ -17,7 +17,6 @@ import dataclasses
 import json
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -25,121 +24,33 @@ import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from u4d_aug.config import add_run_arguments, config_from_dict, config_to_dict, load_config, parse_override, save_config
+from u4d_aug.config import add_run_arguments, config_to_dict, load_config, parse_override, save_config
 from u4d_aug.data.datasets import ScanDataset, SequenceDataset, scan_path
 from u4d_aug.data.formats import load_kitti_frame
 from u4d_aug.data.sensors import Sensor, get_sensor
-from u4d_aug.diffusion import DiffusionConfig, GaussianDiffusion
+from u4d_aug.diffusion import GaussianDiffusion
 from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, budget_used, cleanup, init_distributed
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_text, load_checkpoint, read_jsonl
-from u4d_aug.nn.unet import RangeUNet, UNetConfig, crop_columns
-from u4d_aug.range_view import RowMode, project, ray_angles, to_image
+from u4d_aug.nn.unet import RangeUNet, crop_columns
+from u4d_aug.range_view import project, to_image
 from u4d_aug.runfolder import prepare, resume_point
 from u4d_aug.runlock import run_lock
+from u4d_aug.seeding import derived_seed
+from u4d_aug.stage import (  # the stage contract (u4d_aug/stage.py)
+    CHECKPOINT_KIND,
+    DiffusionTrainConfig,
+    OptimConfig,
+    build_net,
+    config_from_checkpoint,
+)
 from u4d_aug.trajectory import relative_motion
-from u4d_aug.uncertainty import Strategy, load_probs, probs_path, uncertain_range_view
-from u4d_aug.validate import check_finite_config, check_finite_loss, check_positive
+from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
+from u4d_aug.validate import check_finite_loss
 from u4d_aug.weights import is_exported
 
-CHECKPOINT_KIND = "u4d-diffusion"
 _BATCH, _NOISE = 1, 2  # streams of derived_seed
-
-
-@dataclass
-class UncertaintyConfig:
-    """P_u selection (paper §2.1): k as a point count (int) or a fraction of the scan (float)."""
-
-    k: int | float = 0.1
-    strategy: Strategy = "entropy"
-
-
-@dataclass
-class OptimConfig:
-    """AdamW with linear warm-up (R2DM: lr 1e-4, batch 8, no weight decay, grad-norm clip 1)."""
-
-    lr: float = 1e-4
-    betas: tuple[float, float] = (0.9, 0.99)
-    weight_decay: float = 0.0
-    warmup_steps: int = 100
-    grad_clip: float = 1.0  # max grad norm; 0 = off
-
-    def __post_init__(self) -> None:
-        check_finite_config(self, "optim.")
-        check_positive(self, "lr", prefix="optim.")
-        check_positive(self, "weight_decay", "warmup_steps", "grad_clip", allow_zero=True, prefix="optim.")
-        if not all(0.0 <= beta < 1.0 for beta in self.betas):
-            raise InputError(f"optim.betas must be in [0, 1), got {list(self.betas)}")
-
-
-@dataclass
-class DiffusionTrainConfig:
-    """One stage's training run; `net.mask_head` and `net.cond_channels` follow `diffusion.stage`."""
-
-    data_root: str = ""  # SemanticKITTI layout: ROOT/sequences/XX/velodyne/NNNNNN.bin
-    sequences: list[str] | None = None  # None = all under data_root
-    probs_root: str = ""  # PROBS/sequences/XX/probs/NNNNNN.npy from `u4d seg-predict` (stage1/stage2)
-    sensor: str = "hdl64"  # hdl64 | hdl32 | sensor yaml
-    height: int = 64
-    width: int = 1024
-    row_mode: RowMode = "beam"
-    crop_width: int = 0  # > 0: train on random azimuth crops of this many columns (sampling stays full width); 0 = off
-    frames: int = 1  # L: scans per item; > 1 trains on L-frame windows of one sequence, (B, L, C, H, W)
-    frame_stride: int = 1  # frames between the scans of a window
-    uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
-    net: UNetConfig = field(default_factory=UNetConfig)
-    diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
-    ema_decay: float = 0.995
-    ema_warmup_steps: int = 0
-    steps: int = 1000
-    max_minutes: float = 0.0  # wall-clock budget (0 = none): stop with a checkpoint once used, even before `steps`
-    batch_size: int = 8  # per rank
-    log_every: int = 50
-    checkpoint_every: int = 500
-    keep_checkpoints: int = 2  # 0 = keep all
-    sample_every: int = 0  # 0 = no sample PNGs; else a DDPM sample of the EMA net every that many steps
-    sample_steps: int = 32
-    cache_images: bool = True  # keep the projected range images of the training scans in memory
-    seed: int = 0
-    device: str = "auto"
-    out: str = "runs/u4d"
-
-    def __post_init__(self) -> None:
-        self.net.mask_head = self.diffusion.stage == "stage1"
-        self.net.cond_channels = 3 if self.diffusion.stage == "stage2" else 0
-        if self.steps < 1 or self.batch_size < 1:
-            raise InputError(f"steps and batch_size must be >= 1, got {self.steps}, {self.batch_size}")
-        if self.height < 1 or self.width < 1:
-            raise InputError(f"height/width must be >= 1, got {self.height}x{self.width}")
-        factor = self.net.downsampling_factor
-        if self.crop_width and not (0 < self.crop_width <= self.width and self.crop_width % factor == 0):
-            raise InputError(
-                f"crop_width must be 0 (off) or a multiple of {factor} (the net's downsampling) up to width "
-                f"{self.width}, got {self.crop_width}"
-            )
-        if self.frames < 1 or self.frame_stride < 1:
-            raise InputError(f"frames and frame_stride must be >= 1, got {self.frames}, {self.frame_stride}")
-        check_finite_config(self)
-        check_positive(self, "log_every", "checkpoint_every", "sample_steps")
-        check_positive(self, "keep_checkpoints", "sample_every", "max_minutes", "ema_warmup_steps", allow_zero=True)
-        if not 0.0 <= self.ema_decay <= 1.0:
-            raise InputError(f"key 'ema_decay' must be in [0, 1], got {self.ema_decay}")
-
-
-def derived_seed(*parts: int) -> int:
-    """A 63-bit seed hashed from non-negative integers (numpy SeedSequence; no global state)."""
-    return int(np.random.SeedSequence(list(parts)).generate_state(1, np.uint64)[0] >> np.uint64(1))
-
-
-def build_net(cfg: DiffusionTrainConfig, device: torch.device | str = "cpu") -> RangeUNet:
-    """RangeUNet of the config (initialised from cfg.seed), with the ray angles of its sensor for Fourier features."""
-    elevation, azimuth = ray_angles(get_sensor(cfg.sensor), cfg.height, cfg.width, cfg.row_mode)
-    with torch.random.fork_rng(devices=[]):  # seeded init without touching the caller's global RNG
-        torch.manual_seed(cfg.seed)
-        net = RangeUNet(cfg.net, elevation.float(), azimuth.float())
-    return net.to(device)
 
 
 class RangeImages:
@@ -266,19 +177,6 @@ def learning_rate(step: int, cfg: OptimConfig) -> float:
     return cfg.lr * min(1.0, (step + 1) / max(1, cfg.warmup_steps))
 
 
-def find_checkpoint(out_dir: Path, resume: str | Path) -> Path:
-    """`--resume` without a path -> newest OUT/checkpoints/step_*.pt; with a path -> that file."""
-    if str(resume) != "last":
-        path = Path(resume)
-        if not path.is_file():
-            raise InputError(f"{path}: checkpoint to resume from not found")
-        return path
-    found = sorted((out_dir / "checkpoints").glob("step_*.pt"))
-    if not found:
-        raise InputError(f"{out_dir / 'checkpoints'}: no step_*.pt checkpoint to resume from")
-    return found[-1]
-
-
 def save_checkpoint(path: Path, state: dict, keep: int) -> None:
     """Write atomically, then delete all but the newest `keep` step_*.pt beside it (0 = keep all)."""
     atomic_torch_save(path, state)
@@ -306,13 +204,6 @@ def checkpoint_state(
         "optimizer": optimizer.state_dict() if optimizer is not None else None,
         "rng": {"torch": torch.get_rng_state(), "seed": cfg.seed},
     }
-
-
-def config_from_checkpoint(ckpt: dict, source: str) -> DiffusionTrainConfig:
-    """The resolved DiffusionTrainConfig stored in a checkpoint."""
-    if ckpt.get("kind") != CHECKPOINT_KIND:
-        raise InputError(f"{source}: not a u4d train-diffusion checkpoint")
-    return config_from_dict(DiffusionTrainConfig, ckpt["config"], source=source)
 
 
 def _save_sample_png(net: RangeUNet, cfg: DiffusionTrainConfig, images: RangeImages, path: Path) -> None:

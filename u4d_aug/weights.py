@@ -1,4 +1,4 @@
-"""Shipped weights (issue 39 item 6): `u4d export-weights CKPT --out FILE` keeps a trained net's inference weights.
+"""Shipped weights: the float16 format that `u4d export-weights` (u4d_aug/export_weights.py) writes and loaders read.
 
 The file is {kind, format, config, model, hash, weights_hash, trained}: `model` is the state dict inference uses
 with every floating tensor in float16 (non-float buffers unchanged), about half the size of the float32 weights,
@@ -12,16 +12,13 @@ The loaders of the three kinds read either file and cast the weights back to flo
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
-from pathlib import Path
 
 import torch
 from torch import Tensor
 
 from u4d_aug.errors import InputError
-from u4d_aug.io import atomic_torch_save, file_sha256, load_checkpoint
 
 WEIGHTS_FORMAT = "u4d-weights-v1"
 # The checkpoint kinds, as their writers name them (tests/test_weights.py checks they agree; u4d_aug does not
@@ -131,65 +128,3 @@ def load_exported(net: torch.nn.Module, state: dict, source: str) -> None:
             f"{source}: exported weights do not fit the net of their config (missing "
             f"{sorted(set(missing) - set(RECOMPUTED_BUFFERS))[:3]}, unexpected {sorted(unexpected)[:3]})"
         )
-
-
-def trained_info(state: dict, kind: str, source: Path) -> dict:
-    """Step (extractors: steps), wall-clock minutes when the checkpoint has them, sha256[:16] of the source file."""
-    info: dict = {"step": state.get("steps") if kind in EXTRACTOR_KINDS else state.get("step")}
-    if state.get("elapsed") is not None:
-        info["elapsed_minutes"] = round(float(state["elapsed"]) / 60.0, 3)
-    info["source_sha256"] = file_sha256(source)
-    return info
-
-
-def export_weights(checkpoint_path: str | Path, out_path: str | Path) -> dict:
-    """Write the float16 inference weights of a training checkpoint to `out_path` atomically; returns what it wrote."""
-    source, out = Path(checkpoint_path), Path(out_path)
-    state = load_checkpoint(source, "training checkpoint")
-    if is_exported(state):
-        raise InputError(f"{source}: already exported weights; export from the training checkpoint")
-    if out.exists() and out.resolve() == source.resolve():
-        raise InputError(f"{out}: --out would overwrite the training checkpoint itself")
-    kind = checkpoint_kind(state, str(source))
-    config = state.get("config")
-    if not isinstance(config, dict):
-        raise InputError(f"{source}: {kind} checkpoint without its resolved config")
-    model = half_state(inference_weights(state, kind, str(source)), str(source))
-    if kind == DIFFUSION_KIND:
-        model = {name: tensor for name, tensor in model.items() if name not in RECOMPUTED_BUFFERS}
-    digest = weights_digest(model, config)
-    identity = digest
-    if kind in EXTRACTOR_KINDS:
-        from u4d_aug.metrics.extractors import load_extractor  # it imports this module, so not at the top
-
-        identity = load_extractor(source).hash  # the stored hash, checked against the float32 weights
-    exported = {
-        "kind": kind,
-        "format": WEIGHTS_FORMAT,
-        "config": config,
-        "model": model,
-        "hash": identity,
-        "weights_hash": digest,
-        "trained": trained_info(state, kind, source),
-    }
-    atomic_torch_save(out, exported)
-    return exported
-
-
-def add_export_weights_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of `u4d export-weights CKPT --out FILE`."""
-    parser.add_argument(
-        "checkpoint", type=Path, help="training checkpoint of train-diffusion, train-extractor or seg-train"
-    )
-    parser.add_argument("--out", type=Path, required=True, help="the float16 weights file to write (e.g. weights/*.pt)")
-
-
-def run_export_weights(args: argparse.Namespace) -> int:
-    """`u4d export-weights`: float16 inference weights + config + hash of a training checkpoint."""
-    exported = export_weights(args.checkpoint, args.out)
-    size, before = args.out.stat().st_size, args.checkpoint.stat().st_size
-    print(
-        f"{exported['kind']} weights: {args.out} ({size / 1e6:.2f} MB; checkpoint {before / 1e6:.2f} MB), "
-        f"hash {exported['hash']}, step {exported['trained']['step']}"
-    )
-    return 0
