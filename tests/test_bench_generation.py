@@ -2,41 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from tiny_nets import load_script, save_checkpoint
 
-from u4d_aug.config import load_config
 from u4d_aug.data.formats import write_kitti_scan
-from u4d_aug.ema import EMA
-from u4d_aug.io import atomic_torch_save
-from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state
 
-REPO = Path(__file__).resolve().parents[1]
-TINY = REPO / "configs" / "u4d" / "tiny.yaml"
-
-
-def load_bench():
-    """The benchmark script as a module (benchmarks/ is not a package)."""
-    spec = importlib.util.spec_from_file_location("bench_generation", REPO / "benchmarks" / "bench_generation.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-bench = load_bench()
-
-
-def save_tiny_stage(path: Path, stage: str) -> Path:
-    """An untrained tiny-preset checkpoint of `stage`, as `u4d train-diffusion` writes it."""
-    cfg = load_config(DiffusionTrainConfig, TINY, [f"diffusion.stage={stage}"])
-    net = build_net(cfg)
-    atomic_torch_save(path, checkpoint_state(cfg, 3, net, EMA(net)))
-    return path
+bench = load_script("bench_generation")
 
 
 def test_two_samplers_write_methods_and_ratios(tmp_path):
@@ -45,7 +20,10 @@ def test_two_samplers_write_methods_and_ratios(tmp_path):
         for i in range(3):
             points = np.concatenate([rng.uniform(-30, 30, (2000, 3)), rng.uniform(0, 1, (2000, 1))], 1)
             write_kitti_scan(tmp_path / "real" / "sequences" / seq / "velodyne" / f"{i:06d}.bin", points.astype("f4"))
-    nets = {stage: save_tiny_stage(tmp_path / f"{stage}.pt", stage) for stage in ("stage1", "stage2", "baseline")}
+    stages = ("stage1", "stage2", "baseline")
+    nets = {
+        stage: save_checkpoint(tmp_path / f"{stage}.pt", overrides=(f"diffusion.stage={stage}",)) for stage in stages
+    }
     out = tmp_path / "gen.json"
     argv = ["--root", str(tmp_path / "real"), "--stage1", str(nets["stage1"]), "--stage2", str(nets["stage2"])]
     argv += ["--baseline", str(nets["baseline"]), "--reference", "00", "--floor", "01", "--num", "2"]

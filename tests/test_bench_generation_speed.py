@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import statistics
@@ -10,36 +9,19 @@ from pathlib import Path
 
 import pytest
 import torch
-
-from u4d_aug.config import load_config
-from u4d_aug.ema import EMA
-from u4d_aug.io import atomic_torch_save
-from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state
+from tiny_nets import load_script, save_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = REPO / "configs" / "u4d" / "tiny.yaml"
 HEADLINE = ("u4d_s_per_scan", "baseline_s_per_scan", "paired_ratio", "anchor_s_per_scan")
 
 
-def load_bench():
-    """The benchmark script as a module (benchmarks/ is not a package)."""
-    spec = importlib.util.spec_from_file_location(
-        "bench_generation_speed", REPO / "benchmarks" / "bench_generation_speed.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-bench = load_bench()
+bench = load_script("bench_generation_speed")
 
 
 def save_tiny_baseline(path: Path) -> Path:
     """An untrained tiny-preset baseline checkpoint, as `u4d train-diffusion` writes it."""
-    cfg = load_config(DiffusionTrainConfig, TINY, ["diffusion.stage=baseline"])
-    net = build_net(cfg)
-    atomic_torch_save(path, checkpoint_state(cfg, 0, net, EMA(net)))
-    return path
+    return save_checkpoint(path, TINY, ("diffusion.stage=baseline",))
 
 
 @pytest.fixture(scope="module")

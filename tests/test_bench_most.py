@@ -2,24 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-
-
-def load_bench():
-    """The benchmark script as a module (benchmarks/ is not a package)."""
-    spec = importlib.util.spec_from_file_location("bench_most", REPO / "benchmarks" / "bench_most.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from tiny_nets import load_script
 
 
 def test_quick_run_writes_the_cost_of_each_length(tmp_path):
     out = tmp_path / "most_cost.json"
-    assert load_bench().main(["--quick", "--threads", "1", "--reps", "2", "--out", str(out)]) == 0
+    assert load_script("bench_most").main(["--quick", "--threads", "1", "--reps", "2", "--out", str(out)]) == 0
     result = json.loads(out.read_text())
     assert result["benchmark"] == "most_cost" and result["quick"] and (result["height"], result["width"]) == (16, 64)
     assert result["params"]["most"] > result["params"]["plain"] > 0 and "cores" in result["machine"]

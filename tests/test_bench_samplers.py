@@ -2,31 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from tiny_nets import load_script, save_checkpoint
 
-from u4d_aug.config import load_config
 from u4d_aug.data.formats import write_kitti_scan
-from u4d_aug.ema import EMA
-from u4d_aug.io import atomic_torch_save
-from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state
 
-REPO = Path(__file__).resolve().parents[1]
-
-
-def load_bench():
-    spec = importlib.util.spec_from_file_location("bench_samplers", REPO / "benchmarks" / "bench_samplers.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-bench = load_bench()
+bench = load_script("bench_samplers")
 
 
 def test_roughness_counts_only_steps_between_returns():
@@ -38,9 +23,7 @@ def test_roughness_counts_only_steps_between_returns():
 
 
 def test_run_on_a_tiny_net(tmp_path):
-    cfg = load_config(DiffusionTrainConfig, REPO / "configs" / "u4d" / "tiny.yaml", ["diffusion.stage=baseline"])
-    net = build_net(cfg)
-    atomic_torch_save(tmp_path / "base.pt", checkpoint_state(cfg, 7, net, EMA(net)))
+    save_checkpoint(tmp_path / "base.pt", overrides=("diffusion.stage=baseline",), step=7)
     rng = np.random.default_rng(0)
     for i in range(2):
         points = np.concatenate([rng.uniform(-30, 30, (3000, 3)), rng.uniform(0, 1, (3000, 1))], 1).astype("f4")

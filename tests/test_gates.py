@@ -8,28 +8,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from tiny_nets import TINY_MOST, save_checkpoint
 
-from u4d_aug.config import load_config
-from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.gates import gate_trajectory, summarise_gates
-from u4d_aug.io import atomic_torch_save
-from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state
-
-TINY_MOST = Path(__file__).resolve().parents[1] / "configs" / "u4d" / "tiny_most.yaml"
 
 
 def save_net(path: Path, *overrides: str, temporal_block: str | None = None) -> Path:
     """A tiny MoST checkpoint; `temporal_block` gets a gate bias that picks the temporal branch (α^t ≈ 1)."""
-    cfg = load_config(DiffusionTrainConfig, TINY_MOST, list(overrides))
-    net = build_net(cfg)
-    if temporal_block is not None:
-        block = net.most_blocks()[net.most_names.index(temporal_block)]
-        with torch.no_grad():
-            block.gate[-1].bias.copy_(torch.tensor([-6.0, 6.0]))
-    ema = EMA(net)  # the EMA copy is what a generator loads
-    atomic_torch_save(path, checkpoint_state(cfg, 1, net, ema))
-    return path
+
+    def bias(net) -> None:
+        if temporal_block is not None:
+            block = net.most_blocks()[net.most_names.index(temporal_block)]
+            with torch.no_grad():
+                block.gate[-1].bias.copy_(torch.tensor([-6.0, 6.0]))
+
+    return save_checkpoint(path, TINY_MOST, overrides, step=1, edit=bias)
 
 
 def test_gates_are_recorded_per_call_and_block(tmp_path):

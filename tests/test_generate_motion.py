@@ -8,20 +8,17 @@ import numpy as np
 import pytest
 import torch
 from test_u4d_train import write_tiny_world
+from tiny_nets import TINY_MOST, save_checkpoint
 
 from u4d_aug.bank import BankLayout, write_sample, write_sequence_poses
 from u4d_aug.config import load_config
 from u4d_aug.data.formats import read_calib, read_kitti_scan, read_poses, write_calib, write_poses
-from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.generate import GenerateConfig, generate_bank, load_motion_file
-from u4d_aug.io import atomic_torch_save
 from u4d_aug.metrics.evaluate import evaluate
 from u4d_aug.metrics.temporal import load_kitti_sequence, ttce
-from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state
 from u4d_aug.trajectory import poses_from_motion, relative_motion, straight_motion
 
-TINY_MOST = Path(__file__).resolve().parents[1] / "configs" / "u4d" / "tiny_most.yaml"
 REAL_SCAN = Path(__file__).resolve().parents[2] / "shared/data/real/semantickitti/sequences/00/velodyne/000000.bin"
 
 
@@ -43,10 +40,7 @@ def world_poses(num_scans: int) -> np.ndarray:
 
 def write_checkpoint(path: Path, stage: str, data_root: Path, *extra: str) -> Path:
     """An untrained tiny MoST checkpoint (2-frame windows) whose config trains on data_root."""
-    cfg = load_config(DiffusionTrainConfig, TINY_MOST, [f"diffusion.stage={stage}", f"data_root={data_root}", *extra])
-    net = build_net(cfg)
-    atomic_torch_save(path, checkpoint_state(cfg, 0, net, EMA(net)))
-    return path
+    return save_checkpoint(path, TINY_MOST, (f"diffusion.stage={stage}", f"data_root={data_root}", *extra))
 
 
 @pytest.fixture(scope="module")

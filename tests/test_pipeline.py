@@ -187,25 +187,22 @@ def test_mask_threshold_undoes_the_bce_positive_weight(pos_weight):
 
 def test_ego_motion_reaches_the_net_through_every_generator(tmp_path):
     """A net trained with poses samples only with motion of the right shape, and the motion changes the sample."""
-    from u4d_aug.config import load_config
-    from u4d_aug.ema import EMA
+    from tiny_nets import TINY_MOST, save_checkpoint
+
     from u4d_aug.errors import InputError
-    from u4d_aug.io import atomic_torch_save
     from u4d_aug.pipeline import generate_baseline, generate_u4d, load_generator
-    from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state
     from u4d_aug.trajectory import straight_motion
 
-    tiny_most = Path(__file__).resolve().parents[1] / "configs" / "u4d" / "tiny_most.yaml"
-    loaded = {}
-    for stage in ("stage1", "stage2", "baseline"):
-        cfg = load_config(DiffusionTrainConfig, tiny_most, [f"diffusion.stage={stage}", "net.pose_dim=4"])
-        net = build_net(cfg)
-        with torch.no_grad():  # random weights everywhere (zero-initialised outputs too), so the motion matters
-            weights = torch.Generator().manual_seed(1)
+    def randomize(net) -> None:  # random weights everywhere (zero-initialised outputs too), so the motion matters
+        weights = torch.Generator().manual_seed(1)
+        with torch.no_grad():
             for p in net.parameters():
                 p.copy_(torch.randn(p.shape, generator=weights) * 0.1)
-        atomic_torch_save(tmp_path / f"{stage}.pt", checkpoint_state(cfg, 1, net, EMA(net)))
-        loaded[stage] = load_generator(tmp_path / f"{stage}.pt")
+
+    loaded = {}
+    for stage in ("stage1", "stage2", "baseline"):
+        overrides = (f"diffusion.stage={stage}", "net.pose_dim=4")
+        loaded[stage] = load_generator(save_checkpoint(tmp_path / f"{stage}.pt", TINY_MOST, overrides, 1, randomize))
     straight = torch.from_numpy(straight_motion(2, 1.2))[None]  # (1, L=2, 4)
     turning = torch.from_numpy(straight_motion(2, 1.2, yaw_rate=0.3))[None]
     a = generate_baseline(loaded["baseline"], 1, 3, torch.Generator().manual_seed(0), "ddim", motion=straight)["x0"]

@@ -342,12 +342,12 @@ def test_crop_training_gives_the_full_width_loss_and_gradient_on_a_ring_symmetri
     log_snr = torch.tensor([0.0, 2.0])
     offsets = torch.tensor([2, 40])
     losses, grads = [], []
-    for images, kwargs in (
-        ({"x_t": x_t, "eps": eps}, {}),
-        (crop_batch({"x_t": x_t, "eps": eps}, offsets, 16), {"crop_offsets": offsets}),
+    for images, kwargs in (  # x_t and ε carried under image keys, so crop_batch crops them as it crops x0 and x0_u
+        ({"x0": x_t, "x0_u": eps}, {}),
+        (crop_batch({"x0": x_t, "x0_u": eps}, offsets, 16), {"crop_offsets": offsets}),
     ):
         net.zero_grad()
-        loss = (net(images["x_t"], log_snr, **kwargs)[0] - images["eps"]).square().mean()
+        loss = (net(images["x0"], log_snr, **kwargs)[0] - images["x0_u"]).square().mean()
         loss.backward()
         losses.append(loss.detach())
         grads.append(torch.cat([p.grad.flatten() for p in net.parameters()]))

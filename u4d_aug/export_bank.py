@@ -1,4 +1,4 @@
-"""`u4d export BANK`: all-ignore SemanticKITTI labels and an mmdetection3d info file for any bank (issue 42 §3).
+"""`u4d export BANK`: all-ignore SemanticKITTI labels and an mmdetection3d info file for any bank.
 
 Labels: BANK/sequences/NN/labels/NNNNNN.label beside every velodyne/NNNNNN.bin, one uint32 per point of the .bin
 (SemanticKITTI encoding: lower 16 bits semantic id, upper 16 instance id), all 0 = "unlabeled", which

@@ -1,7 +1,6 @@
 """Atomic file writes (temp file in the same folder + os.replace) so that nothing already written is lost, with the
 umask's file mode and one-line errors where nothing can be written; checkpoints read with torch.load(weights_only=True)
-and arrays with np.load(allow_pickle=False), so that a file handed to us cannot run code; json without NaN
-(issue 44)."""
+and arrays with np.load(allow_pickle=False), so that a file handed to us cannot run code; json without NaN."""
 
 from __future__ import annotations
 
@@ -221,7 +220,7 @@ def file_sha256(path: str | os.PathLike, length: int = 16) -> str:
 
 
 def load_checkpoint(path: str | os.PathLike, what: str) -> dict:
-    """torch.load(weights_only=True) of a dict: tensors and plain python only, nothing in the file runs (issue 44).
+    """torch.load(weights_only=True) of a dict: tensors and plain python only, nothing in the file runs.
 
     A missing, empty, truncated or corrupt file, one that is no torch checkpoint, or one that holds other objects
     (a class, a function, numpy scalars) is an InputError naming the file and `what` was expected there.

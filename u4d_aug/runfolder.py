@@ -1,4 +1,4 @@
-"""Where a training run in an output folder starts: step 0, or the checkpoint it resumes from (issue 44).
+"""Where a training run in an output folder starts: step 0, or the checkpoint it resumes from.
 
 A folder with checkpoints holds a previous run: it continues only with --resume. A folder with a config and a log
 but no checkpoint holds a run killed before its first checkpoint: it is started again from step 0 (its log

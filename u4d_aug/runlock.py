@@ -1,4 +1,4 @@
-"""One run per output folder: OUT/.lock holds the pid and host of the run writing there (issue 44).
+"""One run per output folder: OUT/.lock holds the pid and host of the run writing there.
 
 The lock file is created with O_CREAT | O_EXCL, so of two runs started on one folder exactly one gets it; the
 other is refused with one line naming the folder and the holder. A lock whose process is gone (same host, pid not

@@ -149,14 +149,16 @@ def crop_offsets(batch_size: int, cfg: DiffusionTrainConfig, generator: torch.Ge
     return factor * torch.randint(0, cfg.width // factor, (batch_size,), generator=generator)
 
 
+IMAGE_KEYS = ("x0", "x0_u", "m_u")  # the range images of a batch; its other entries (the ego motion) are per frame
+
+
 def crop_batch(batch: dict[str, Tensor], offsets: Tensor, crop_width: int) -> dict[str, Tensor]:
-    """Azimuth crops (B, [L,] C, H, crop_width) of every (B, [L,] C, H, W) image, wrapping around the ring; the rest
-    (the ego motion) as it is."""
-    out = {}
-    for key, value in batch.items():
-        if key == "motion":
-            out[key] = value
+    """Azimuth crops (B, [L,] C, H, crop_width) of the batch's images (`IMAGE_KEYS`), wrapping around the ring."""
+    out = dict(batch)
+    for key in IMAGE_KEYS:
+        if key not in batch:
             continue
+        value = batch[key]
         columns = crop_columns(offsets.to(value.device), crop_width, value.shape[-1])  # (B, w)
         index = columns.view(value.shape[0], *([1] * (value.dim() - 2)), crop_width).expand(*value.shape[:-1], -1)
         out[key] = torch.gather(value, -1, index)
