@@ -35,14 +35,6 @@ from u4d_aug.train import train as train_diffusion
 REPO = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 class Payload:
     """Unpickled, it calls open(marker, "w"): a file appears if a loader runs what a checkpoint hands it."""
 

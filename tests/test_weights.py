@@ -42,14 +42,6 @@ STAGES = ("stage1", "stage2", "baseline")
 CPU = torch.device("cpu")
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def fp32_size(state_dict: dict[str, torch.Tensor]) -> int:
     """Bytes of torch.save of a float32 state dict (what shipping the EMA weights unconverted would cost)."""
     buffer = io.BytesIO()
