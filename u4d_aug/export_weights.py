@@ -21,6 +21,7 @@ from u4d_aug.weights import (
     half_state,
     inference_weights,
     is_exported,
+    quantize_int8,
     weights_digest,
 )
 
@@ -34,8 +35,9 @@ def trained_info(state: dict, kind: str, source: Path) -> dict:
     return info
 
 
-def export_weights(checkpoint_path: str | Path, out_path: str | Path) -> dict:
-    """Write the float16 inference weights of a training checkpoint to `out_path` atomically; returns what it wrote."""
+def export_weights(checkpoint_path: str | Path, out_path: str | Path, int8: bool = False) -> dict:
+    """Write the float16 (`int8`: large tensors as int8 groups) inference weights of a training checkpoint to
+    `out_path` atomically; returns what it wrote."""
     source, out = Path(checkpoint_path), Path(out_path)
     state = load_checkpoint(source, "training checkpoint")
     if is_exported(state):
@@ -49,6 +51,9 @@ def export_weights(checkpoint_path: str | Path, out_path: str | Path) -> dict:
     model = half_state(inference_weights(state, kind, str(source)), str(source))
     if kind == DIFFUSION_KIND:
         model = {name: tensor for name, tensor in model.items() if name not in RECOMPUTED_BUFFERS}
+    shapes = None
+    if int8:
+        model, shapes = quantize_int8(model)
     digest = weights_digest(model, config)
     identity = digest
     if kind in EXTRACTOR_KINDS:
@@ -62,6 +67,8 @@ def export_weights(checkpoint_path: str | Path, out_path: str | Path) -> dict:
         "weights_hash": digest,
         "trained": trained_info(state, kind, source),
     }
+    if shapes is not None:
+        exported["int8"] = shapes
     atomic_torch_save(out, exported)
     return exported
 
@@ -72,11 +79,16 @@ def add_export_weights_arguments(parser: argparse.ArgumentParser) -> None:
         "checkpoint", type=Path, help="training checkpoint of train-diffusion, train-extractor or seg-train"
     )
     parser.add_argument("--out", type=Path, required=True, help="the float16 weights file to write (e.g. weights/*.pt)")
+    parser.add_argument(
+        "--int8",
+        action="store_true",
+        help="store tensors of >= 4096 values as int8 with a float16 scale per 64 (half the float16 size)",
+    )
 
 
 def run_export_weights(args: argparse.Namespace) -> int:
     """`u4d export-weights`: float16 inference weights + config + hash of a training checkpoint."""
-    exported = export_weights(args.checkpoint, args.out)
+    exported = export_weights(args.checkpoint, args.out, int8=args.int8)
     size, before = args.out.stat().st_size, args.checkpoint.stat().st_size
     print(
         f"{exported['kind']} weights: {args.out} ({size / 1e6:.2f} MB; checkpoint {before / 1e6:.2f} MB), "

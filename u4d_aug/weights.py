@@ -8,6 +8,9 @@ so that the nets committed under `weights/` fit their 25 MB budget. Inference we
 `weights_hash` = sha256[:16] of the float16 weights + config, checked on load; `hash` names the net in results:
 the same, except for extractors, which keep the hash of their training checkpoint so FRD/FPD stay comparable.
 The loaders of the three kinds read either file and cast the weights back to float32 (`exported_model`).
+With `--int8` (`quantize_int8`) the large weight tensors are stored as int8 in groups of `INT8_GROUP` values with
+one float16 scale per group (absmax, as GGML's Q8_0 blocks), about a quarter of float32; the file then carries
+`int8: {name: shape}` and the loaders expand those tensors back before use.
 """
 
 from __future__ import annotations
@@ -30,6 +33,9 @@ DIFFUSION_KIND = "u4d-diffusion"
 RECOMPUTED_BUFFERS = ("ray_features.features",)
 EXTRACTOR_KINDS = ("frd", "fpd")
 SEGMENTATION_KIND = "u4d-seg-checkpoint"
+INT8_GROUP = 64  # values per float16 scale: 3 % overhead on top of one byte per weight
+INT8_MIN_NUMEL = 4096  # smaller tensors (biases, norms, small convolutions) stay float16
+SCALE_SUFFIX = ":scale"
 
 
 def is_exported(state: dict) -> bool:
@@ -97,6 +103,45 @@ def float32_state(model: dict[str, Tensor]) -> dict[str, Tensor]:
     return {name: t.float() if t.is_floating_point() else t for name, t in model.items()}
 
 
+def quantize_int8(model: dict[str, Tensor]) -> tuple[dict[str, Tensor], dict[str, list[int]]]:
+    """Float16 tensors of >= INT8_MIN_NUMEL values as int8 groups (n/64, 64) + float16 absmax scales (n/64, 1);
+    returns the new state dict and {name: original shape} of the quantized tensors."""
+    out: dict[str, Tensor] = {}
+    shapes: dict[str, list[int]] = {}
+    for name, tensor in model.items():
+        if not tensor.is_floating_point() or tensor.numel() < INT8_MIN_NUMEL:
+            out[name] = tensor
+            continue
+        flat = tensor.float().flatten()
+        flat = torch.cat([flat, flat.new_zeros(-flat.numel() % INT8_GROUP)]).view(-1, INT8_GROUP)
+        scale = (flat.abs().amax(dim=1, keepdim=True) / 127.0).to(torch.float16)
+        safe = torch.where(scale > 0, scale.float(), torch.ones_like(scale, dtype=torch.float32))
+        out[name] = torch.round(flat / safe).clamp(-127, 127).to(torch.int8)
+        out[name + SCALE_SUFFIX] = scale
+        shapes[name] = list(tensor.shape)
+    return out, shapes
+
+
+def dequantize_int8(model: dict[str, Tensor], shapes: object, source: str) -> dict[str, Tensor]:
+    """Expand the int8 groups of `quantize_int8` back to float16 tensors of their recorded shapes."""
+    if not isinstance(shapes, dict):
+        raise InputError(f"{source}: field 'int8' must map weight names to shapes, got {type(shapes).__name__}")
+    out = {name: t for name, t in model.items() if not name.endswith(SCALE_SUFFIX)}
+    for name, shape in shapes.items():
+        groups, scale = model.get(name), model.get(name + SCALE_SUFFIX)
+        if groups is None or scale is None or groups.dtype != torch.int8:
+            raise InputError(f"{source}: int8 weight {name} lacks its int8 groups or its scales")
+        count = int(torch.tensor(shape).prod()) if len(shape) else 1
+        if groups.dim() != 2 or scale.shape != (groups.shape[0], 1) or groups.numel() < count:
+            raise InputError(
+                f"{source}: int8 weight {name}: groups {tuple(groups.shape)} and scales {tuple(scale.shape)} "
+                f"cannot hold shape {shape}"
+            )
+        values = groups.float() * scale.float()
+        out[name] = values.flatten()[:count].view(shape).to(torch.float16)
+    return out
+
+
 def weights_digest(model: dict[str, Tensor], config: dict) -> str:
     """sha256[:16] of the config (sorted json) and every tensor's name, dtype, shape and bytes, in name order."""
     digest = hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode())
@@ -117,6 +162,8 @@ def exported_model(state: dict, source: str) -> dict[str, Tensor]:
         raise InputError(
             f"{source}: stored weights_hash {state.get('weights_hash')} does not match the weights ({digest})"
         )
+    if "int8" in state:
+        model = dequantize_int8(model, state["int8"], source)
     return float32_state(model)
 
 
