@@ -66,6 +66,21 @@ def all_reduce_mean(value: torch.Tensor) -> torch.Tensor:
     return value
 
 
+def dist_initialized() -> bool:
+    """Whether this process is one rank of a joined process group."""
+    return dist.is_available() and dist.is_initialized()
+
+
+def ranks_where(flag: bool) -> list[int]:
+    """The ranks on which `flag` holds ([0] or [] in a single process): a collective every rank must call."""
+    if not dist_initialized():
+        return [0] if flag else []
+    flags = torch.zeros(dist.get_world_size(), dtype=torch.int64)
+    flags[dist.get_rank()] = int(flag)
+    dist.all_reduce(flags, op=dist.ReduceOp.SUM)
+    return [rank for rank, bad in enumerate(flags.tolist()) if bad]
+
+
 def all_reduce_sum(value: torch.Tensor) -> torch.Tensor:
     """Sum of a tensor over ranks (identity in a single process)."""
     if dist.is_available() and dist.is_initialized():

@@ -9,6 +9,7 @@ import dataclasses
 import math
 from typing import TYPE_CHECKING, Any
 
+from u4d_aug.distributed import dist_initialized, ranks_where
 from u4d_aug.errors import InputError
 
 if TYPE_CHECKING:
@@ -59,12 +60,18 @@ def check_plain_name(name: str, what: str) -> str:
 
 
 def check_finite_loss(loss: torch.Tensor, step: int, grad_norm: torch.Tensor | float | None = None) -> None:
-    """Stop at a NaN/inf loss or gradient norm of training step `step` (1-based), before the optimizer steps."""
+    """Stop at a NaN/inf loss or gradient norm of training step `step` (1-based), before the optimizer steps.
+
+    Under torchrun every rank stops together: the loss check is agreed over ranks (a rank whose own loss is finite
+    would otherwise wait in backward's gradient all-reduce for one that left); the gradient norm is taken after
+    that all-reduce, so it is the same on every rank already."""
     value = float(loss.detach())
-    if not math.isfinite(value):
+    bad_ranks = ranks_where(not math.isfinite(value))
+    if bad_ranks:
+        where = "" if bad_ranks == [0] and not dist_initialized() else f" on rank {', '.join(map(str, bad_ranks))}"
         raise NonFiniteLossError(
-            f"training step {step}: the loss is {value}; stopped without saving these weights (the last checkpoint "
-            "stays; a lower learning rate may help)"
+            f"training step {step}: the loss is {'not finite' if math.isfinite(value) else value}{where}; stopped "
+            "without saving these weights (the last checkpoint stays; a lower learning rate may help)"
         )
     if grad_norm is not None and not math.isfinite(float(grad_norm)):
         raise NonFiniteLossError(
