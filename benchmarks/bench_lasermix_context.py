@@ -1,4 +1,4 @@
-"""How much harder a LaserMix scan is for a segmentor than the scans it was cut from (issue 5 diagnostic).
+"""How much harder a LaserMix scan is for a segmentor than the scans it was cut from (a diagnostic of the mean teacher).
 
 Pairs of labelled training scans (a, b) are mixed as the mean-teacher step mixes a labelled with an unlabeled scan
 (`segmentation.lasermix.lasermix`, the run's sensor pitch range), here with ground truth on both sides, so every

@@ -1,6 +1,6 @@
 """The augmentation comparison (`u4d experiment CONFIG [key=value ...]`): arms x backbones x seeds, one budget.
 
-Arms (issue 5): sup-only, MT+LaserMix, MT+LaserMix+R2DM bank, MT+LaserMix+U4D bank. Every run starts from
+Arms: sup-only, MT+LaserMix, MT+LaserMix+R2DM bank, MT+LaserMix+U4D bank. Every run starts from
 the same seg-train preset (`base`, e.g. configs/seg/cpu_semi.yaml: label split, step budget, net size) and
 changes only mode / bank / backbone / seed, so the arms get the same number of steps on the same labeled
 scans (the label split is fixed by data.split_seed; the seed changes initialisation, scan order and mixing).
@@ -71,7 +71,7 @@ class ArmConfig:
 
 
 def default_arms() -> list[ArmConfig]:
-    """The four arms of issue 5 (bank paths: where `u4d r2dm-sample` / `u4d generate` write their banks)."""
+    """The four arms of the downstream comparison (bank paths: where `u4d generate` writes the two banks)."""
     return [
         ArmConfig("sup-only", "supervised"),
         ArmConfig("mt-lasermix", "semi"),

@@ -18,7 +18,8 @@ from u4d_aug.metrics.extractors import ExtractorConfig
 from u4d_aug.train import DiffusionTrainConfig
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-PRESETS = sorted(CONFIGS.glob("*/*.yaml"))
+RECORDED = CONFIGS.parent / "benchmarks" / "experiments"  # the experiment configs behind recorded results
+PRESETS = sorted(CONFIGS.glob("*/*.yaml")) + sorted(RECORDED.glob("*.yaml"))
 
 
 def config_class(path: Path) -> type:
@@ -26,7 +27,7 @@ def config_class(path: Path) -> type:
     folder = path.parent.name
     if folder == "seg":
         return SegTrainConfig
-    elif folder == "experiment":
+    elif folder in ("experiment", "experiments"):
         return ExperimentConfig
     elif folder == "sim":
         return SimConfig
@@ -57,8 +58,8 @@ def test_preset_loads(path: Path):
 
 def test_fewlabel_fit_changes_only_lr_and_loss_level():
     """cpu_fewlabel_fit is cpu_fewlabel with optim.lr=0.01 and loss.level=voxel, nothing else."""
-    base = load_config(ExperimentConfig, CONFIGS / "experiment" / "cpu_fewlabel.yaml")
-    fit = load_config(ExperimentConfig, CONFIGS / "experiment" / "cpu_fewlabel_fit.yaml")
+    base = load_config(ExperimentConfig, RECORDED / "cpu_fewlabel.yaml")
+    fit = load_config(ExperimentConfig, RECORDED / "cpu_fewlabel_fit.yaml")
     for arm_base, arm_fit in zip(base.arms, fit.arms):
         a, b = run_config(base, arm_base, "minkunet", 0), run_config(fit, arm_fit, "minkunet", 0)
         assert (b.optim.lr, b.loss.level) == (0.01, "voxel")

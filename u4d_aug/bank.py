@@ -1,4 +1,4 @@
-"""A bank of generated scans in SemanticKITTI layout, written atomically and resumably (issue 6 §8).
+"""A bank of generated scans in SemanticKITTI layout, written atomically and resumably.
 
 BANK/sequences/00/velodyne/NNNNNN.bin   (N, 4) float32 points (read back with `read_kitti_scan`)
 BANK/sequences/00/mask/NNNNNN.npy       (H, W) bool: the stage-1 mask m_u (predicted, or real in completion mode)

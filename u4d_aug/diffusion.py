@@ -1,6 +1,6 @@
 """Continuous-time Gaussian diffusion: cosine log-SNR schedule and the training losses of the U4D stages.
 
-Schedule choice (issue 6 §2): continuous time, t ~ U(0, 1), cosine log-SNR as R2DM
+Schedule choice: continuous time, t ~ U(0, 1), cosine log-SNR as R2DM
 `models/diffusion/continuous_time.py` (generation_protocols.md §2.2):
     logSNR(t) = -2 log tan(t_min + t (t_max - t_min)), t_min = atan(e^-7.5), t_max = atan(e^7.5) (+15 .. -15)
     alpha = sqrt(sigmoid(logSNR)),  sigma = sqrt(sigmoid(-logSNR)),  x_t = alpha x0 + sigma eps.

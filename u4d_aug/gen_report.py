@@ -1,4 +1,4 @@
-"""`u4d gen-report`: real vs generated scans side by side (issue 6 §9), one PNG per shown sample.
+"""`u4d gen-report`: real vs generated scans side by side, one PNG per shown sample.
 
 Rows of range images: the real scan, its uncertainty map H(p) with P_u outlined, U4D's stage-1 output x0_u,
 U4D's stage-2 output x0 and the baseline's x0; below them the BEVs of the real, U4D and baseline scans.

@@ -1,7 +1,7 @@
 """Training of one diffusion stage: `u4d train-diffusion CONFIG stage=stage1|stage2|baseline [key=value ..]`.
 
 Stage 1 learns x0_u (the projected uncertain region P_u) with a mask head (L_u), stage 2 learns the full scan x0
-given concat(x0_u, m_u) (L_c), the baseline learns x0 unconditionally (R2DM); U4D paper §2, issue 6.
+given concat(x0_u, m_u) (L_c), the baseline learns x0 unconditionally (R2DM); U4D paper §2.
 The loop reads top to bottom (nanoGPT `train.py`): batch -> loss = diffusion(x0, cond, m_u) -> AdamW -> EMA.
 With `frames` = L > 1 a batch item is L consecutive scans (`frame_stride` apart) of one sequence, tensors
 (B, L, C, H, W), and a net with MoST blocks mixes the frames; their mean gates are logged and plotted.
