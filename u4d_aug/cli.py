@@ -126,38 +126,64 @@ DELEGATED = (
 )
 
 
-def _delegated_module(name: str):
-    """Import the module that implements a delegated command (explicit choices, no registry)."""
-    import importlib
-
+def _delegated_command(name: str) -> tuple[Callable[[argparse.ArgumentParser], None], Callable[..., int]]:
+    """(add_arguments, run) of a delegated command, importing its module only now (explicit choices, no registry)."""
     if name == "simulate":
-        return importlib.import_module("u4d_aug.data.sim.writer"), "simulate"
+        from u4d_aug.data.sim import writer
+
+        return writer.add_simulate_arguments, writer.run_simulate
     elif name == "sim-report":
-        return importlib.import_module("u4d_aug.data.sim.report"), "sim_report"
+        from u4d_aug.data.sim import report
+
+        return report.add_sim_report_arguments, report.run_sim_report
     elif name == "seg-train":
-        return importlib.import_module("segmentation.train"), "seg_train"
+        from segmentation import train as seg_train
+
+        return seg_train.add_seg_train_arguments, seg_train.run_seg_train
     elif name == "seg-eval":
-        return importlib.import_module("segmentation.evaluate"), "seg_eval"
+        from segmentation import evaluate as seg_eval
+
+        return seg_eval.add_seg_eval_arguments, seg_eval.run_seg_eval
     elif name == "seg-predict":
-        return importlib.import_module("segmentation.predict"), "seg_predict"
+        from segmentation import predict
+
+        return predict.add_seg_predict_arguments, predict.run_seg_predict
     elif name == "train-diffusion":
-        return importlib.import_module("u4d_aug.train"), "train_diffusion"
+        from u4d_aug import train
+
+        return train.add_train_diffusion_arguments, train.run_train_diffusion
     elif name == "generate":
-        return importlib.import_module("u4d_aug.generate"), "generate"
+        from u4d_aug import generate
+
+        return generate.add_generate_arguments, generate.run_generate
     elif name == "gen-report":
-        return importlib.import_module("u4d_aug.gen_report"), "gen_report"
+        from u4d_aug import gen_report
+
+        return gen_report.add_gen_report_arguments, gen_report.run_gen_report
     elif name == "train-extractor":
-        return importlib.import_module("u4d_aug.metrics.extractors"), "train_extractor"
+        from u4d_aug.metrics import extractors
+
+        return extractors.add_train_extractor_arguments, extractors.run_train_extractor
     elif name == "export-weights":
-        return importlib.import_module("u4d_aug.export_weights"), "export_weights"
+        from u4d_aug import export_weights
+
+        return export_weights.add_export_weights_arguments, export_weights.run_export_weights
     elif name == "gates":
-        return importlib.import_module("u4d_aug.gates"), "gates"
+        from u4d_aug import gates
+
+        return gates.add_gates_arguments, gates.run_gates
     elif name == "evaluate":
-        return importlib.import_module("u4d_aug.metrics.evaluate"), "evaluate"
+        from u4d_aug.metrics import evaluate
+
+        return evaluate.add_evaluate_arguments, evaluate.run_evaluate
     elif name == "experiment":
-        return importlib.import_module("segmentation.experiment"), "experiment"
+        from segmentation import experiment
+
+        return experiment.add_experiment_arguments, experiment.run_experiment
     elif name == "export":
-        return importlib.import_module("u4d_aug.export_bank"), "export"
+        from u4d_aug import export_bank
+
+        return export_bank.add_export_arguments, export_bank.run_export
     raise ValueError(f"unknown command {name!r}; allowed: {', '.join(n for n, _ in DELEGATED)}")
 
 
@@ -187,12 +213,12 @@ EXAMPLES = {
 
 def delegated_parser(name: str) -> tuple[argparse.ArgumentParser, Callable[[argparse.Namespace], int]]:
     """The parser of a delegated command (the module's own arguments, its example, the global options)."""
-    module, stem = _delegated_module(name)
+    add_arguments, run = _delegated_command(name)
     help_text = dict(DELEGATED)[name]
     parser = CommandParser(prog=f"u4d {name}", description=help_text, epilog=f"example: {EXAMPLES[name]}")
-    getattr(module, f"add_{stem}_arguments")(parser)
+    add_arguments(parser)
     add_verbosity_arguments(parser)
-    return parser, getattr(module, f"run_{stem}")
+    return parser, run
 
 
 def run_delegated(args: argparse.Namespace) -> int:
