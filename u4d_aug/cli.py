@@ -424,6 +424,7 @@ def run_show(args: argparse.Namespace) -> int:
     """`u4d show SCAN`: picture, .ply and projection round-trip statistics of one scan."""
     import torch
 
+    from u4d_aug.data.beams import check_beams
     from u4d_aug.data.scan import read_scan
     from u4d_aug.data.sensors import get_sensor
     from u4d_aug.range_view import project, roundtrip_stats, scatter_to_image
@@ -431,6 +432,7 @@ def run_show(args: argparse.Namespace) -> int:
     scan = read_scan(args.scan)
     points, labels = scan.points, scan.labels
     sensor = get_sensor(args.sensor or scan.sensor)
+    check_beams(points, sensor, str(args.scan))
     width = sensor.width if args.width is None else args.width
     height = sensor.height
     if width < 3:

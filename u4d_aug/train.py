@@ -25,6 +25,7 @@ from torch import Tensor, nn
 from tqdm.auto import tqdm
 
 from u4d_aug.config import add_run_arguments, config_to_dict, load_config, parse_override, save_config
+from u4d_aug.data.beams import check_beams
 from u4d_aug.data.datasets import ScanDataset, SequenceDataset, scan_path
 from u4d_aug.data.formats import load_kitti_frame
 from u4d_aug.data.sensors import Sensor, get_sensor
@@ -69,6 +70,8 @@ class RangeImages:
         self.scans = ScanDataset(cfg.data_root, cfg.sequences)
         if len(self.scans) == 0:
             raise InputError(f"{cfg.data_root}: no scans found")
+        first = scan_path(cfg.data_root, *self.scans.entries[0])
+        check_beams(load_kitti_frame(first).points, self.sensor, str(first))  # a warning: hdl32 scans as hdl64
         self.windows: SequenceDataset | None = None
         if cfg.frames > 1:
             self.windows = SequenceDataset(
