@@ -40,7 +40,7 @@ from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
 from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.errors import InputError
-from u4d_aug.io import append_jsonl, atomic_torch_save, load_checkpoint, remove_temp_files
+from u4d_aug.io import append_jsonl, atomic_torch_save, load_checkpoint, read_jsonl, remove_temp_files
 from u4d_aug.range_view import encode_depth, project_batch, scatter_to_image, unproject
 from u4d_aug.runlock import run_lock
 from u4d_aug.validate import check_finite_config, check_finite_loss, check_positive
@@ -96,12 +96,13 @@ class ExtractorTrainConfig:
     weight_decay: float = 1e-4
     seed: int = 0
     log_every: int = 50
+    checkpoint_every: int = 250  # steps between resumable snapshots (OUT/KIND_partial.pt); a re-run continues there
     val_scans: int = 40  # held-out scans (evenly spaced) scored after training; 0 = skip
     device: str = "cpu"
 
     def __post_init__(self) -> None:
         check_finite_config(self, "train.")
-        check_positive(self, "steps", "batch_size", "lr", "log_every", prefix="train.")
+        check_positive(self, "steps", "batch_size", "lr", "log_every", "checkpoint_every", prefix="train.")
         check_positive(self, "weight_decay", "val_scans", allow_zero=True, prefix="train.")
 
 
@@ -491,10 +492,13 @@ def train_extractor_locked(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
         logger.info("%s: removed %d temp file(s) of a killed run", out_dir, removed)
     save_config(cfg, out_dir / f"{kind}_config.yaml")
     log_path = out_dir / f"{kind}_log.jsonl"
-    log_path.unlink(missing_ok=True)  # no resume: a re-run writes its log afresh
+    partial_path = out_dir / f"{kind}_partial.pt"
+    done, seconds = resume_partial(partial_path, kind, cfg, model, optimizer, rng, log_path)
     model.train()
-    start = time.perf_counter()
-    bar = tqdm(range(1, cfg.train.steps + 1), desc=f"train-extractor {kind}")
+    start = time.perf_counter() - seconds
+    bar = tqdm(
+        range(done + 1, cfg.train.steps + 1), desc=f"train-extractor {kind}", initial=done, total=cfg.train.steps
+    )
     for step in bar:
         picks = rng.choice(len(dataset), size=min(cfg.train.batch_size, len(dataset)), replace=False)
         items = [dataset[int(i)] for i in picks]
@@ -516,6 +520,8 @@ def train_extractor_locked(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
             record = {"step": step, "loss": float(loss.detach()), "seconds": time.perf_counter() - start}
             append_jsonl(log_path, record)
             bar.write(json.dumps(record))
+        if step % cfg.train.checkpoint_every == 0 and step < cfg.train.steps:
+            save_partial(partial_path, kind, cfg, model, optimizer, rng, step, time.perf_counter() - start)
     model.eval()
     extra: dict[str, Any] = {"steps": cfg.train.steps}
     if val_dataset is not None:
@@ -529,7 +535,69 @@ def train_extractor_locked(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
         )
     path = out_dir / f"{kind}.pt"
     digest = save_extractor(path, kind, model, cfg, extra=extra)
+    partial_path.unlink(missing_ok=True)  # finished: the snapshot has served
     return path, digest
+
+
+def save_partial(
+    path: Path,
+    kind: str,
+    cfg: ExtractorConfig,
+    model: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    rng: np.random.Generator,
+    step: int,
+    seconds: float,
+) -> None:
+    """Atomic snapshot of an unfinished extractor run: weights, optimizer, scan-sampling and torch RNG, step."""
+    atomic_torch_save(
+        path,
+        {
+            "kind": f"{kind}-partial",
+            "config": config_to_dict(cfg),
+            "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+            "optimizer": optimizer.state_dict(),
+            "rng": rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(),
+            "step": step,
+            "seconds": seconds,
+        },
+    )
+
+
+def resume_partial(
+    path: Path,
+    kind: str,
+    cfg: ExtractorConfig,
+    model: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    rng: np.random.Generator,
+    log_path: Path,
+) -> tuple[int, float]:
+    """(steps done, seconds spent) of the snapshot at `path`, loaded into model/optimizer/rng; (0, 0) without one.
+
+    The snapshot must come from the same config (else a one-line error: another run's folder); the log keeps the
+    records up to its step, so a resumed run's log reads as one run's.
+    """
+    if not path.is_file():
+        log_path.unlink(missing_ok=True)  # a fresh run writes its log afresh
+        return 0, 0.0
+    state = load_checkpoint(path, "unfinished extractor run")
+    if state.get("kind") != f"{kind}-partial" or state.get("config") != config_to_dict(cfg):
+        raise InputError(
+            f"{path}: an unfinished {kind} run with another config; use another out_dir or delete it to start over"
+        )
+    model.load_state_dict(state["state_dict"])
+    optimizer.load_state_dict(state["optimizer"])
+    rng.bit_generator.state = state["rng"]
+    torch.set_rng_state(state["torch_rng"])
+    step = int(state["step"])
+    kept = [r for r in read_jsonl(log_path) if r.get("step", 0) <= step] if log_path.is_file() else []
+    log_path.unlink(missing_ok=True)
+    for record in kept:
+        append_jsonl(log_path, record)
+    logger.info("%s: resuming the unfinished %s run at step %d", path.parent, kind, step)
+    return step, float(state["seconds"])
 
 
 def add_train_extractor_arguments(parser: argparse.ArgumentParser) -> None:
