@@ -144,3 +144,28 @@ def test_a_removed_sample_takes_its_exported_label_with_it(tmp_path):
     remove_sample(layout, 0)
     assert not label.is_file() and not layout.scan_path(0).is_file()
     assert label_path_for(layout.scan_path(2)).is_file()  # other samples keep theirs (sample 1 is empty)
+
+
+def test_generate_writes_labels_and_infos_when_asked(tmp_path, umask_022):
+    from tiny_nets import save_checkpoint
+
+    ckpt = save_checkpoint(tmp_path / "baseline.pt", overrides=("diffusion.stage=baseline",))
+    config = tmp_path / "generate.yaml"
+    config.write_text(f"mode: baseline\nbaseline: {ckpt}\nnum: 2\nsteps: 2\nbatch_size: 2\ndevice: cpu\n")
+    bank = tmp_path / "bank"
+    code = main(["generate", str(config), "--out", str(bank), "--labels", "--mmdet3d-infos", "--no-progress"])
+    assert code == 0
+    scans = sorted(bank.glob("sequences/*/velodyne/*.bin"))
+    assert scans  # an untrained net still returns some points
+    for scan in scans:
+        label = scan.parent.parent / "labels" / f"{scan.stem}.label"
+        assert len(read_label(label)) == scan.stat().st_size // 16 and not read_label(label).any()
+    with open(bank / INFOS_NAME, "rb") as f:
+        infos = pickle.load(f)
+    assert [e["lidar_points"]["lidar_path"] for e in infos["data_list"]] == [
+        s.relative_to(bank).as_posix() for s in scans
+    ]
+    assert all("pts_semantic_mask_path" in e for e in infos["data_list"])
+    export = read_manifest(bank)["export"]
+    assert export["labels"]["files"] == len(scans) and export["mmdet3d_infos"]["samples"] == len(scans)
+    assert read_manifest(bank)["complete"]

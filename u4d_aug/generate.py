@@ -44,6 +44,7 @@ from u4d_aug.data.formats import read_calib, read_poses
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.export_bank import export_bank
 from u4d_aug.io import remove_temp_files
 from u4d_aug.pipeline import Sampler, complete, generate_baseline, generate_u4d, load_generator, to_points
 from u4d_aug.runlock import run_lock
@@ -88,6 +89,10 @@ class GenerateConfig:
     # (N, L, 4) motions (x, y, z, yaw per frame; sample i takes motion i mod N) or a KITTI poses.txt of L lines
     # (with calib.txt beside it if there is one); "" = windows of the training sequences' poses.txt
     motion_file: str = ""
+    # for other codebases (`u4d export`, done once every sample is written): all-ignore .label files (value 0)
+    # beside the scans, and mmdetection3d's semantickitti_infos_train.pkl in the bank
+    labels: bool = False
+    mmdet3d_infos: bool = False
 
     def __post_init__(self) -> None:
         if self.num < 0 or self.steps < 1 or (self.stage1_steps is not None and self.stage1_steps < 1):
@@ -129,7 +134,10 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
     """
     info = init_distributed(cfg.device)
     with run_lock(out, enabled=info.is_main):
-        return generate_locked(cfg, Path(out), info, progress)
+        manifest = generate_locked(cfg, Path(out), info, progress)
+    if info.is_main and (cfg.labels or cfg.mmdet3d_infos):
+        manifest = {**manifest, "export": export_bank(out, cfg.labels, cfg.mmdet3d_infos)}
+    return manifest
 
 
 def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bool) -> dict:
@@ -435,6 +443,12 @@ def add_generate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mode", choices=["u4d", "baseline", "complete"], default=None)
     parser.add_argument("--steps", type=int, default=None, help="sampling steps")
     parser.add_argument("--seed", type=int, default=None, help="base seed: sample i uses seed + i")
+    parser.add_argument(
+        "--labels", action="store_true", help="also write all-ignore labels/NNNNNN.label (as `u4d export --labels`)"
+    )
+    parser.add_argument(
+        "--mmdet3d-infos", action="store_true", help="also write mmdetection3d's semantickitti_infos_train.pkl"
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -444,6 +458,9 @@ def run_generate(args: argparse.Namespace) -> int:
     for key in ("num", "mode", "steps", "seed"):
         if getattr(args, key) is not None:
             overrides.append(f"{key}={getattr(args, key)}")
+    for key in ("labels", "mmdet3d_infos"):
+        if getattr(args, key):
+            overrides.append(f"{key}=true")
     cfg = load_config(GenerateConfig, args.config, overrides)
     try:
         generate_bank(cfg, args.out, progress=not args.no_progress)
