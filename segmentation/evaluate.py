@@ -17,7 +17,6 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from torch import nn
-from tqdm import tqdm
 
 from segmentation.metrics import (
     CalibrationAccumulator,
@@ -42,6 +41,7 @@ from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
 from u4d_aug.distributed import DistInfo, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import check_output_file, dumps_json
+from u4d_aug.progress import progress_bar
 
 
 def accumulate(
@@ -62,7 +62,7 @@ def accumulate(
     model.eval()
     cm = ConfusionMatrix(num_classes, ignore_index)
     calibration = CalibrationAccumulator(ignore_index)
-    for index in tqdm(shard(list(indices), rank, world_size), desc="eval", disable=not progress, leave=False):
+    for index in progress_bar(shard(list(indices), rank, world_size), desc="eval", enabled=progress, leave=False):
         item = dataset[index]
         if item["labels"] is None:
             continue

@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
-from tqdm import tqdm
 
 from segmentation.mean_teacher import mean_view_probs, scan_views, view_count_error
 from segmentation.models import SegModelConfig, build_model
@@ -32,6 +31,7 @@ from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, sh
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import atomic_save_npy, atomic_write_json, file_sha256, remove_temp_files
 from u4d_aug.io import load_checkpoint as load_torch_checkpoint
+from u4d_aug.progress import progress_bar
 from u4d_aug.runlock import run_lock
 from u4d_aug.weights import SEGMENTATION_KIND, exported_model, is_exported
 
@@ -172,7 +172,7 @@ def predict_locked(
 
     mine = shard(entries, info.rank, info.world_size)
     written = skipped = 0
-    for seq, frame in tqdm(mine, desc="seg-predict", disable=not (progress and info.is_main), unit="scan"):
+    for seq, frame in progress_bar(mine, desc="seg-predict", enabled=(progress and info.is_main), unit="scan"):
         target = probs_path(out_dir, seq, frame)
         if target.is_file():
             skipped += 1

@@ -34,7 +34,6 @@ import torch
 from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, Dataset
-from tqdm import tqdm
 
 from segmentation.config import OptimConfig, SegTrainConfig
 from segmentation.data import augment, load_or_make_split, paste_instances, training_subset
@@ -69,6 +68,7 @@ from u4d_aug.distributed import (
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.host import host_info
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_json, atomic_write_text, read_jsonl
+from u4d_aug.progress import progress_bar
 from u4d_aug.runfolder import prepare, resume_point
 from u4d_aug.runlock import run_lock
 from u4d_aug.seeding import derived_seed
@@ -388,7 +388,7 @@ def train_locked(cfg: SegTrainConfig, info: DistInfo, resume: str | Path | None,
         pin_memory=device.type == "cuda",
         generator=torch.Generator().manual_seed(cfg.seed),  # the global RNG is left alone
     )
-    bar = tqdm(total=cfg.optim.steps, initial=start_step, desc="seg-train", disable=not (progress and info.is_main))
+    bar = progress_bar(total=cfg.optim.steps, initial=start_step, desc="seg-train", enabled=(progress and info.is_main))
     t0 = time.perf_counter()
     sums: dict[str, torch.Tensor] = {}
     count, done, lr = 0, start_step, learning_rate(start_step, cfg.optim)

@@ -14,6 +14,8 @@ import re
 import sys
 from collections.abc import Sequence
 
+from u4d_aug.progress import set_quiet
+
 # a dotted config key and '=': `optim.steps=3`, `stage=stage1`, `'seeds=[0]'` (never a path: keys hold no '/')
 OVERRIDE = re.compile(r"[A-Za-z_][\w-]*(\.[A-Za-z_][\w-]*)*=")
 VERBOSITY_FLAGS = {"--quiet": logging.WARNING, "-q": logging.WARNING, "--verbose": logging.DEBUG, "-v": logging.DEBUG}
@@ -123,7 +125,9 @@ class _StderrHandler(logging.StreamHandler):
 
 
 def configure_logging(level: int) -> None:
-    """Records of u4d_aug and segmentation at `level` and above go to stderr (one handler, set again each call)."""
+    """Records of u4d_aug and segmentation at `level` and above go to stderr (one handler, set again each call);
+    above INFO (--quiet) no progress bar is drawn either."""
+    set_quiet(level > logging.INFO)
     for name in LOGGERS:
         logger = logging.getLogger(name)
         logger.setLevel(level)

@@ -24,7 +24,6 @@ from typing import Literal
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from u4d_aug.bank import (
     BankLayout,
@@ -47,6 +46,7 @@ from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.export_bank import export_bank
 from u4d_aug.io import remove_temp_files
 from u4d_aug.pipeline import Sampler, complete, generate_baseline, generate_u4d, load_generator, to_points
+from u4d_aug.progress import progress_bar
 from u4d_aug.runlock import run_lock
 from u4d_aug.sampling import Grid, check_grid
 from u4d_aug.stage import DiffusionTrainConfig
@@ -222,7 +222,7 @@ def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bo
     # rank count, and a block with a missing sample is generated again whole (finished samples are not rewritten)
     blocks = [list(range(start, min(start + cfg.batch_size, cfg.num))) for start in range(0, cfg.num, cfg.batch_size)]
     todo = [block for block in shard(blocks, info.rank, info.world_size) if not all(map(layout.is_done, block))]
-    bar = tqdm(total=sum(map(len, todo)), disable=not (progress and info.is_main), desc=f"generate {cfg.mode}")
+    bar = progress_bar(total=sum(map(len, todo)), enabled=(progress and info.is_main), desc=f"generate {cfg.mode}")
     for block in todo:
         n = len(block)
         generators = [torch.Generator().manual_seed(cfg.seed + i) for i in block]  # sample i: seed + i

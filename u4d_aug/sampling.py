@@ -17,9 +17,9 @@ from typing import Any, Literal, NamedTuple, get_args
 
 import torch
 from torch import Tensor
-from tqdm.auto import tqdm
 
 from u4d_aug.diffusion import alpha_sigma, log_snr
+from u4d_aug.progress import progress_bar
 
 DenoiseFn = Callable[[Tensor, Tensor, "Tensor | None"], "Tensor | tuple[Tensor, Any]"]
 # one generator for the whole batch, or one per batch element: element i then draws exactly the noise a batch of
@@ -128,7 +128,7 @@ def dpmpp_2m_sample(
     batch, device, x = _start(shape, steps, generator, device)
     extra: Any = None
     x0_prev: Tensor | None = None  # x̂0 of the previous call, the second point of the multistep
-    for i in tqdm(range(steps), disable=not progress, desc="dpmpp2m sampling", leave=False):
+    for i in progress_bar(range(steps), enabled=progress, desc="dpmpp2m sampling", leave=False):
         eps, extra = _denoise(denoise_fn, x, lams[i], batch, device, cond)
         alpha_t, sigma_t = _alpha_sigma(lams[i])
         x0_hat = (x - sigma_t * eps) / alpha_t
@@ -179,7 +179,7 @@ def dpmpp_2m_sde_sample(
     batch, device, x = _start(shape, steps, generator, device)
     extra: Any = None
     x0_prev: Tensor | None = None
-    for i in tqdm(range(steps), disable=not progress, desc="dpmpp2m-sde sampling", leave=False):
+    for i in progress_bar(range(steps), enabled=progress, desc="dpmpp2m-sde sampling", leave=False):
         eps, extra = _denoise(denoise_fn, x, lams[i], batch, device, cond)
         alpha_t, sigma_t = _alpha_sigma(lams[i])
         x0_hat = (x - sigma_t * eps) / alpha_t
@@ -216,7 +216,7 @@ def _sample(
     batch, device, x = _start(shape, steps, generator, device)
     grid = _grid(steps, "time")
     extra: Any = None
-    for i in tqdm(range(steps), disable=not progress, desc=f"{mode} sampling", leave=False):
+    for i in progress_bar(range(steps), enabled=progress, desc=f"{mode} sampling", leave=False):
         lam_t, lam_s = grid[i], grid[i + 1]  # lam_s > lam_t: s is the less noisy time
         alpha_t, sigma_t = _alpha_sigma(lam_t)
         alpha_s, sigma_s = _alpha_sigma(lam_s)

@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import Tensor, nn
-from tqdm.auto import tqdm
 
 from u4d_aug.config import add_run_arguments, config_to_dict, load_config, parse_override, save_config
 from u4d_aug.data.beams import check_beams
@@ -35,6 +34,7 @@ from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_text, load_checkpoint, read_jsonl
 from u4d_aug.nn.unet import RangeUNet, crop_columns
+from u4d_aug.progress import progress_bar
 from u4d_aug.range_view import project, to_image
 from u4d_aug.runfolder import prepare, resume_point
 from u4d_aug.runlock import run_lock
@@ -308,11 +308,11 @@ def train_locked(cfg: DiffusionTrainConfig, info: DistInfo, resume: str | Path |
     gate_window: list[np.ndarray] = []  # (M, 2) mean MoST gates per step since the last log line
     gate_plot: list[np.ndarray] = []  # ... since the last gate plot
     tic = t0 = time.perf_counter()
-    bar = tqdm(
+    bar = progress_bar(
         range(start, cfg.steps),
         initial=start,
         total=cfg.steps,
-        disable=not (progress and info.is_main),
+        enabled=(progress and info.is_main),
         desc=f"train {cfg.diffusion.stage}",
     )
     for step in bar:

@@ -34,13 +34,13 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
-from tqdm.auto import tqdm
 
 from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
 from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.errors import InputError
 from u4d_aug.io import append_jsonl, atomic_torch_save, load_checkpoint, read_jsonl, remove_temp_files
+from u4d_aug.progress import progress_bar
 from u4d_aug.range_view import encode_depth, project_batch, scatter_to_image, unproject
 from u4d_aug.runlock import run_lock
 from u4d_aug.validate import check_finite_config, check_finite_loss, check_positive
@@ -496,7 +496,7 @@ def train_extractor_locked(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
     done, seconds = resume_partial(partial_path, kind, cfg, model, optimizer, rng, log_path)
     model.train()
     start = time.perf_counter() - seconds
-    bar = tqdm(
+    bar = progress_bar(
         range(done + 1, cfg.train.steps + 1), desc=f"train-extractor {kind}", initial=done, total=cfg.train.steps
     )
     for step in bar:

@@ -190,9 +190,9 @@ def simulate(
         nthreads = max(1, (os.cpu_count() or 1) // workers)
         start = time.perf_counter()
         results = []
-        from tqdm import tqdm
+        from u4d_aug.progress import progress_bar
 
-        with tqdm(total=sequences * frames, desc="simulate", unit="frame", disable=not progress) as bar:
+        with progress_bar(total=sequences * frames, desc="simulate", unit="frame", enabled=progress) as bar:
             if workers == 1:
                 for k in range(sequences):
                     results.append(_simulate_sequence((out_dir, k, frames, seed, str(sensor), cfg, 0, bar)))
