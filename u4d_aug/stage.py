@@ -82,6 +82,9 @@ class DiffusionTrainConfig:
     seed: int = 0
     device: str = "auto"
     out: str = "runs/u4d"
+    # a trained net of the same stage (checkpoint, run folder or exported weights) whose EMA weights start this run
+    # at step 0 (fine-tuning); what this net adds to it (MoST blocks, the pose embedding) starts as the identity
+    init_from: str = ""
 
     def __post_init__(self) -> None:
         self.net.mask_head = self.diffusion.stage == "stage1"

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import sys
 import time
 from pathlib import Path
@@ -50,6 +51,8 @@ from u4d_aug.trajectory import relative_motion
 from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
 from u4d_aug.validate import check_finite_loss
 from u4d_aug.weights import is_exported
+
+logger = logging.getLogger(__name__)
 
 _BATCH, _NOISE = 1, 2  # streams of derived_seed
 
@@ -253,6 +256,27 @@ def _save_gate_png(net: RangeUNet, gates: list[np.ndarray], step: int, path: Pat
     plot_gate_weights(path, net.most_names, mean[:, 0], mean[:, 1], title)
 
 
+def start_from(net: RangeUNet, cfg: DiffusionTrainConfig) -> list[str]:
+    """Load the EMA weights of the trained net `cfg.init_from` into `net`; returns the names of the tensors only
+    `net` has (they keep their init: MoST blocks and the pose embedding start as the identity)."""
+    from u4d_aug import pipeline
+
+    source, source_cfg = pipeline.load_generator(cfg.init_from)
+    if source_cfg.diffusion.stage != cfg.diffusion.stage:
+        raise InputError(
+            f"init_from: {cfg.init_from} is a {source_cfg.diffusion.stage} net, this run trains {cfg.diffusion.stage}"
+        )
+    weights, target = source.state_dict(), net.state_dict()
+    foreign = sorted(name for name in weights if name not in target or weights[name].shape != target[name].shape)
+    if foreign:
+        raise InputError(
+            f"init_from: {cfg.init_from} has tensors this net lacks or shapes unlike its ({', '.join(foreign[:3])}); "
+            "only MoST blocks and the pose embedding may be added (net.most, net.pose_dim)"
+        )
+    net.load_state_dict(weights, strict=False)
+    return sorted({name.split(".")[0] for name in set(target) - set(weights)})
+
+
 def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress: bool = True) -> dict:
     """Train one stage; returns the last logged record. Writes OUT/{config.yaml, log.jsonl, checkpoints/}.
 
@@ -272,6 +296,10 @@ def train_locked(cfg: DiffusionTrainConfig, info: DistInfo, resume: str | Path |
         prepare(out_dir, ckpt_path)
     images = RangeImages(cfg)
     net = build_net(cfg, info.device)
+    if ckpt_path is None and cfg.init_from:  # a resumed run has its own weights
+        added = start_from(net, cfg)
+        if info.is_main:
+            logger.info("%s: started from %s; new tensors %s", out_dir, cfg.init_from, ", ".join(added) or "none")
     diffusion = GaussianDiffusion(net, cfg.diffusion)
     optimizer = torch.optim.AdamW(
         net.parameters(), lr=cfg.optim.lr, betas=cfg.optim.betas, weight_decay=cfg.optim.weight_decay
