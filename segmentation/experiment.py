@@ -257,25 +257,58 @@ def bins_from_dict(data: dict) -> ReliabilityBins:
     return ReliabilityBins(count, confidence * count, accuracy * count, int(data["total"]))
 
 
-def paired_differences(reference: dict[int, float], other: dict[int, float]) -> dict:
-    """Seed-paired other - reference (seeds finished in both): per seed, mean ± std, seeds above 0, paired t-test p.
+MAX_SEEDS_ESTIMATE = 200  # seeds_needed gives up beyond this
 
-    p is two-sided (scipy.stats.ttest_rel); None with fewer than 2 pairs or when every difference is the same.
+
+def paired_differences(reference: dict[int, float], other: dict[int, float]) -> dict:
+    """Seed-paired other - reference (seeds finished in both): per seed, mean ± std, seeds above 0, paired t-test p,
+    the 95 % confidence interval of the mean difference and `seeds_needed` (see below).
+
+    p is two-sided (scipy.stats.ttest_rel); p and the interval are None with fewer than 2 pairs, p also when every
+    difference is the same.
     """
     seeds = sorted(set(reference) & set(other))
     diffs = [float(other[s] - reference[s]) for s in seeds]
     summary = {"seeds": seeds, "per_seed": diffs, **mean_std(diffs), "above": sum(d > 0 for d in diffs), "p": None}
+    summary["ci95"], summary["seeds_needed"] = None, None
+    if len(diffs) > 1:
+        half = float(stats.t.ppf(0.975, len(diffs) - 1)) * summary["std"] / math.sqrt(len(diffs))
+        summary["ci95"] = [summary["mean"] - half, summary["mean"] + half]
+        summary["seeds_needed"] = seeds_needed(summary["mean"], summary["std"])
     if len(diffs) > 1 and np.ptp(diffs) > 0:
         summary["p"] = float(stats.ttest_rel([other[s] for s in seeds], [reference[s] for s in seeds]).pvalue)
     return summary
 
 
+def seeds_needed(mean: float, std: float) -> int | None:
+    """Paired seeds at which a difference of this mean and seed-to-seed std reaches p < 0.05 (two-sided t-test):
+    the smallest n >= 2 with t_0.975(n-1)·std/√n < |mean|; None when the mean is 0 or it needs over 200 seeds."""
+    if mean == 0:
+        return None
+    if std == 0:
+        return 2
+    for n in range(2, MAX_SEEDS_ESTIMATE + 1):
+        if float(stats.t.ppf(0.975, n - 1)) * std / math.sqrt(n) < abs(mean):
+            return n
+    return None
+
+
 def paired_arms(reference: dict, other: dict) -> dict:
-    """Seed-paired mIoU and ECE-per-scan differences other - reference of two finished arm entries."""
+    """Seed-paired mIoU, ECE-per-scan and per-class IoU differences other - reference of two finished arm entries."""
     paired = {"arm": reference["arm"]}
     for key in ("miou", "ece_per_scan"):
         values = [{r["seed"]: r[key] for r in entry["runs"] if r.get(key) is not None} for entry in (reference, other)]
         paired[key] = paired_differences(*values)
+    classes = list(
+        dict.fromkeys(c for entry in (reference, other) for r in entry["runs"] for c in (r.get("iou") or {}))
+    )
+    paired["iou"] = {}
+    for name in classes:
+        values = [
+            {r["seed"]: r["iou"][name] for r in entry["runs"] if (r.get("iou") or {}).get(name) is not None}
+            for entry in (reference, other)
+        ]
+        paired["iou"][name] = paired_differences(*values)
     return paired
 
 
@@ -422,7 +455,14 @@ def results_markdown(results: dict) -> str:
         miou, ece = paired["miou"], paired["ece_per_scan"]
         per_seed = ", ".join(f"{100 * d:+.2f}" for d in miou["per_seed"])
         p_text = "n/a" if miou["p"] is None else f"{miou['p']:.2g}"
-        return f"{per_seed} | {signed(miou)} | {miou['above']} of {miou['n']} | {p_text} | {signed(ece)}"
+        ci = miou.get("ci95")
+        ci_text = "n/a" if ci is None else f"[{100 * ci[0]:+.2f}, {100 * ci[1]:+.2f}]"
+        needed = miou.get("seeds_needed")
+        needed_text = "n/a" if ci is None else (f"{needed}" if needed is not None else f"> {MAX_SEEDS_ESTIMATE}")
+        return (
+            f"{per_seed} | {signed(miou)} | {ci_text} | {miou['above']} of {miou['n']} | {p_text} | {needed_text} | "
+            f"{signed(ece)}"
+        )
 
     scans = sorted({r.get("num_scans") for e in results["arms"] for r in e.get("runs", [])} - {None})
     scans_text = "/".join(str(n) for n in scans) or "?"
@@ -457,10 +497,12 @@ def results_markdown(results: dict) -> str:
             "",
             f"## Paired by seed against {paired[0]['vs_reference']['arm']} (points)",
             "",
-            "arm - reference on the seeds both finished; p: two-sided paired t-test (n/a below 2 seeds).",
+            "arm - reference on the seeds both finished; p: two-sided paired t-test (n/a below 2 seeds); "
+            "seeds for p < 0.05: paired seeds at which the same mean and spread would reach it.",
             "",
-            "| arm | backbone | seeds | mIoU difference per seed | mean ± std | seeds won | p | ECE per scan diff. |",
-            "|---|---|---|---|---|---|---|---|",
+            "| arm | backbone | seeds | mIoU difference per seed | mean ± std | 95 % CI | seeds won | p "
+            "| seeds for p < 0.05 | ECE per scan diff. |",
+            "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for e in paired:
             seeds = len(e["vs_reference"]["miou"]["seeds"])
@@ -472,12 +514,34 @@ def results_markdown(results: dict) -> str:
             "",
             "arm - reference, paired by seed on the seeds both finished; p: two-sided paired t-test.",
             "",
-            "| arm | reference | backbone | mIoU difference per seed | mean ± std | seeds won | p "
-            "| ECE per scan diff. |",
-            "|---|---|---|---|---|---|---|---|",
+            "| arm | reference | backbone | mIoU difference per seed | mean ± std | 95 % CI | seeds won | p "
+            "| seeds for p < 0.05 | ECE per scan diff. |",
+            "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for c in results["contrasts"]:
             lines.append(f"| {c['arm']} | {c['reference']} | {c['backbone']} | " + paired_cells(c) + " |")
+    if results.get("contrasts"):
+        classes = list(dict.fromkeys(c for row in results["contrasts"] for c in row.get("iou", {})))
+        lines += [
+            "",
+            "## Where the differences come from: per-class IoU, paired by seed (points)",
+            "",
+            "mean difference over the paired seeds; * where its 95 % confidence interval excludes 0.",
+            "",
+            "| arm | reference | backbone | " + " | ".join(classes) + " |",
+            "|---|---|---|" + "---|" * len(classes),
+        ]
+        for row in results["contrasts"]:
+            cells = []
+            for name in classes:
+                stat = row.get("iou", {}).get(name)
+                if stat is None or stat["mean"] is None:
+                    cells.append("n/a")
+                    continue
+                ci = stat.get("ci95")
+                star = "*" if ci is not None and (ci[0] > 0 or ci[1] < 0) else ""
+                cells.append(f"{100 * stat['mean']:+.1f}{star}")
+            lines.append(f"| {row['arm']} | {row['reference']} | {row['backbone']} | " + " | ".join(cells) + " |")
     done = [e for e in results["arms"] if e["status"] in ("done", "partial")]
     if done:
         classes = list(done[0]["iou"])
