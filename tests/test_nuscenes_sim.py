@@ -16,6 +16,7 @@ from segmentation.config import SegTrainConfig
 from segmentation.evaluate import evaluate
 from segmentation.predict import predict_root
 from segmentation.train import train
+from u4d_aug.cli import main
 from u4d_aug.config import load_config
 from u4d_aug.data.datasets import NuscenesScanDataset, NuscenesSequenceDataset, SequenceDataset
 from u4d_aug.data.formats import (
@@ -77,6 +78,17 @@ def test_written_world_reads_back_as_scenes_of_keyframes_and_sweeps(world: Path)
     elevation = np.degrees(np.arctan2(raw.points[:, 2], np.linalg.norm(raw.points[:, :2], axis=1)))
     medians = [np.median(elevation[raw.ring == r]) for r in np.unique(raw.ring)]
     assert len(medians) == 32 and np.all(np.diff(medians) > 0)  # ring 0 is the bottom ring, as in nuScenes
+
+
+def test_info_summarises_the_scenes(world: Path, capsys) -> None:
+    assert main(["info", str(world), "--format", "nuscenes", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert [s["sequence"] for s in summary["sequences"]] == ["scene-0000", "scene-0001"]
+    assert summary["frames"] == summary["labeled_frames"] == 4  # the keyframes
+    assert list(summary["class_histogram"]) == [*NUSCENES_CLASSES, "ignore"]
+    assert summary["class_histogram"]["driveable_surface"] > 0
+    assert main(["info", str(world), "--format", "nuscenes", "--nuscenes-version", "v1.0-mini"]) == 2
+    assert "v1.0-mini: nuScenes table folder not found; it holds v1.0-trainval" in capsys.readouterr().err
 
 
 def test_the_same_world_in_semantickitti_layout_turned_into_the_nuscenes_lidar_frame(world: Path, tmp_path) -> None:
