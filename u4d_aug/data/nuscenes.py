@@ -140,7 +140,7 @@ def read_nuscenes_index(root: PathLike, version: str = NUSCENES_VERSION, channel
     return _read_index(str(Path(root).absolute()), version, channel, stamp)
 
 
-@functools.lru_cache(maxsize=4)
+@functools.lru_cache(maxsize=2)
 def _read_index(root: str, version: str, channel: str, stamp: tuple) -> NuscenesIndex:
     """The work of `read_nuscenes_index`; `stamp` (mtime and size of each table) keys the cache."""
     folder = Path(root) / version
