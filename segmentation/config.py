@@ -13,6 +13,9 @@ from typing import Literal
 from segmentation.data import AugmentConfig
 from segmentation.mean_teacher import MeanTeacherConfig
 from segmentation.models import SegModelConfig
+from u4d_aug.data.datasets import DATASET_FORMATS
+from u4d_aug.data.labels import LabelSet, label_set
+from u4d_aug.data.nuscenes import NUSCENES_VERSION
 from u4d_aug.validate import check_finite_config
 
 Sequences = str | list[str | int] | None  # split name ('train' / 'val' / 'test'), a list of sequences, or all
@@ -20,11 +23,17 @@ Sequences = str | list[str | int] | None  # split name ('train' / 'val' / 'test'
 
 @dataclass
 class SegDataConfig:
-    """Where the scans are and which of them train / validate (SemanticKITTI layout root)."""
+    """Where the scans are and which of them train / validate; the format also sets the classes and ignore id."""
 
     root: Path = Path("data/sim")
+    # layout of root, and with it the label set (u4d_aug.data.labels.label_set): "semantickitti" = sequences/XX/velodyne
+    # (19 classes, ignore 19); "nuscenes" = the v1.0 tables under ROOT/<version>/ (16 lidarseg classes, ignore 16)
+    format: Literal["semantickitti", "nuscenes"] = "semantickitti"
+    nuscenes_version: str = NUSCENES_VERSION  # format nuscenes: the table folder ROOT/<version>/ (or v1.0-mini)
     sensor: str = "hdl64"  # u4d_aug.data.sensors.get_sensor name or yaml: LaserMix pitch range in mode "semi"
-    train_sequences: Sequences = "train"  # SemanticKITTI split name, a list like ["00", "01"], or null = all
+    # SemanticKITTI: a split name, a list like ["00", "01"], a range "00-87", or null = all; nuScenes: scene names,
+    # numbers (61 = scene-0061) or ranges of them ("1-100"), or null = all scenes (no built-in split)
+    train_sequences: Sequences = "train"
     val_sequences: Sequences = "val"
     # labeled part of the train scans (LaserMix splits, written beside the data under ROOT/splits/)
     label_fraction: float = 1.0
@@ -38,6 +47,8 @@ class SegDataConfig:
 
     def __post_init__(self) -> None:
         check_finite_config(self, "data.")
+        if self.format not in DATASET_FORMATS:
+            raise ValueError(f"data.format must be one of {', '.join(DATASET_FORMATS)}; got {self.format!r}")
         # yaml reads 00 and 01 as integers: store sequence names as the folder names '00', '01'
         for name in ("train_sequences", "val_sequences"):
             value = getattr(self, name)
@@ -51,6 +62,11 @@ class SegDataConfig:
             raise ValueError(f"data.max_points must be >= 1 or null, got {self.max_points}")
         if self.val_max_scans is not None and self.val_max_scans < 1:
             raise ValueError(f"data.val_max_scans must be >= 1 or null, got {self.val_max_scans}")
+
+    @property
+    def label_set(self) -> LabelSet:
+        """Class names, ignore id and raw -> train id map of the scans (from `format`)."""
+        return label_set(self.format)
 
 
 @dataclass
@@ -216,6 +232,12 @@ class SegTrainConfig:
             raise ValueError("optim.anneal_to=budget needs a wall-clock budget: set max_minutes > 0")
         if self.loss.point_fraction < 1.0 and self.mode != "supervised":
             raise ValueError("loss.point_fraction < 1 is for mode=supervised (the semi losses read every point)")
+        labels = self.data.label_set
+        if self.augment.paste_classes is None:  # the default: the label set's thing classes
+            self.augment.paste_classes = list(labels.things)
+        unknown = [name for name in self.augment.paste_classes if name not in labels.classes]
+        if unknown:
+            raise ValueError(f"augment.paste_classes: unknown class names {unknown}; valid: {list(labels.classes)}")
         if self.loss.level == "voxel" and self.model.name != "minkunet":
             raise ValueError(
                 f"loss.level=voxel needs model.name=minkunet (the {self.model.name} head reads points); use point"

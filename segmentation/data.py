@@ -5,14 +5,13 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import torch
 
-from u4d_aug.data.labels import SEMANTICKITTI_CLASSES
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_json
 
@@ -25,7 +24,8 @@ class AugmentConfig:
 
     paste_prob > 0 adds PolarMix's instance-level rotate-pasting (Xiao et al., NeurIPS 2022): with that
     probability a labeled training scan receives the points of the `paste_classes` (train-id names) of another
-    random training scan, as `paste_copies` copies rotated about z by random angles (labels kept).
+    random training scan, as `paste_copies` copies rotated about z by random angles (labels kept). The names are
+    checked against the data's label set by `SegTrainConfig`, which also fills in the default.
     """
 
     rotate: bool = True
@@ -34,18 +34,13 @@ class AugmentConfig:
     scale_max: float = 1.05
     jitter_std: float = 0.01
     paste_prob: float = 0.0
-    # the thing classes bicycle .. motorcyclist (car is common enough)
-    paste_classes: list[str] = field(default_factory=lambda: list(SEMANTICKITTI_CLASSES[1:8]))
+    # null = the label set's thing classes (SemanticKITTI: bicycle .. motorcyclist; car is common enough)
+    paste_classes: list[str] | None = None
     paste_copies: int = 2
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.paste_prob <= 1.0 or self.paste_copies < 1:
             raise ValueError("augment.paste_prob must be in [0, 1] and augment.paste_copies >= 1")
-        unknown = [name for name in self.paste_classes if name not in SEMANTICKITTI_CLASSES]
-        if unknown:
-            raise ValueError(
-                f"augment.paste_classes: unknown class names {unknown}; valid: {list(SEMANTICKITTI_CLASSES)}"
-            )
 
 
 def paste_instances(

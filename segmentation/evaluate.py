@@ -28,16 +28,19 @@ from segmentation.metrics import (
 )
 from segmentation.plots import plot_confusion, plot_reliability
 from segmentation.predict import (
+    add_data_format_arguments,
     add_readout_argument,
     add_views_argument,
     check_views,
+    checkpoint_data,
+    class_names_of,
     load_checkpoint,
     model_from_checkpoint,
     parse_sequences,
     predict_probs,
 )
-from u4d_aug.data.datasets import ScanDataset
-from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
+from u4d_aug.data.datasets import NuscenesScanDataset, ScanDataset, open_scans
+from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
 from u4d_aug.distributed import DistInfo, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import check_output_file, dumps_json
@@ -46,7 +49,7 @@ from u4d_aug.progress import progress_bar
 
 def accumulate(
     model: nn.Module,
-    dataset: ScanDataset,
+    dataset: ScanDataset | NuscenesScanDataset,
     indices: Sequence[int],
     device: torch.device,
     num_classes: int,
@@ -105,22 +108,33 @@ def evaluate(
     views: int = 1,
     confusion_png: str | Path | None = None,
     readout: str | None = None,
+    data_format: str | None = None,
+    version: str | None = None,
 ) -> dict:
     """Summary dict (per-class IoU, mIoU, mIoU over present classes, ECE per scan and pooled, bins, confusion);
     views > 1: test-time augmentation over mirror / turned views (predict_probs); `readout` replaces the
-    checkpoint's (model_from_checkpoint)."""
+    checkpoint's (model_from_checkpoint); data_format / version: how to read data_root (None: as the checkpoint
+    was trained, `checkpoint_data`), which also gives the label set and its ignore id."""
     check_views(views)
     info = dist_info or init_distributed(device)
     ckpt = load_checkpoint(checkpoint)
     model = model_from_checkpoint(ckpt, info.device, str(checkpoint), readout)
     num_classes = model.cfg.num_classes
-    class_names = list(ckpt.get("class_names") or SEMANTICKITTI_CLASSES[:num_classes])
-    dataset = ScanDataset(data_root, sequences, labeled_only=True)
+    data_format, version = checkpoint_data(ckpt, data_format, version)
+    dataset = open_scans(data_root, sequences, True, data_format, version)
+    labels = dataset.label_set
+    if num_classes != labels.num_classes:
+        raise InputError(
+            f"{checkpoint}: a net of {num_classes} classes; the {data_format} scans of {data_root} carry "
+            f"{labels.num_classes} train ids"
+        )
+    class_names = class_names_of(ckpt, dataset, num_classes)
     if len(dataset) == 0:
-        raise InputError(f"{data_root}: no labeled scan in sequences {dataset.sequences} (labels/*.label)")
+        what = "labels/*.label" if data_format == "semantickitti" else "lidarseg files"
+        raise InputError(f"{data_root}: no labeled scan in sequences {dataset.sequences} ({what})")
     indices = evenly_spaced(len(dataset), max_scans)
     cm, calibration = accumulate(
-        model, dataset, indices, info.device, num_classes, SEMANTICKITTI_IGNORE,
+        model, dataset, indices, info.device, num_classes, labels.ignore_index,
         info.rank, info.world_size, progress and info.is_main, views,
     )  # fmt: skip
     summary = summary_of(cm, calibration, class_names)
@@ -181,7 +195,7 @@ def format_summary(summary: dict) -> str:
 def add_seg_eval_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `u4d seg-eval CKPT DATA [--sequences ..] [--json] [--png OUT] [--confusion-png OUT]`."""
     parser.add_argument("checkpoint", type=Path, help="segmentation checkpoint (.pt from u4d seg-train)")
-    parser.add_argument("data", type=Path, help="SemanticKITTI-layout root with labels")
+    parser.add_argument("data", type=Path, help="SemanticKITTI-layout root with labels, or a nuScenes root (--format)")
     parser.add_argument(
         "--sequences", nargs="+", default=None, help="sequences (e.g. 08), ranges (88-99) or a split name; default all"
     )
@@ -192,6 +206,7 @@ def add_seg_eval_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--max-scans", type=int, default=None, help="evaluate this many evenly spaced scans")
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    add_data_format_arguments(parser)
     add_views_argument(parser)
     add_readout_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -216,6 +231,8 @@ def run_seg_eval(args: argparse.Namespace) -> int:
             progress=not (args.json or args.no_progress),
             views=args.views,
             readout=args.readout,
+            data_format=args.format,
+            version=args.nuscenes_version,
         )
     finally:
         cleanup()

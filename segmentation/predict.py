@@ -3,11 +3,12 @@
 `u4d seg-predict CKPT DATA --out DIR` writes, for every scan `DATA/sequences/XX/velodyne/NNNNNN.bin`,
 `DIR/sequences/XX/probs/NNNNNN.npy`: float16 (N, K) softmax probabilities, rows in the order of the scan's
 points (NaN/inf points are dropped with a counted warning, as `load_kitti_frame` drops them for every reader of
-these files), plus `DIR/manifest.json` naming the
-checkpoint (sha256[:16]), its config and the test-time views (`--views N`: mean softmax over the scan's mirror
-and turned views). Any segmentor that writes these files can drive U4D. Files are written atomically and existing ones
-are skipped, so a re-run resumes; under torchrun each rank takes every world_size-th scan. Rank 0 holds the run lock
-of DIR (`u4d_aug.runlock`).
+these files); a nuScenes root (the checkpoint's data.format, or --format) gives `DIR/sequences/SCENE/probs/TOKEN.npy`
+per keyframe, rows those `NuscenesScanDataset` reads (ego returns within 1 m dropped); plus `DIR/manifest.json`
+naming the checkpoint (sha256[:16]), its config and the test-time views (`--views N`: mean softmax over the scan's
+mirror and turned views). Any segmentor that writes these files can drive U4D. Files are written atomically and
+existing ones are skipped, so a re-run resumes; under torchrun each rank takes every world_size-th scan. Rank 0 holds
+the run lock of DIR (`u4d_aug.runlock`).
 """
 
 from __future__ import annotations
@@ -24,9 +25,8 @@ from torch import nn
 from segmentation.mean_teacher import mean_view_probs, scan_views, view_count_error
 from segmentation.models import SegModelConfig, build_model
 from u4d_aug.config import config_from_dict
-from u4d_aug.data.datasets import SEMANTICKITTI_SPLITS, list_frames, resolve_sequences, scan_path
-from u4d_aug.data.formats import load_kitti_frame
-from u4d_aug.data.labels import SEMANTICKITTI_CLASSES
+from u4d_aug.data.datasets import DATASET_FORMATS, SEMANTICKITTI_SPLITS, open_scans
+from u4d_aug.data.nuscenes import NUSCENES_VERSION
 from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import atomic_save_npy, atomic_write_json, file_sha256, remove_temp_files
@@ -74,6 +74,21 @@ def model_from_checkpoint(
     return model.to(device).eval()
 
 
+def checkpoint_data(ckpt: dict, data_format: str | None = None, version: str | None = None) -> tuple[str, str]:
+    """(format, nuScenes version) of the scans to read: the given ones, else those the checkpoint trained on
+    (data.format / data.nuscenes_version of its config; SemanticKITTI for checkpoints older than these keys)."""
+    data = ckpt["config"].get("data") or {}
+    data_format = data_format or data.get("format", "semantickitti")
+    if data_format not in DATASET_FORMATS:
+        raise InputError(f"data format {data_format!r}: expected one of {', '.join(DATASET_FORMATS)}")
+    return data_format, version or data.get("nuscenes_version", NUSCENES_VERSION)
+
+
+def class_names_of(ckpt: dict, dataset, num_classes: int) -> list[str]:
+    """The checkpoint's class names, else the first num_classes of the dataset's label set."""
+    return list(ckpt.get("class_names") or dataset.label_set.classes[:num_classes])
+
+
 def checkpoint_hash(path: str | Path) -> str:
     """sha256 of the checkpoint file, first 16 hex digits (names the segmentor in manifests)."""
     return file_sha256(path)
@@ -117,15 +132,20 @@ def predict_root(
     progress: bool = True,
     views: int = 1,
     readout: str | None = None,
+    data_format: str | None = None,
+    version: str | None = None,
 ) -> dict:
     """Write the probabilities of every scan of `sequences` under out_dir (skip existing) and the manifest.
 
     views > 1 average the softmax over mirror and turned views (predict_probs); the manifest records the count
-    and the readout (`readout` replaces the checkpoint's, model_from_checkpoint).
+    and the readout (`readout` replaces the checkpoint's, model_from_checkpoint). data_format / version: how to read
+    data_root (None: as the checkpoint was trained, `checkpoint_data`).
     """
     info = dist_info or init_distributed("auto")
     with run_lock(out_dir, enabled=info.is_main):
-        return predict_locked(checkpoint, data_root, Path(out_dir), sequences, info, progress, views, readout)
+        return predict_locked(
+            checkpoint, data_root, Path(out_dir), sequences, info, progress, views, readout, data_format, version
+        )
 
 
 def predict_locked(
@@ -137,14 +157,17 @@ def predict_locked(
     progress: bool,
     views: int,
     readout: str | None,
+    data_format: str | None = None,
+    version: str | None = None,
 ) -> dict:
     """The work of `predict_root` once the output folder is locked."""
     check_views(views)
     ckpt = load_checkpoint(checkpoint)
     model = model_from_checkpoint(ckpt, info.device, str(checkpoint), readout)
     num_classes = int(ckpt["config"].get("model", {}).get("num_classes", SegModelConfig.num_classes))
-    sequences = resolve_sequences(data_root, sequences)
-    entries = [(seq, frame) for seq in sequences for frame in list_frames(data_root, seq)]
+    data_format, version = checkpoint_data(ckpt, data_format, version)
+    dataset = open_scans(data_root, sequences, False, data_format, version)
+    sequences, entries = dataset.sequences, dataset.entries
     manifest = {
         "format": MANIFEST_FORMAT,
         "version": 1,
@@ -155,10 +178,11 @@ def predict_locked(
         "num_classes": num_classes,
         "views": views,
         "readout": model.cfg.readout,
-        "class_names": list(ckpt.get("class_names") or SEMANTICKITTI_CLASSES[:num_classes]),
+        "class_names": class_names_of(ckpt, dataset, num_classes),
         "dtype": "float16",
         "layout": "sequences/XX/probs/NNNNNN.npy, (N, K) rows in scan point order",
         "data_root": str(Path(data_root).resolve()),
+        **({"data_format": data_format, "nuscenes_version": version} if data_format != "semantickitti" else {}),
         "sequences": sequences,
         "num_scans": len(entries),
         "complete": False,
@@ -177,7 +201,7 @@ def predict_locked(
         if target.is_file():
             skipped += 1
             continue
-        points = load_kitti_frame(scan_path(data_root, seq, frame)).points  # NaN/inf points dropped (warning)
+        points = dataset.load_points(seq, frame)  # NaN/inf points dropped (warning); nuScenes: ego returns too
         atomic_save_npy(target, scan_probs(model, points, info.device, num_classes, views))
         written += 1
     barrier()
@@ -231,7 +255,9 @@ def parse_sequences(values: list[str] | None) -> str | list[str] | None:
 def add_seg_predict_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `u4d seg-predict CKPT DATA --out DIR [--sequences ..]`."""
     parser.add_argument("checkpoint", type=Path, help="segmentation checkpoint (.pt from u4d seg-train)")
-    parser.add_argument("data", type=Path, help="SemanticKITTI-layout root (ROOT/sequences/XX/velodyne)")
+    parser.add_argument(
+        "data", type=Path, help="SemanticKITTI-layout root (ROOT/sequences/XX/velodyne) or nuScenes root"
+    )
     parser.add_argument("--out", type=Path, required=True, help="output root: OUT/sequences/XX/probs/*.npy")
     parser.add_argument(
         "--sequences",
@@ -240,9 +266,25 @@ def add_seg_predict_arguments(parser: argparse.ArgumentParser) -> None:
         help="sequences (e.g. 00 01), ranges (00-87) or a split name; default all",
     )
     parser.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    add_data_format_arguments(parser)
     add_views_argument(parser)
     add_readout_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def add_data_format_arguments(parser: argparse.ArgumentParser) -> None:
+    """--format / --nuscenes-version: how DATA is laid out (default: as the checkpoint's training data was)."""
+    parser.add_argument(
+        "--format",
+        choices=DATASET_FORMATS,
+        default=None,
+        help="layout of DATA: semantickitti or nuscenes (default: the checkpoint's data.format)",
+    )
+    parser.add_argument(
+        "--nuscenes-version",
+        default=None,
+        help="nuScenes table folder under DATA, e.g. v1.0-mini (default: the checkpoint's data.nuscenes_version)",
+    )
 
 
 def add_readout_argument(parser: argparse.ArgumentParser) -> None:
@@ -280,6 +322,8 @@ def run_seg_predict(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             views=args.views,
             readout=args.readout,
+            data_format=args.format,
+            version=args.nuscenes_version,
         )
     finally:
         cleanup()

@@ -25,8 +25,7 @@ from segmentation.mean_teacher import (
     scan_views,
     total_loss,
 )
-from u4d_aug.data.datasets import ScanDataset
-from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
+from u4d_aug.data.datasets import NuscenesScanDataset, ScanDataset, open_scans
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.errors import InputError
 from u4d_aug.seeding import derived_seed
@@ -47,7 +46,7 @@ class UnlabeledStream:
     seeded by (seed, step, slot) only, so they do not depend on ranks, workers or resumption.
     """
 
-    def __init__(self, sources: list[ScanDataset], ratios: list[float], names: list[str]) -> None:
+    def __init__(self, sources: list[ScanDataset | NuscenesScanDataset], ratios: list[float], names: list[str]) -> None:
         kept = [(s, r, n) for s, r, n in zip(sources, ratios, names) if r > 0]
         if not kept:
             raise InputError("semi: the unlabeled stream has no source with a positive ratio")
@@ -84,10 +83,12 @@ class UnlabeledStream:
 
 
 def unlabeled_stream(cfg: SegTrainConfig) -> UnlabeledStream:
-    """Unlabeled split of the train sequences (split file written by train_scans) + the configured banks."""
-    split = ScanDataset(cfg.data.root, cfg.data.train_sequences, labeled_only=False)
+    """Unlabeled split of the train sequences (split file written by train_scans) + the configured banks (banks are
+    SemanticKITTI-layout folders whatever data.format is)."""
+    data = cfg.data
+    split = open_scans(data.root, data.train_sequences, False, data.format, data.nuscenes_version)
     if cfg.data.label_fraction < 1.0:
-        labeled_frames = ScanDataset(cfg.data.root, cfg.data.train_sequences, labeled_only=True).entries
+        labeled_frames = open_scans(data.root, data.train_sequences, True, data.format, data.nuscenes_version).entries
         _, unlabeled = load_or_make_split(
             cfg.data.root, labeled_frames, cfg.data.label_fraction, cfg.data.split_seed, cfg.data.split_mode
         )
@@ -166,15 +167,14 @@ def semi_step(
         teacher_point_logits = (
             mean_view_logits(list(point_logits.chunk(num_views))) if num_views > 1 else point_logits
         )  # (sum M_b, K)
-    pseudo, _ = pseudo_labels(
-        teacher_point_logits, cfg.semi.pseudo_threshold, SEMANTICKITTI_IGNORE, cfg.semi.pseudo_class_share
-    )
+    ignore = cfg.data.label_set.ignore_index
+    pseudo, _ = pseudo_labels(teacher_point_logits, cfg.semi.pseudo_threshold, ignore, cfg.semi.pseudo_class_share)
     pseudo_per_scan = pseudo.split([p.shape[0] for p in unlabeled])
     extra = {}
     if cfg.semi.oracle_labels:  # diagnostic: the scans' own labels instead of the teacher's
         pseudo_per_scan = [y.to(device) for y in batch["unlabeled_labels"]]
-        truth, kept = torch.cat(pseudo_per_scan), pseudo != SEMANTICKITTI_IGNORE
-        scored = kept & (truth != SEMANTICKITTI_IGNORE)
+        truth, kept = torch.cat(pseudo_per_scan), pseudo != ignore
+        scored = kept & (truth != ignore)
         # accuracy of the teacher's confident pseudo-labels the oracle replaced (logged, not trained on); NaN when
         # the teacher is confident on no labelled point (the mean of an empty set; the log window then reads NaN)
         extra["pseudo_accuracy"] = (pseudo[scored] == truth[scored]).float().mean()
@@ -189,7 +189,6 @@ def semi_step(
 
     # student: one forward over labeled (B), mixed (2B) and unlabeled (B) scans, logits split back
     scans = labeled + mixed + unlabeled
-    ignore = SEMANTICKITTI_IGNORE
     if voxel:
         out = student(scans, voxel_output=True)  # voxel rows sorted by scan
         unlabeled_target = torch.full((sum(p.shape[0] for p in unlabeled),), ignore, dtype=torch.int64, device=device)
@@ -214,7 +213,7 @@ def semi_step(
         "loss_sup": loss_sup,
         "loss_mix": loss_mix,
         "loss_mt": loss_mt,
-        "pseudo_kept": (pseudo != SEMANTICKITTI_IGNORE).float().mean(),  # share of confident pseudo-labels
+        "pseudo_kept": (pseudo != ignore).float().mean(),  # share of confident pseudo-labels
         **extra,
     }
 

@@ -53,9 +53,7 @@ from segmentation.semi import (
 )
 from u4d_aug.cmdline import parse_command_line
 from u4d_aug.config import add_run_arguments, config_to_dict, load_config, save_config
-from u4d_aug.data.datasets import ScanDataset, scan_path
-from u4d_aug.data.formats import label_path_for, read_kitti_label
-from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE, map_semantickitti
+from u4d_aug.data.datasets import NuscenesScanDataset, ScanDataset, open_scans
 from u4d_aug.distributed import (
     DistInfo,
     all_reduce_mean,
@@ -144,7 +142,7 @@ class TrainBatches(Dataset):
 
     def __init__(
         self,
-        scans: ScanDataset,
+        scans: ScanDataset | NuscenesScanDataset,
         cfg: SegTrainConfig,
         rank: int,
         world_size: int,
@@ -152,7 +150,7 @@ class TrainBatches(Dataset):
     ) -> None:
         self.scans, self.cfg, self.rank, self.world_size = scans, cfg, rank, world_size
         self.unlabeled = unlabeled
-        names = list(SEMANTICKITTI_CLASSES)  # AugmentConfig has checked the paste class names
+        names = list(cfg.data.label_set.classes)  # SegTrainConfig has checked the paste class names
         self.paste_ids = torch.tensor([names.index(name) for name in cfg.augment.paste_classes], dtype=torch.int64)
 
     def __len__(self) -> int:
@@ -201,16 +199,17 @@ def supervised_step(
     """Losses of one labeled batch: {"loss", "loss_ce", ["loss_lovasz"]} (the loop backpropagates "loss")."""
     points = [p.to(device, non_blocking=True) for p in batch["points"]]
     target = torch.cat(batch["labels"]).to(device)  # (sum N_b,)
+    ignore = cfg.data.label_set.ignore_index
     if cfg.loss.level == "voxel":
         out = model(points, voxel_output=True)  # logits (M, K) of the occupied voxels
-        logits, target = out.logits, voxel_targets(target, out.inverse, out.logits.shape[0], SEMANTICKITTI_IGNORE)
+        logits, target = out.logits, voxel_targets(target, out.inverse, out.logits.shape[0], ignore)
     elif "loss_rows" in batch:  # loss.point_fraction < 1: the sampled points only
         starts = torch.tensor([0] + [len(p) for p in batch["points"][:-1]]).cumsum(0).tolist()
         rows = torch.cat([r + s for r, s in zip(batch["loss_rows"], starts)]).to(device)  # (R,) into the batch
         logits, target = model(points, rows=rows), target[rows]  # (R, K), (R,)
     else:
         logits = model(points)  # (sum N_b, K)
-    return segmentation_loss(logits, target, cfg.loss, SEMANTICKITTI_IGNORE, class_weight)
+    return segmentation_loss(logits, target, cfg.loss, ignore, class_weight)
 
 
 def sample_rows(num: int, fraction: float, generator: torch.Generator) -> torch.Tensor:
@@ -219,20 +218,25 @@ def sample_rows(num: int, fraction: float, generator: torch.Generator) -> torch.
     return torch.randperm(num, generator=generator)[:count].sort().values
 
 
-def train_class_counts(scans: ScanDataset) -> torch.Tensor:
+def train_class_counts(scans: ScanDataset | NuscenesScanDataset) -> torch.Tensor:
     """(K,) labelled points per train id over the training scans (labels only; the ignore id dropped)."""
-    counts = np.zeros(len(SEMANTICKITTI_CLASSES), dtype=np.int64)
-    for seq, frame in scans.entries:
-        path = label_path_for(scan_path(scans.root, seq, frame))
-        semantic, _ = read_kitti_label(path)
-        train_ids = map_semantickitti(semantic)
-        counts += np.bincount(train_ids, minlength=SEMANTICKITTI_IGNORE + 1)[: len(counts)]
+    labels = scans.label_set
+    counts = np.zeros(labels.num_classes, dtype=np.int64)
+    for index in range(len(scans.entries)):
+        train_ids = scans.train_ids(index)
+        counts += np.bincount(train_ids, minlength=labels.ignore_index + 1)[: len(counts)]
     return torch.from_numpy(counts)
 
 
-def train_scans(cfg: SegTrainConfig, info: DistInfo) -> ScanDataset:
+def data_scans(cfg: SegTrainConfig, sequences, labeled_only: bool) -> ScanDataset | NuscenesScanDataset:
+    """The scans of `sequences` under data.root, read in data.format."""
+    data = cfg.data
+    return open_scans(data.root, sequences, labeled_only, data.format, data.nuscenes_version)
+
+
+def train_scans(cfg: SegTrainConfig, info: DistInfo) -> ScanDataset | NuscenesScanDataset:
     """Labeled scans of the train sequences, restricted to the labeled split if label_fraction < 1."""
-    scans = ScanDataset(cfg.data.root, cfg.data.train_sequences, labeled_only=True)
+    scans = data_scans(cfg, cfg.data.train_sequences, labeled_only=True)
     if len(scans) == 0:
         raise InputError(f"{cfg.data.root}: no labeled scan in the train sequences {scans.sequences}")
     if cfg.data.label_fraction < 1.0:
@@ -267,13 +271,15 @@ def save_checkpoint(path: Path, state: dict, keep: int) -> None:
             old.unlink(missing_ok=True)
 
 
-def evaluate_val(model: nn.Module, cfg: SegTrainConfig, val_scans: ScanDataset | None, info: DistInfo):
+def evaluate_val(
+    model: nn.Module, cfg: SegTrainConfig, val_scans: ScanDataset | NuscenesScanDataset | None, info: DistInfo
+):
     """Periodic evaluation on the val scans, shared by all ranks: (summary, pooled bins) or (None, None)."""
     if val_scans is None:
         return None, None
     indices = evenly_spaced(len(val_scans), cfg.data.val_max_scans)
     cm, calibration = accumulate(
-        model, val_scans, indices, info.device, cfg.model.num_classes, SEMANTICKITTI_IGNORE,
+        model, val_scans, indices, info.device, cfg.model.num_classes, cfg.data.label_set.ignore_index,
         info.rank, info.world_size,
     )  # fmt: skip
     return summary_of(cm, calibration, class_names(cfg)), calibration.pooled
@@ -287,8 +293,8 @@ def sync_buffers(model: nn.Module) -> None:
 
 
 def class_names(cfg: SegTrainConfig) -> list[str]:
-    """Train-id names of the net's classes (SemanticKITTI)."""
-    names = list(SEMANTICKITTI_CLASSES[: cfg.model.num_classes])
+    """Train-id names of the net's classes (the data's label set)."""
+    names = list(cfg.data.label_set.classes[: cfg.model.num_classes])
     return names + [f"class_{k}" for k in range(len(names), cfg.model.num_classes)]
 
 
@@ -322,10 +328,11 @@ def train_locked(cfg: SegTrainConfig, info: DistInfo, resume: str | Path | None,
     ckpt_path = resume_point(out_dir, resume)  # None: step 0 (also --resume before the first checkpoint)
     if info.is_main:
         prepare(out_dir, ckpt_path)
-    if cfg.model.num_classes != len(SEMANTICKITTI_CLASSES):
+    labels = cfg.data.label_set
+    if cfg.model.num_classes != labels.num_classes:
         raise InputError(
-            f"model.num_classes={cfg.model.num_classes}: the scans carry the "
-            f"{len(SEMANTICKITTI_CLASSES)} SemanticKITTI train ids"
+            f"model.num_classes={cfg.model.num_classes}: the {cfg.data.format} scans carry {labels.num_classes} "
+            f"train ids; set model.num_classes={labels.num_classes}"
         )
     if cfg.optim.batch_size < info.world_size:
         raise InputError(
@@ -337,7 +344,7 @@ def train_locked(cfg: SegTrainConfig, info: DistInfo, resume: str | Path | None,
     scans = train_scans(cfg, info)
     val_scans = None
     if cfg.data.val_sequences is not None:
-        val_scans = ScanDataset(cfg.data.root, cfg.data.val_sequences, labeled_only=True)
+        val_scans = data_scans(cfg, cfg.data.val_sequences, labeled_only=True)
         val_scans = val_scans if len(val_scans) else None
     unlabeled = unlabeled_stream(cfg) if cfg.mode == "semi" else None
     # CE class weights from the labelled training points (every rank counts the same scans)
@@ -517,18 +524,35 @@ def _pct(value: float | None) -> str:
 
 
 def _warn_config_changes(old: dict, new: dict, path: Path) -> None:
-    """Resuming with another config is allowed (e.g. more steps) but not exact: warn which keys differ."""
-    changed = [f"{key}: {a!r} -> {b!r}" for key, a, b in _differences(old, new) if key != "out_dir"]
+    """Resuming with another config is allowed (e.g. more steps) but not exact: warn which keys differ (a key the
+    checkpoint predates, at its default value, is no change)."""
+    defaults = {key: value for key, _, value in _differences({}, config_to_dict(SegTrainConfig()))}
+    changed = [
+        f"{key}: {a!r} -> {b!r}"
+        for key, a, b in _differences(old, new)
+        if key != "out_dir" and not (a is _ABSENT and defaults.get(key, _ABSENT) == b)
+    ]
     if changed:
         warnings.warn(f"{path}: resuming with a changed config ({'; '.join(changed)})", stacklevel=2)
 
 
+class _Absent:
+    def __repr__(self) -> str:
+        return "(absent)"
+
+
+_ABSENT = _Absent()  # a key one config has and the other lacks
+
+
 def _differences(old: dict, new: dict, prefix: str = "") -> list[tuple[str, object, object]]:
+    """(dotted key, old value, new value) of every leaf that differs; _ABSENT where a side lacks the key."""
     out = []
     for key in sorted(set(old) | set(new)):
-        a, b = old.get(key), new.get(key)
+        a, b = old.get(key, _ABSENT), new.get(key, _ABSENT)
         if isinstance(a, dict) and isinstance(b, dict):
             out += _differences(a, b, f"{prefix}{key}.")
+        elif isinstance(b, dict) and a is _ABSENT:
+            out += _differences({}, b, f"{prefix}{key}.")
         elif a != b:
             out.append((f"{prefix}{key}", a, b))
     return out

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,8 @@ import torch
 # 2 cores are shared; one thread keeps the suite fast and its timings steady.
 torch.set_num_threads(1)
 
-REAL_ROOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+# ../shared/data/real beside the checkout; U4D_REAL_DATA points elsewhere (a git worktree one folder deeper)
+REAL_ROOT = Path(os.environ.get("U4D_REAL_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data" / "real")
 
 
 @pytest.fixture(scope="session")

@@ -33,7 +33,9 @@ def test_seeds_needed():
 
 def entry(arm: str, values: dict[int, tuple[float, float, float]]) -> dict:
     """An arm entry with runs of (mIoU, ECE, car IoU) per seed."""
-    runs = [{"seed": s, "miou": m, "ece_per_scan": e, "iou": {"car": c, "road": 0.9}} for s, (m, e, c) in values.items()]
+    runs = [
+        {"seed": s, "miou": m, "ece_per_scan": e, "iou": {"car": c, "road": 0.9}} for s, (m, e, c) in values.items()
+    ]
     return {"arm": arm, "backbone": "minkunet", "runs": runs}
 
 

@@ -27,6 +27,9 @@ _EXPORTS: dict[str, str] = {
     "SEMANTICKITTI_IGNORE": "u4d_aug.data.labels",
     "NUSCENES_CLASSES": "u4d_aug.data.labels",
     "NUSCENES_IGNORE": "u4d_aug.data.labels",
+    "LabelSet": "u4d_aug.data.labels",
+    "label_set": "u4d_aug.data.labels",
+    "read_nuscenes_index": "u4d_aug.data.nuscenes",
     # sensors and the range view
     "Sensor": "u4d_aug.data.sensors",
     "get_sensor": "u4d_aug.data.sensors",
@@ -51,6 +54,10 @@ _EXPORTS: dict[str, str] = {
     # datasets, banks and batching
     "ScanDataset": "u4d_aug.data.datasets",
     "SequenceDataset": "u4d_aug.data.datasets",
+    "NuscenesScanDataset": "u4d_aug.data.datasets",
+    "NuscenesSequenceDataset": "u4d_aug.data.datasets",
+    "open_scans": "u4d_aug.data.datasets",
+    "open_sequences": "u4d_aug.data.datasets",
     "collate_scans": "u4d_aug.data.collate",
     "split_points": "u4d_aug.data.collate",
     "read_manifest": "u4d_aug.bank",

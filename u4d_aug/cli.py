@@ -66,8 +66,15 @@ def build_parser() -> argparse.ArgumentParser:
     add_verbosity_arguments(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    p = _command(sub, "info", "summarise a SemanticKITTI-layout root: sequences, frames, points, classes")
+    p = _command(sub, "info", "summarise a dataset root: sequences, frames, points, classes")
     p.add_argument("root", type=Path)
+    p.add_argument(
+        "--format",
+        choices=["semantickitti", "nuscenes"],
+        default="semantickitti",
+        help="layout of ROOT: semantickitti (sequences/XX/velodyne) or nuscenes (v1.0 tables; scenes, keyframes)",
+    )
+    p.add_argument("--nuscenes-version", default="v1.0-trainval", help="--format nuscenes: the table folder")
     p.add_argument("--json", action="store_true", help="print json instead of a table")
     p.set_defaults(func=run_info)
 
@@ -232,33 +239,26 @@ def run_delegated(args: argparse.Namespace) -> int:
 
 
 def run_info(args: argparse.Namespace) -> int:
-    """`u4d info ROOT`: what a dataset root holds."""
-    from u4d_aug.data.datasets import list_frames, list_sequences
-    from u4d_aug.data.formats import label_path_for, load_kitti_frame
-    from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE, map_semantickitti
+    """`u4d info ROOT`: what a dataset root holds (nuScenes: the keyframes of each scene)."""
+    from u4d_aug.data.datasets import open_scans
 
     root = args.root
-    sequences = list_sequences(root)
-    per_sequence = []
-    counts = np.zeros(len(SEMANTICKITTI_CLASSES) + 1, dtype=np.int64)
+    dataset = open_scans(root, None, False, args.format, args.nuscenes_version)
+    names = dataset.label_set.classes
+    per_sequence = {seq: {"sequence": seq, "frames": 0, "labeled_frames": 0} for seq in dataset.sequences}
+    counts = np.zeros(len(names) + 1, dtype=np.int64)
     num_points = []
-    for seq in sequences:
-        frames = list_frames(root, seq)
-        labeled = 0
-        for frame in frames:
-            scan_path = root / "sequences" / seq / "velodyne" / f"{frame}.bin"
-            label_path = label_path_for(scan_path)
-            has_label = label_path.is_file()
-            loaded = load_kitti_frame(scan_path, label_path if has_label else None)
-            num_points.append(len(loaded.points))
-            if has_label:
-                labeled += 1
-                train_ids = map_semantickitti(loaded.semantic)
-                counts += np.bincount(train_ids, minlength=len(counts))[: len(counts)]
-        per_sequence.append({"sequence": seq, "frames": len(frames), "labeled_frames": labeled})
+    for index in range(len(dataset)):
+        item = dataset[index]
+        num_points.append(len(item["points"]))
+        per_sequence[item["seq"]]["frames"] += 1
+        if item["labels"] is not None:
+            per_sequence[item["seq"]]["labeled_frames"] += 1
+            counts += np.bincount(item["labels"], minlength=len(counts))[: len(counts)]
+    per_sequence = list(per_sequence.values())
     pts = np.asarray(num_points) if num_points else np.zeros(1)
-    classes = {name: int(counts[i]) for i, name in enumerate(SEMANTICKITTI_CLASSES)}
-    classes["ignore"] = int(counts[SEMANTICKITTI_IGNORE])
+    classes = {name: int(counts[i]) for i, name in enumerate(names)}
+    classes["ignore"] = int(counts[len(names)])
     summary = {
         "root": str(root),
         "sequences": per_sequence,
@@ -278,8 +278,9 @@ def run_info(args: argparse.Namespace) -> int:
     total = max(int(counts.sum()), 1)
     if counts.sum():
         print("class histogram (labeled frames, train ids):")
-        for i, name in enumerate([*SEMANTICKITTI_CLASSES, "ignore"]):
-            print(f"  {i:2d} {name:<14s} {counts[i]:>10d}  {100.0 * counts[i] / total:5.1f}%")
+        width = max(14, *(len(name) for name in names))
+        for i, name in enumerate([*names, "ignore"]):
+            print(f"  {i:2d} {name:<{width}s} {counts[i]:>10d}  {100.0 * counts[i] / total:5.1f}%")
     return 0
 
 

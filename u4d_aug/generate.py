@@ -38,7 +38,14 @@ from u4d_aug.bank import (
     write_sequence_poses,
 )
 from u4d_aug.config import config_to_dict, load_config
-from u4d_aug.data.datasets import ScanDataset, SequenceDataset
+from u4d_aug.data.datasets import (
+    NuscenesScanDataset,
+    NuscenesSequenceDataset,
+    ScanDataset,
+    SequenceDataset,
+    open_scans,
+    open_sequences,
+)
 from u4d_aug.data.formats import read_calib, read_poses
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
@@ -54,6 +61,9 @@ from u4d_aug.trajectory import POSE_DIM, poses_from_motion, relative_motion
 from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
 
 logger = logging.getLogger(__name__)
+
+Scans = ScanDataset | NuscenesScanDataset  # single real scans (completion mode)
+Windows = SequenceDataset | NuscenesSequenceDataset  # L-frame windows with poses
 
 Mode = Literal["u4d", "baseline", "complete"]
 
@@ -81,7 +91,8 @@ class GenerateConfig:
     frames: int | None = None  # L frames per sample; None = the L the generator was trained with (1: scans)
     device: str = "auto"
     # completion mode: x0_u, m_u from these real scans (sample i completes scan i mod count, or for sequence
-    # generators window i mod count of L frames, frame_stride apart as in training, with poses) and their probs
+    # generators window i mod count of L frames, frame_stride apart as in training, with poses) and their probs;
+    # data_root is read in the layout the generator was trained on (its data_format: SemanticKITTI or nuScenes)
     data_root: str = ""
     sequences: list[str] | None = None
     probs_root: str = ""
@@ -176,15 +187,16 @@ def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bo
             "choose another --out or delete the bank"
         )
 
-    scans: ScanDataset | SequenceDataset | None = None
+    scans: Scans | Windows | None = None
     if cfg.mode == "complete":
         if not cfg.data_root:
             raise InputError("data_root: completion mode needs real scans to take x0_u from")
+        real = (main[1].data_format, main[1].nuscenes_version)  # real scans laid out as the generator's were
         if frames == 1:
-            scans = ScanDataset(cfg.data_root, cfg.sequences)
+            scans = open_scans(cfg.data_root, cfg.sequences, False, *real)
         else:
             try:
-                scans = SequenceDataset(cfg.data_root, frames, cfg.sequences, main[1].frame_stride, with_poses=True)
+                scans = open_sequences(cfg.data_root, frames, cfg.sequences, main[1].frame_stride, True, *real)
             except InputError as exc:
                 raise InputError(f"completion mode writes the real frames' poses with each sequence: {exc}") from None
         if len(scans) == 0:
@@ -297,7 +309,7 @@ def _per_sample(images: torch.Tensor, n: int) -> np.ndarray:
 
 
 def _real_sample_condition(
-    scans: ScanDataset | SequenceDataset,
+    scans: Scans | Windows,
     index: int,
     generator: torch.Generator,
     frames: int,
@@ -347,14 +359,17 @@ def load_motion_file(path: str | Path, frames: int) -> np.ndarray:
     return motion.astype(np.float32)
 
 
-def training_windows(train_cfg: DiffusionTrainConfig, frames: int) -> SequenceDataset:
+def training_windows(train_cfg: DiffusionTrainConfig, frames: int) -> Windows:
     """L-frame windows (and poses, no scans) of the sequences a pose-conditioned generator was trained on."""
     if not train_cfg.data_root:
         raise InputError("the generator's config names no data_root to draw trajectories from")
-    return SequenceDataset(train_cfg.data_root, frames, train_cfg.sequences, train_cfg.frame_stride, with_poses=True)
+    return open_sequences(
+        train_cfg.data_root, frames, train_cfg.sequences, train_cfg.frame_stride, True,
+        train_cfg.data_format, train_cfg.nuscenes_version,
+    )  # fmt: skip
 
 
-def window_motion(windows: SequenceDataset, index: int) -> tuple[np.ndarray, list[str]]:
+def window_motion(windows: Windows, index: int) -> tuple[np.ndarray, list[str]]:
     """(L, 4) ego motion of window `index` of `windows` and its frames as 'seq/frame' names."""
     seq, start = windows.windows[index]
     positions = list(range(start, start + windows.num_frames * windows.stride, windows.stride))
@@ -387,7 +402,7 @@ def sample_motions(cfg: GenerateConfig, train_cfg: DiffusionTrainConfig, frames:
 def _sample_entry(
     cfg: GenerateConfig,
     index: int,
-    scans: ScanDataset | SequenceDataset | None,
+    scans: Scans | Windows | None,
     frames: int,
     motion_sources: list[dict],
 ) -> dict:
@@ -399,10 +414,10 @@ def _sample_entry(
     else:
         entry["sequence"] = sequence_name(index)
         entry["files"] = [f"sequences/{sequence_name(index)}/velodyne/{f:06d}.bin" for f in range(frames)]
-    if isinstance(scans, ScanDataset):
+    if isinstance(scans, Scans):
         seq, frame = scans.entries[index % len(scans)]
         entry["source"] = f"{seq}/{frame}"
-    elif isinstance(scans, SequenceDataset):
+    elif isinstance(scans, Windows):
         seq, start = scans.windows[index % len(scans)]
         names = scans.frames[seq][start : start + frames * scans.stride : scans.stride]
         entry["source"] = [f"{seq}/{name}" for name in names]

@@ -9,10 +9,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import torch
 
 from u4d_aug.config import config_from_dict
+from u4d_aug.data.datasets import DATASET_FORMATS
+from u4d_aug.data.nuscenes import NUSCENES_VERSION
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.diffusion import DiffusionConfig
 from u4d_aug.errors import InputError
@@ -54,8 +57,11 @@ class OptimConfig:
 class DiffusionTrainConfig:
     """One stage's training run; `net.mask_head` and `net.cond_channels` follow `diffusion.stage`."""
 
-    data_root: str = ""  # SemanticKITTI layout: ROOT/sequences/XX/velodyne/NNNNNN.bin
-    sequences: list[str] | None = None  # None = all under data_root
+    data_root: str = ""  # SemanticKITTI layout: ROOT/sequences/XX/velodyne/NNNNNN.bin, or a nuScenes root
+    # layout of data_root: "semantickitti", or "nuscenes" (the keyframes of the v1.0 tables under ROOT/<version>/)
+    data_format: Literal["semantickitti", "nuscenes"] = "semantickitti"
+    nuscenes_version: str = NUSCENES_VERSION  # data_format nuscenes: the table folder under data_root
+    sequences: list[str] | None = None  # None = all under data_root (nuScenes: scene names, numbers or ranges)
     probs_root: str = ""  # PROBS/sequences/XX/probs/NNNNNN.npy from `u4d seg-predict` (stage1/stage2)
     sensor: str = "hdl64"  # hdl64 | hdl32 | sensor yaml
     height: int = 64
@@ -89,6 +95,8 @@ class DiffusionTrainConfig:
     def __post_init__(self) -> None:
         self.net.mask_head = self.diffusion.stage == "stage1"
         self.net.cond_channels = 3 if self.diffusion.stage == "stage2" else 0
+        if self.data_format not in DATASET_FORMATS:
+            raise InputError(f"data_format must be one of {', '.join(DATASET_FORMATS)}, got {self.data_format!r}")
         if self.steps < 1 or self.batch_size < 1:
             raise InputError(f"steps and batch_size must be >= 1, got {self.steps}, {self.batch_size}")
         if self.height < 1 or self.width < 1:

@@ -26,8 +26,14 @@ from torch import Tensor, nn
 
 from u4d_aug.config import add_run_arguments, config_to_dict, load_config, parse_override, save_config
 from u4d_aug.data.beams import check_beams
-from u4d_aug.data.datasets import ScanDataset, SequenceDataset, scan_path
-from u4d_aug.data.formats import load_kitti_frame
+from u4d_aug.data.datasets import (
+    NuscenesScanDataset,
+    NuscenesSequenceDataset,
+    ScanDataset,
+    SequenceDataset,
+    open_scans,
+    open_sequences,
+)
 from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.diffusion import GaussianDiffusion
 from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, budget_used, cleanup, init_distributed
@@ -67,18 +73,19 @@ class RangeImages:
 
     def __init__(self, cfg: DiffusionTrainConfig) -> None:
         if not cfg.data_root:
-            raise InputError("data_root: expected a SemanticKITTI-layout folder of training scans")
+            raise InputError("data_root: expected a SemanticKITTI-layout folder (or a nuScenes root) of training scans")
         self.cfg = cfg
         self.sensor: Sensor = get_sensor(cfg.sensor)
-        self.scans = ScanDataset(cfg.data_root, cfg.sequences)
+        layout = (cfg.data_format, cfg.nuscenes_version)
+        self.scans: ScanDataset | NuscenesScanDataset = open_scans(cfg.data_root, cfg.sequences, False, *layout)
         if len(self.scans) == 0:
             raise InputError(f"{cfg.data_root}: no scans found")
-        first = scan_path(cfg.data_root, *self.scans.entries[0])
-        check_beams(load_kitti_frame(first).points, self.sensor, str(first))  # a warning: hdl32 scans as hdl64
-        self.windows: SequenceDataset | None = None
+        first = self.scans.entries[0]
+        check_beams(self.scans.load_points(*first), self.sensor, f"{cfg.data_root}: scan {'/'.join(first)}")
+        self.windows: SequenceDataset | NuscenesSequenceDataset | None = None
         if cfg.frames > 1:
-            self.windows = SequenceDataset(
-                cfg.data_root, cfg.frames, cfg.sequences, cfg.frame_stride, with_poses=cfg.net.pose_dim > 0
+            self.windows = open_sequences(
+                cfg.data_root, cfg.frames, cfg.sequences, cfg.frame_stride, cfg.net.pose_dim > 0, *layout
             )
         self.needs_probs = cfg.diffusion.stage in ("stage1", "stage2") and cfg.uncertainty.strategy != "none"
         if self.needs_probs and not cfg.probs_root:
@@ -116,7 +123,7 @@ class RangeImages:
         if (seq, frame) in self.cache:
             return self.cache[(seq, frame)]
         cfg = self.cfg
-        points = torch.from_numpy(load_kitti_frame(scan_path(cfg.data_root, seq, frame)).points)
+        points = torch.from_numpy(self.scans.load_points(seq, frame))
         x0 = to_image(project(points, self.sensor, cfg.height, cfg.width, cfg.row_mode), self.sensor)
         out = {"x0": x0}
         if cfg.diffusion.stage != "baseline":

@@ -1,7 +1,10 @@
-"""Scan and L-frame sequence datasets over a SemanticKITTI layout (`root/sequences/XX/velodyne/NNNNNN.bin`).
+"""Scan and L-frame sequence datasets over a SemanticKITTI layout (`root/sequences/XX/velodyne/NNNNNN.bin`) or a
+nuScenes root (`root/v1.0-*/*.json` tables, `samples/LIDAR_TOP/*.pcd.bin`, `lidarseg/`).
 
-Source: ../shared/reference/segmentation_protocols.md §5 (layout; splits train 00-07, 09, 10 / val 08 /
-test 11-21; relative pose of scan j in scan i = T_i^-1 T_j). Items are plain numpy (training converts).
+Source: ../shared/reference/segmentation_protocols.md §5 (layouts; SemanticKITTI splits train 00-07, 09, 10 / val 08 /
+test 11-21; relative pose of scan j in scan i = T_i^-1 T_j). Both families give the same items, `entries` as
+(sequence, frame) pairs and their `label_set` (the nuScenes family is in `nuscenes_datasets`); `open_scans` /
+`open_sequences` pick the family by format name. Items are plain numpy (training converts).
 """
 
 from __future__ import annotations
@@ -10,25 +13,36 @@ import os
 import re
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
-from u4d_aug.data.formats import label_path_for, load_kitti_frame, read_calib, read_poses
-from u4d_aug.data.labels import map_semantickitti
+from u4d_aug.data.formats import label_path_for, load_kitti_frame, read_calib, read_kitti_label, read_poses
+from u4d_aug.data.labels import SEMANTICKITTI_LABELS, map_semantickitti
+from u4d_aug.data.nuscenes import NUSCENES_VERSION
+from u4d_aug.data.nuscenes_datasets import NuscenesScanDataset, NuscenesSequenceDataset, resolve_scenes
 from u4d_aug.errors import InputError
 
 __all__ = [
+    "DATASET_FORMATS",
     "SEMANTICKITTI_SPLITS",
+    "NuscenesScanDataset",
+    "NuscenesSequenceDataset",
     "ScanDataset",
     "SequenceDataset",
     "label_path_for",
     "list_frames",
     "list_sequences",
+    "open_scans",
+    "open_sequences",
+    "resolve_scenes",
     "resolve_sequences",
     "scan_path",
 ]
 
 PathLike = str | os.PathLike
+DatasetFormat = Literal["semantickitti", "nuscenes"]
+DATASET_FORMATS: tuple[str, ...] = ("semantickitti", "nuscenes")
 
 SEMANTICKITTI_SPLITS: dict[str, tuple[str, ...]] = {
     "train": ("00", "01", "02", "03", "04", "05", "06", "07", "09", "10"),
@@ -112,6 +126,8 @@ class ScanDataset:
     item = dict(points (N, 4) float32, labels (N,) int64 train ids or None, seq str, frame str)
     """
 
+    label_set = SEMANTICKITTI_LABELS
+
     def __init__(
         self, root: PathLike, sequences: str | Sequence[str | int] | None = None, labeled_only: bool = False
     ) -> None:
@@ -131,6 +147,15 @@ class ScanDataset:
         seq, frame = self.entries[index]
         points, labels = _load_scan(self.root, seq, frame)
         return {"points": points, "labels": labels, "seq": seq, "frame": frame}
+
+    def load_points(self, seq: str, frame: str) -> np.ndarray:
+        """(N, 4) float32 points of one scan, NaN/inf rows dropped (the rows of its probability file)."""
+        return load_kitti_frame(scan_path(self.root, seq, frame)).points
+
+    def train_ids(self, index: int) -> np.ndarray | None:
+        """(N_raw,) int64 train ids of entry `index` from its label file alone (None without one)."""
+        path = label_path_for(scan_path(self.root, *self.entries[index]))
+        return map_semantickitti(read_kitti_label(path)[0]) if path.is_file() else None
 
 
 class SequenceDataset:
@@ -214,3 +239,39 @@ def _sequence_poses(root: Path, seq: str, frames: list[str]) -> np.ndarray:
             f"{folder / 'poses.txt'}: {len(poses)} poses but frame {frames[int(index.argmax())]} needs more"
         )
     return poses[index]
+
+
+# ------------------------------------------------------------------------------------------------------------
+# by format name
+
+
+def open_scans(
+    root: PathLike,
+    sequences: str | Sequence[str | int] | None = None,
+    labeled_only: bool = False,
+    data_format: str = "semantickitti",
+    version: str = NUSCENES_VERSION,
+) -> ScanDataset | NuscenesScanDataset:
+    """The scan dataset of a root in `data_format` 'semantickitti' or 'nuscenes' (tables under ROOT/version)."""
+    if data_format == "semantickitti":
+        return ScanDataset(root, sequences, labeled_only)
+    elif data_format == "nuscenes":
+        return NuscenesScanDataset(root, sequences, labeled_only, version)
+    raise InputError(f"data format {data_format!r}: expected one of {', '.join(DATASET_FORMATS)}")
+
+
+def open_sequences(
+    root: PathLike,
+    num_frames: int,
+    sequences: str | Sequence[str | int] | None = None,
+    stride: int = 1,
+    with_poses: bool = True,
+    data_format: str = "semantickitti",
+    version: str = NUSCENES_VERSION,
+) -> SequenceDataset | NuscenesSequenceDataset:
+    """The L-frame window dataset of a root in `data_format` 'semantickitti' or 'nuscenes'."""
+    if data_format == "semantickitti":
+        return SequenceDataset(root, num_frames, sequences, stride, with_poses)
+    elif data_format == "nuscenes":
+        return NuscenesSequenceDataset(root, num_frames, sequences, stride, with_poses, version)
+    raise InputError(f"data format {data_format!r}: expected one of {', '.join(DATASET_FORMATS)}")

@@ -2,14 +2,25 @@
 
 Source: ../shared/reference/segmentation_protocols.md §5 (LaserMix b72cbd3 `semantickitti.yaml`,
 `nuscenes/label_mapping.py`). Train ids are 0..K-1 with one ignore id K (19 for SemanticKITTI, 16 for
-nuScenes); the conversion happens once, at load time.
+nuScenes); the conversion happens once, at load time. A `LabelSet` bundles one dataset's classes, ignore id and
+map, so that the segmentation host takes them as a setting (`label_set(name)`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Literal
+
 import numpy as np
 
 __all__ = [
+    "LABEL_SET_NAMES",
+    "LabelSet",
+    "label_set",
+    "SEMANTICKITTI_LABELS",
+    "NUSCENES_LABELS",
+    "semantickitti_to_nuscenes_raw",
     "SEMANTICKITTI_CLASSES",
     "SEMANTICKITTI_IGNORE",
     "SEMANTICKITTI_RAW_NAMES",
@@ -202,3 +213,88 @@ def map_nuscenes(raw: np.ndarray) -> np.ndarray:
     valid = (raw >= 0) & (raw < 256)
     out[valid] = _NUSCENES_LUT[raw[valid]]
     return out
+
+
+# ------------------------------------------------------------------------------------------------------------
+# the simulated world (SemanticKITTI raw ids) written as nuScenes-lidarseg
+
+# Our reading of the two class definitions (nuScenes lidarseg README): vans are vehicle.car, a rider is annotated
+# with the two-wheeler, parking lots are driveable surface, trunks are vegetation, poles, signs, fences and other
+# structures (sheds, which SemanticKITTI ignores) are static.manmade, buses vehicle.bus.rigid; unlabeled, outlier,
+# on-rails and other-object stay ignored (noise, static.other).
+SEMANTICKITTI_TO_NUSCENES_RAW: dict[int, int] = {
+    0: 0, 1: 0, 10: 17, 11: 14, 13: 16, 15: 21, 16: 0, 18: 23, 20: 17, 30: 2, 31: 14, 32: 21,
+    40: 24, 44: 24, 48: 26, 49: 25, 50: 28, 51: 28, 52: 28, 60: 24, 70: 30, 71: 30, 72: 27,
+    80: 28, 81: 28, 99: 29, 252: 17, 253: 14, 254: 2, 255: 21, 256: 0, 257: 16, 258: 23, 259: 17,
+}  # fmt: skip
+
+_KITTI_TO_NUSCENES_LUT = np.zeros(1 << 16, dtype=np.uint8)  # raw SemanticKITTI id -> raw lidarseg id (0 = noise)
+for _raw, _nuscenes in SEMANTICKITTI_TO_NUSCENES_RAW.items():
+    _KITTI_TO_NUSCENES_LUT[_raw] = _nuscenes
+
+
+def semantickitti_to_nuscenes_raw(raw: np.ndarray) -> np.ndarray:
+    """Raw SemanticKITTI ids (low 16 bits) -> raw nuScenes-lidarseg ids (uint8), unknown ids -> 0 noise."""
+    raw = np.asarray(raw)
+    if not np.issubdtype(raw.dtype, np.integer):
+        raise TypeError(f"semantickitti_to_nuscenes_raw expects integer label ids, got dtype {raw.dtype}")
+    return _KITTI_TO_NUSCENES_LUT[raw.astype(np.int64) & 0xFFFF]
+
+
+# ------------------------------------------------------------------------------------------------------------
+# label sets: what the segmentation host reads as a setting
+
+LabelSetName = Literal["semantickitti", "nuscenes"]
+LABEL_SET_NAMES: tuple[str, ...] = ("semantickitti", "nuscenes")
+
+
+@dataclass(frozen=True)
+class LabelSet:
+    """One dataset's training classes: names (train ids 0..K-1), the ignore id K, raw id -> train id map."""
+
+    name: LabelSetName
+    classes: tuple[str, ...]
+    ignore_index: int
+    learning_map: Mapping[int, int]
+    raw_names: Mapping[int, str]
+    things: tuple[str, ...]  # the rarer object classes (PolarMix's default paste classes)
+
+    @property
+    def num_classes(self) -> int:
+        return len(self.classes)
+
+    def to_train_ids(self, raw: np.ndarray) -> np.ndarray:
+        """Raw ids of this dataset -> train ids (N,) int64, the ignore id for ignored and unknown ids."""
+        if self.name == "semantickitti":
+            return map_semantickitti(raw)
+        elif self.name == "nuscenes":
+            return map_nuscenes(raw)
+        raise ValueError(f"label set {self.name!r}: expected one of {', '.join(LABEL_SET_NAMES)}")
+
+
+SEMANTICKITTI_LABELS = LabelSet(
+    name="semantickitti",
+    classes=SEMANTICKITTI_CLASSES,
+    ignore_index=SEMANTICKITTI_IGNORE,
+    learning_map=SEMANTICKITTI_LEARNING_MAP,
+    raw_names=SEMANTICKITTI_RAW_NAMES,
+    things=SEMANTICKITTI_CLASSES[1:8],  # bicycle .. motorcyclist (car is common enough)
+)
+NUSCENES_LABELS = LabelSet(
+    name="nuscenes",
+    classes=NUSCENES_CLASSES,
+    ignore_index=NUSCENES_IGNORE,
+    learning_map=NUSCENES_LEARNING_MAP,
+    raw_names=NUSCENES_RAW_NAMES,
+    # the vehicles and people but car, and the traffic cones (barriers line roads by the dozen)
+    things=("bicycle", "bus", "construction_vehicle", "motorcycle", "pedestrian", "traffic_cone", "trailer", "truck"),
+)
+
+
+def label_set(name: str) -> LabelSet:
+    """The label set of a dataset format: 'semantickitti' (19 classes, ignore 19) or 'nuscenes' (16, ignore 16)."""
+    if name == "semantickitti":
+        return SEMANTICKITTI_LABELS
+    elif name == "nuscenes":
+        return NUSCENES_LABELS
+    raise ValueError(f"unknown label set {name!r}; expected one of {', '.join(LABEL_SET_NAMES)}")
