@@ -21,6 +21,7 @@ from torch import nn
 from segmentation.metrics import (
     CalibrationAccumulator,
     ConfusionMatrix,
+    DistanceBands,
     iou_per_class,
     mean_iou,
     summarize,
@@ -58,9 +59,11 @@ def accumulate(
     world_size: int = 1,
     progress: bool = False,
     views: int = 1,
+    bands: DistanceBands | None = None,
 ) -> tuple[ConfusionMatrix, CalibrationAccumulator]:
     """Confusion matrix + calibration over dataset[indices] (this rank's share, then gathered over ranks);
-    views > 1 score the mean softmax over mirror / turned views (test-time augmentation, predict_probs)."""
+    views > 1 score the mean softmax over mirror / turned views (test-time augmentation, predict_probs);
+    `bands`, when given, also gets each point by its distance band (filled in place, gathered too)."""
     was_training = model.training
     model.eval()
     cm = ConfusionMatrix(num_classes, ignore_index)
@@ -73,15 +76,22 @@ def accumulate(
         target = torch.from_numpy(item["labels"])  # (N,) train ids, ignore id kept
         cm.update(probs.argmax(dim=1), target)
         calibration.update(probs, target)
+        if bands is not None:
+            bands.update(probs.argmax(dim=1), target, item["points"])
     model.train(was_training)
     if world_size > 1 and dist.is_available() and dist.is_initialized():
         gathered: list = [None] * world_size
-        dist.all_gather_object(gathered, (cm.matrix, calibration.scan_eces, calibration.pooled))
+        band_counts = [m.matrix for m in bands.matrices] if bands is not None else None
+        dist.all_gather_object(gathered, (cm.matrix, calibration.scan_eces, calibration.pooled, band_counts))
         cm, calibration = ConfusionMatrix(num_classes, ignore_index), CalibrationAccumulator(ignore_index)
-        for matrix, scan_eces, pooled in gathered:
+        if bands is not None:
+            bands.matrices = [ConfusionMatrix(num_classes, ignore_index) for _ in bands.edges]
+        for matrix, scan_eces, pooled, counts in gathered:
             cm.update_matrix(matrix)
             calibration.scan_eces.extend(scan_eces)
             calibration.pooled = calibration.pooled + pooled
+            if bands is not None:
+                bands.merge_matrices(counts)
     return cm, calibration
 
 
@@ -133,11 +143,13 @@ def evaluate(
         what = "labels/*.label" if data_format == "semantickitti" else "lidarseg files"
         raise InputError(f"{data_root}: no labeled scan in sequences {dataset.sequences} ({what})")
     indices = evenly_spaced(len(dataset), max_scans)
+    bands = DistanceBands(num_classes, labels.ignore_index)
     cm, calibration = accumulate(
         model, dataset, indices, info.device, num_classes, labels.ignore_index,
-        info.rank, info.world_size, progress and info.is_main, views,
+        info.rank, info.world_size, progress and info.is_main, views, bands,
     )  # fmt: skip
     summary = summary_of(cm, calibration, class_names)
+    summary["bands"] = bands.summary(tuple(class_names))  # mIoU per range band from the sensor
     summary.update(
         checkpoint=str(checkpoint),
         step=ckpt.get("step"),
@@ -189,6 +201,10 @@ def format_summary(summary: dict) -> str:
         f"ECE pooled over all points          {pct(summary['ece_pooled'])} %",
         f"scans {summary['num_scans']}, points {summary.get('num_points', 'n/a')}",
     ]
+    for band in summary.get("bands", []):
+        low, high = band["range"]
+        where = f"{low:g}-{high:g} m" if high is not None else f">= {low:g} m"
+        lines.append(f"mIoU at {where:<12}                {pct(band['miou'])} %  ({band['points']} points)")
     return "\n".join(lines)
 
 

@@ -215,7 +215,7 @@ def run_metrics(run: SegTrainConfig, final_eval: bool, progress: bool) -> dict |
     metrics = finished_metrics(Path(run.out_dir))
     if metrics is None or not final_eval:
         return metrics
-    keys = ("miou", "miou_present", "iou", "ece_per_scan", "ece_pooled", "bins", "num_scans", "num_points")
+    keys = ("miou", "miou_present", "iou", "ece_per_scan", "ece_pooled", "bins", "num_scans", "num_points", "bands")
     full = full_evaluation(run, progress)
     return {**metrics, "periodic_miou": metrics["miou"], **{key: full.get(key) for key in keys}}
 
@@ -309,7 +309,28 @@ def paired_arms(reference: dict, other: dict) -> dict:
             for entry in (reference, other)
         ]
         paired["iou"][name] = paired_differences(*values)
+    paired["bands"] = {}
+    for band in band_names(reference["runs"] + other["runs"]):
+        values = [{r["seed"]: band_miou(r, band) for r in entry["runs"] if band_miou(r, band) is not None}
+                  for entry in (reference, other)]  # fmt: skip
+        paired["bands"][band] = paired_differences(*values)
     return paired
+
+
+def band_label(band: dict) -> str:
+    """'0-10 m', ..., '>= 50 m' for a distance band of `segmentation.evaluate`."""
+    low, high = band["range"]
+    return f"{low:g}-{high:g} m" if high is not None else f">= {low:g} m"
+
+
+def band_names(runs: list[dict]) -> list[str]:
+    """The distance bands the runs were evaluated in (full evaluation), near to far."""
+    return list(dict.fromkeys(band_label(b) for r in runs for b in (r.get("bands") or [])))
+
+
+def band_miou(run: dict, name: str) -> float | None:
+    """A run's mIoU in one distance band (None when not evaluated there)."""
+    return next((b["miou"] for b in (run.get("bands") or []) if band_label(b) == name), None)
 
 
 def compare_to_reference(arms: list[dict], reference: str) -> None:
@@ -437,7 +458,16 @@ def aggregate(runs: list[dict]) -> dict:
         "ece_pooled": mean_std([r.get("ece_pooled") for r in runs]),
         "wall_clock_s": mean_std([r.get("wall_clock_s") for r in runs]),
         "iou": {name: mean_std([(r.get("iou") or {}).get(name) for r in runs]) for name in classes},
+        "bands": {name: mean_std([band_miou(r, name) for r in runs]) for name in band_names(runs)},
     }
+
+
+def starred(stat: dict | None) -> str:
+    """A paired mean difference in points, '*' when its 95 % confidence interval excludes 0."""
+    if stat is None or stat["mean"] is None:
+        return "n/a"
+    ci = stat.get("ci95")
+    return f"{100 * stat['mean']:+.1f}" + ("*" if ci is not None and (ci[0] > 0 or ci[1] < 0) else "")
 
 
 def results_markdown(results: dict) -> str:
@@ -532,17 +562,25 @@ def results_markdown(results: dict) -> str:
             "|---|---|---|" + "---|" * len(classes),
         ]
         for row in results["contrasts"]:
-            cells = []
-            for name in classes:
-                stat = row.get("iou", {}).get(name)
-                if stat is None or stat["mean"] is None:
-                    cells.append("n/a")
-                    continue
-                ci = stat.get("ci95")
-                star = "*" if ci is not None and (ci[0] > 0 or ci[1] < 0) else ""
-                cells.append(f"{100 * stat['mean']:+.1f}{star}")
+            cells = [starred(row.get("iou", {}).get(name)) for name in classes]
             lines.append(f"| {row['arm']} | {row['reference']} | {row['backbone']} | " + " | ".join(cells) + " |")
     done = [e for e in results["arms"] if e["status"] in ("done", "partial")]
+    bands = list(dict.fromkeys(name for e in done for name in e.get("bands", {})))
+    if bands:
+        lines += ["", "## mIoU by distance from the sensor (%)", "", "| arm | backbone | " + " | ".join(bands) + " |"]
+        lines.append("|---|---|" + "---|" * len(bands))
+        for e in done:
+            cells = [pct(e["bands"][b]) if b in e.get("bands", {}) else "n/a" for b in bands]
+            lines.append(f"| {e['arm']} | {e['backbone']} | " + " | ".join(cells) + " |")
+        if results.get("contrasts"):
+            lines += ["", "Paired by seed (points; * where the 95 % confidence interval excludes 0):", ""]
+            lines += [
+                "| arm | reference | backbone | " + " | ".join(bands) + " |",
+                "|---|---|---|" + "---|" * len(bands),
+            ]
+            for row in results["contrasts"]:
+                cells = [starred(row.get("bands", {}).get(b)) for b in bands]
+                lines.append(f"| {row['arm']} | {row['reference']} | {row['backbone']} | " + " | ".join(cells) + " |")
     if done:
         classes = list(done[0]["iou"])
         lines += ["", "## Per-class IoU (%)", "", "| arm | backbone | " + " | ".join(classes) + " |"]

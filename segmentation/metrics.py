@@ -283,6 +283,50 @@ class CalibrationAccumulator:
         return self.pooled.ece
 
 
+DISTANCE_BANDS = (0.0, 10.0, 20.0, 30.0, 50.0)  # m, horizontal range from the sensor; the last band is open
+
+
+class DistanceBands:
+    """One confusion matrix per band of horizontal range (where in the scan a segmentor gains or loses)."""
+
+    def __init__(self, num_classes: int, ignore_index: int | None, edges: tuple[float, ...] = DISTANCE_BANDS):
+        self.edges = tuple(float(e) for e in edges)
+        self.matrices = [ConfusionMatrix(num_classes, ignore_index) for _ in self.edges]
+
+    def update(self, pred: Array, target: Array, points: Array) -> None:
+        """Add one scan: pred, target (N,) train ids, points (N, >=2) whose x, y give the range."""
+        xy = _as_tensor(points)[:, :2].float()
+        band = torch.bucketize(torch.linalg.vector_norm(xy, dim=1), torch.tensor(self.edges[1:]), right=True)  # (N,)
+        pred, target = _as_tensor(pred), _as_tensor(target)
+        for index, matrix in enumerate(self.matrices):
+            keep = band == index
+            if bool(keep.any()):
+                matrix.update(pred[keep], target[keep])
+
+    def merge_matrices(self, matrices: list[np.ndarray]) -> None:
+        """Add (K, K) counts per band (gathered from another process)."""
+        for matrix, counts in zip(self.matrices, matrices):
+            matrix.update_matrix(counts)
+
+    def summary(self, class_names: tuple[str, ...]) -> list[dict]:
+        """Per band: {"range": [lo, hi or None], "points", "miou", "iou" (null where absent)}."""
+        rows = []
+        for index, matrix in enumerate(self.matrices):
+            counts = matrix.matrix
+            iou = iou_per_class(counts)
+            miou = mean_iou(counts)
+            high = self.edges[index + 1] if index + 1 < len(self.edges) else None
+            rows.append(
+                {
+                    "range": [self.edges[index], high],
+                    "points": int(counts.sum()),
+                    "miou": None if math.isnan(miou) else miou,
+                    "iou": {name: (None if math.isnan(v) else float(v)) for name, v in zip(class_names, iou)},
+                }
+            )
+        return rows
+
+
 def summarize(cm: ConfusionMatrix, calibration: CalibrationAccumulator, class_names: tuple[str, ...] = ()) -> dict:
     """Json-ready summary: per-class IoU (null where absent), mIoU, both ECEs and the pooled bins."""
     iou = iou_per_class(cm.matrix)

@@ -8,7 +8,7 @@ import math
 import pytest
 from scipy import stats
 
-from segmentation.experiment import paired_arms, paired_differences, results_markdown, seeds_needed
+from segmentation.experiment import aggregate, paired_arms, paired_differences, results_markdown, seeds_needed
 
 
 def test_confidence_interval_is_the_t_interval_and_matches_the_test():
@@ -50,3 +50,21 @@ def test_per_class_paired_differences_and_report():
     markdown = results_markdown(results)
     assert "| mt+u4d | mt | minkunet | +10.0* | +0.0 |" in markdown  # car gains, and its interval excludes 0
     assert "| 95 % CI |" in markdown and "seeds for p < 0.05" in markdown
+
+
+def test_distance_bands_in_the_report():
+    def with_bands(e: dict, near: list[float]) -> dict:
+        for run, value in zip(e["runs"], near):
+            run["bands"] = [{"range": [0.0, 10.0], "miou": value}, {"range": [50.0, None], "miou": 0.2}]
+        return e
+
+    ref = with_bands(entry("mt", {0: (0.40, 0.05, 0.6), 1: (0.42, 0.05, 0.6)}), [0.50, 0.52])
+    new = with_bands(entry("mt+u4d", {0: (0.41, 0.04, 0.6), 1: (0.43, 0.05, 0.6)}), [0.55, 0.58])
+    paired = paired_arms(ref, new)
+    assert list(paired["bands"]) == ["0-10 m", ">= 50 m"]
+    assert paired["bands"]["0-10 m"]["mean"] == pytest.approx(0.055) and paired["bands"][">= 50 m"]["mean"] == 0
+    arms = [{**e, "status": "done", **aggregate(e["runs"])} for e in (ref, new)]
+    row = {**paired, "arm": "mt+u4d", "reference": "mt", "backbone": "minkunet"}
+    markdown = results_markdown({"config": {}, "arms": arms, "contrasts": [row]})
+    assert "| mt | minkunet | 51.00 ± 1.41 | 20.00 ± 0.00 |" in markdown  # mean ± std over seeds per band
+    assert "| mt+u4d | mt | minkunet | +5.5 | +0.0 |" in markdown  # +5, +6 points: 2 seeds, the CI holds 0
