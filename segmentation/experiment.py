@@ -6,8 +6,9 @@ changes only mode / bank / backbone / seed, so the arms get the same number of s
 scans (the label split is fixed by data.split_seed; the seed changes initialisation, scan order and mixing).
 Each run trains into OUT/runs/ARM/BACKBONE/seedS: skipped once its metrics.json exists, resumed from its
 last checkpoint when it was interrupted. An arm whose bank is missing is reported "missing" with the reason,
-never with numbers. Writes OUT/results.json, OUT/results.md, OUT/reliability_ARM_BACKBONE.png (bins pooled
-over seeds) and OUT/paired_BACKBONE.png, with every arm's mIoU and ECE paired by seed against a reference arm
+never with numbers. Writes OUT/results.json, OUT/results.md, OUT/learning_curves_BACKBONE.png (loss and held-out
+mIoU against step per arm), OUT/reliability_ARM_BACKBONE.png (bins pooled over seeds) and OUT/paired_BACKBONE.png,
+with every arm's mIoU and ECE paired by seed against a reference arm
 (sup-only by default): the difference per seed, its mean ± std, the seeds where it is above 0 and a paired t-test;
 `contrasts` adds the same comparison for any [arm, reference] pair (an ablation against its parent arm).
 `--report-only` trains nothing and reports the finished runs, so arms with different numbers of finished seeds
@@ -33,7 +34,7 @@ from scipy import stats
 from segmentation.config import BankConfig, SegTrainConfig
 from segmentation.evaluate import evaluate
 from segmentation.metrics import ReliabilityBins
-from segmentation.plots import plot_paired, plot_reliability
+from segmentation.plots import plot_arm_curves, plot_paired, plot_reliability
 from segmentation.train import train
 from u4d_aug.cmdline import parse_command_line
 from u4d_aug.config import config_to_dict, load_config, save_config
@@ -443,9 +444,28 @@ def run_experiment_config(
                 plot_paired(paired, png, reference)
                 results[f"paired_png_{backbone}"] = png.name
     results["contrasts"] = contrast_arms(results["arms"], [tuple(pair) for pair in cfg.contrasts])
+    for backbone in cfg.backbones:
+        curves = {
+            e["arm"]: run_curves(e["runs"]) for e in results["arms"] if e["backbone"] == backbone and e.get("runs")
+        }
+        if curves:
+            png = out / f"learning_curves_{backbone}.png"
+            plot_arm_curves(curves, png)
+            results[f"learning_curves_png_{backbone}"] = png.name
     atomic_write_json(out / "results.json", results)
     atomic_write_text(out / "results.md", results_markdown(results))
     return results
+
+
+def run_curves(runs: list[dict]) -> dict[str, list[list[tuple[float, float]]]]:
+    """Per seed, (step, value) of the training loss and the periodic held-out mIoU from each run's log.jsonl."""
+    curves: dict[str, list[list[tuple[float, float]]]] = {"loss": [], "val_miou": []}
+    for run in runs:
+        log = Path(run["out_dir"]) / "log.jsonl"
+        records = read_jsonl(log) if log.is_file() else []
+        for key in curves:
+            curves[key].append([(float(r["step"]), float(r[key])) for r in records if r.get(key) is not None])
+    return curves
 
 
 def aggregate(runs: list[dict]) -> dict:

@@ -149,6 +149,40 @@ def plot_learning_curve(
     _save(fig, path)
 
 
+def plot_arm_curves(curves: dict[str, dict[str, list[list[tuple[float, float]]]]], path: str | os.PathLike) -> None:
+    """Learning curves of an experiment's arms: per arm the training loss (left) and held-out mIoU (right) against
+    step, the mean over its seeds (steps every seed logged) as a line, each seed faintly.
+
+    curves: arm -> {"loss": [per seed [(step, value), ...]], "val_miou": [...]}.
+    """
+    fig = Figure(figsize=(11, 4))
+    axes = dict(zip(("loss", "val_miou"), fig.subplots(1, 2)))
+    colors = [f"C{i}" for i in range(10)]
+    for index, (arm, series) in enumerate(curves.items()):
+        color = colors[index % len(colors)]
+        for key, ax in axes.items():
+            seeds = [dict(points) for points in series.get(key, []) if points]
+            if not seeds:
+                continue
+            for points in seeds:
+                ax.plot(list(points), list(points.values()), color=color, alpha=0.2, linewidth=0.8)
+            steps = sorted(set.intersection(*(set(points) for points in seeds)))
+            if steps:
+                mean = [float(np.mean([points[x] for points in seeds])) for x in steps]
+                marker = "o" if len(steps) < 30 else None
+                ax.plot(steps, mean, color=color, marker=marker, markersize=3, label=f"{arm} ({len(seeds)})")
+    for key, ax in axes.items():
+        ax.set_xlabel("step")
+        ax.set_ylabel("training loss" if key == "loss" else "held-out mIoU")
+        ax.grid(alpha=0.3)
+        if ax.lines:
+            ax.legend(fontsize=8)
+        else:
+            ax.text(0.5, 0.5, "no data", ha="center", va="center", transform=ax.transAxes)
+    fig.tight_layout()
+    _save(fig, path)
+
+
 def plot_paired(
     paired: dict[str, dict], path: str | os.PathLike, reference: str, metrics: Sequence[str] = ("miou", "ece_per_scan")
 ) -> None:

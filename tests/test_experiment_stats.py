@@ -68,3 +68,23 @@ def test_distance_bands_in_the_report():
     markdown = results_markdown({"config": {}, "arms": arms, "contrasts": [row]})
     assert "| mt | minkunet | 51.00 ± 1.41 | 20.00 ± 0.00 |" in markdown  # mean ± std over seeds per band
     assert "| mt+u4d | mt | minkunet | +5.5 | +0.0 |" in markdown  # +5, +6 points: 2 seeds, the CI holds 0
+
+
+def test_learning_curves_from_the_run_logs(tmp_path):
+    from segmentation.experiment import run_curves
+    from segmentation.plots import plot_arm_curves
+    from u4d_aug.io import append_jsonl
+
+    runs = []
+    for seed in (0, 1):
+        out = tmp_path / f"seed{seed}"
+        for step in (10, 20, 30):
+            append_jsonl(out / "log.jsonl", {"step": step, "loss": 3.0 - step / 10 + seed, "lr": 0.01})
+        append_jsonl(out / "log.jsonl", {"step": 30, "val_miou": 0.4 + seed / 10})
+        runs.append({"seed": seed, "out_dir": str(out)})
+    curves = run_curves(runs)
+    assert curves["loss"][1] == [(10.0, 3.0), (20.0, 2.0), (30.0, 1.0)]
+    assert curves["val_miou"] == [[(30.0, 0.4)], [(30.0, 0.5)]]
+    png = tmp_path / "curves.png"
+    plot_arm_curves({"mt": curves, "empty": {"loss": [[]], "val_miou": []}}, png)
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
