@@ -20,7 +20,7 @@ from u4d_aug.cmdline import (
     split_verbosity,
 )
 from u4d_aug.errors import InputError
-from u4d_aug.io import check_output_file, dumps_json
+from u4d_aug.io import atomic_write_text, check_output_file, dumps_json
 from u4d_aug.presets import configs_root
 from u4d_aug.runlock import run_lock
 
@@ -296,7 +296,12 @@ def run_info(args: argparse.Namespace) -> int:
 CONFIGS_DIR = configs_root()
 
 # The presets the demo runs with, named as `u4d` takes them from any folder (tests/test_presets_lookup.py).
-DEMO_PRESETS = {"seg": "seg/tiny", "diffusion": "u4d/demo", "generate": "u4d/generate_cpu"}
+DEMO_PRESETS = {
+    "seg": "seg/tiny",
+    "diffusion": "u4d/demo",
+    "generate": "u4d/generate_cpu",
+    "experiment_base": "seg/tiny_semi",
+}
 
 
 def demo_steps(out: Path, seed: int, real: Path) -> list[tuple[str, list[str]]]:
@@ -389,7 +394,35 @@ def demo_steps(out: Path, seed: int, real: Path) -> list[tuple[str, list[str]]]:
              ["evaluate", "--bank", str(bank), "--real", str(world), "--real-sequences", "02",
               "--metrics", "jsd,mmd,ctc", "--json", "--md", "--out", str(out / f"eval_{name}")])
         )  # fmt: skip
+    steps.append(
+        (
+            "downstream, toy size: sup-only vs MT+LaserMix vs + baseline bank vs + U4D bank (mIoU, ECE on sequence 02)",
+            ["experiment", str(out / "downstream.yaml"), "--no-progress"],
+        )
+    )
     return steps
+
+
+def demo_experiment(out: Path, seed: int) -> dict:
+    """The demo's `u4d experiment` config: the four arms of the comparison on the demo world and its two banks."""
+    world = out / "world"
+    overrides = [f"data.root={world}", 'data.train_sequences=["00", "01"]', 'data.val_sequences=["02"]']
+    overrides += ["optim.steps=12", "semi.burn_in_steps=6", "eval_every=12", "checkpoint_every=6", "log_every=2"]
+    return {
+        "base": DEMO_PRESETS["experiment_base"],
+        "overrides": overrides,
+        "arms": [
+            {"name": "sup-only", "mode": "supervised"},
+            {"name": "mt", "mode": "semi"},
+            {"name": "mt+baseline", "mode": "semi", "bank": str(out / "bank_baseline"), "bank_ratio": 0.5},
+            {"name": "mt+u4d", "mode": "semi", "bank": str(out / "bank_u4d"), "bank_ratio": 0.5},
+        ],
+        "contrasts": [["mt+u4d", "mt"], ["mt+u4d", "mt+baseline"]],
+        "backbones": ["minkunet"],
+        "seeds": [seed],
+        "final_eval": True,
+        "out_dir": str(out / "downstream"),
+    }
 
 
 def run_demo(args: argparse.Namespace) -> int:
@@ -398,10 +431,14 @@ def run_demo(args: argparse.Namespace) -> int:
     steps = demo_steps(args.out, args.seed, real)
     verbosity = [flag for flag, level in VERBOSITY_FLAGS.items() if level == args.log_level and flag.startswith("--")]
     print(
-        "u4d demo: every stage at toy size (minutes on 2 CPU cores). Not run here: the LaserMix mean-teacher "
-        "comparison (`u4d experiment`, hours) and FRD/FPD (need trained extractors: `u4d train-extractor`)."
+        "u4d demo: every stage at toy size (minutes on 2 CPU cores), ending with the downstream comparison at toy "
+        "size (one seed, a few steps: it shows the pipeline, not whether U4D helps; that is `u4d experiment "
+        "experiment/downstream_10pct`, hours). Not run here: FRD/FPD (need trained extractors)."
     )
+    import yaml
+
     with run_lock(args.out):  # one demo per output folder; each step locks its own sub-folder too
+        atomic_write_text(args.out / "downstream.yaml", yaml.safe_dump(demo_experiment(args.out, args.seed)))
         for number, (title, command) in enumerate(steps, start=1):
             command = _resume_if_started(command)
             print(f"\n[{number}/{len(steps)}] {title}\n$ u4d {' '.join(command)}", flush=True)
@@ -409,7 +446,7 @@ def run_demo(args: argparse.Namespace) -> int:
             if status != 0:
                 print(f"demo stopped at step {number} (exit {status}); re-run to resume", file=sys.stderr)
                 return status
-    print(f"\ndemo done: outputs in {args.out}")
+    print(f"\ndemo done: outputs in {args.out}; the downstream table: {args.out / 'downstream' / 'results.md'}")
     return 0
 
 
