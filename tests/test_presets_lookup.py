@@ -13,6 +13,7 @@ from setuptools import find_packages
 
 from segmentation.config import SegTrainConfig
 from segmentation.experiment import ExperimentConfig, run_config
+from tests.tiny_nets import REPO
 from u4d_aug.cli import DEMO_PRESETS, demo_steps
 from u4d_aug.config import load_config, read_yaml
 from u4d_aug.data.sensors import get_sensor
@@ -20,8 +21,6 @@ from u4d_aug.errors import InputError
 from u4d_aug.generate import GenerateConfig
 from u4d_aug.presets import configs_root, list_presets, resolve_config_path
 from u4d_aug.train import DiffusionTrainConfig
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture
