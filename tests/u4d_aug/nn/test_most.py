@@ -75,7 +75,13 @@ def test_block_shapes_identity_at_init_and_gates(frames, generator):
         assert gates.shape == (2, 2) and not gates.requires_grad
         assert torch.all((gates > 0) & (gates < 1))
         torch.testing.assert_close(gates.sum(dim=1), torch.ones(2))
-        assert block.last_cv.requires_grad and float(block.last_cv.detach()) >= 0
+        # the CV² of the batch's gate importances (Shazeer et al. 2017): positive for these unequal gates, and a
+        # loss that moves the gate net
+        torch.testing.assert_close(block.last_cv.detach(), cv_squared(gates.sum(dim=0)))
+        assert float(block.last_cv.detach()) > 1e-6
+        block.zero_grad()
+        block.last_cv.backward()
+        assert float(block.gate[-1].weight.grad.abs().sum()) > 0
 
 
 def test_block_rejects_a_batch_that_is_not_whole_sequences():
