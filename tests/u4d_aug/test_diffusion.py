@@ -95,10 +95,30 @@ def test_same_generator_same_loss_different_generator_different():
 
 
 def test_sequences_share_t_per_sample(generator):
-    diffusion = GaussianDiffusion(tiny_net(cond_channels=3), DiffusionConfig(stage="stage2"))
+    """Every frame of sample b is noised to the same t_b and the net embeds log-SNR(t_b) for each of its frames."""
+    net = tiny_net(cond_channels=3)
+    diffusion = GaussianDiffusion(net, DiffusionConfig(stage="stage2"))
     x0 = torch.rand(2, 3, 2, H, W, generator=generator) * 2 - 1  # (B, L, C, H, W)
-    losses = diffusion(x0, x0.clone(), torch.ones(2, 3, 1, H, W), generator=generator)
+    seen = {}
+
+    def record(name: str):
+        def hook(module, args) -> None:  # a pre-hook that returns nothing leaves the call unchanged
+            seen[name] = args[0].clone()
+
+        return hook
+
+    net.register_forward_pre_hook(record("x_t"))
+    net.embed.register_forward_pre_hook(record("log_snr"))
+    losses = diffusion(x0, x0.clone(), torch.ones(2, 3, 1, H, W), generator=torch.Generator().manual_seed(5))
     assert torch.isfinite(losses["loss"])
+    replay = torch.Generator().manual_seed(5)  # forward draws t (B,), then ε of x0's shape
+    t = torch.rand(2, generator=replay)
+    eps = torch.randn(x0.shape, generator=replay)
+    alpha, sigma = alpha_sigma(log_snr(t).view(2, 1, 1, 1, 1))
+    torch.testing.assert_close(seen["x_t"], alpha * x0 + sigma * eps)  # (B, L, C, H, W): one α, σ per sample
+    assert seen["log_snr"].shape == (6,)  # (B·L,): frames folded into the batch, sample-major
+    torch.testing.assert_close(seen["log_snr"].view(2, 3), log_snr(t)[:, None].expand(2, 3))
+    assert float((log_snr(t)[0] - log_snr(t)[1]).abs()) > 0.1  # the two samples have their own t
 
 
 def test_stage_checks():
