@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -9,8 +10,10 @@ import pytest
 import torch
 
 from tests.tiny_nets import TINY, TINY_MOST, save_checkpoint, save_random_checkpoint
+from u4d_aug import sampling
 from u4d_aug.data.sensors import hdl64
 from u4d_aug.errors import InputError
+from u4d_aug.nn.most import MoSTBlock
 from u4d_aug.pipeline import (
     complete,
     generate_baseline,
@@ -92,13 +95,52 @@ def sequence_checkpoints(tmp_path_factory) -> dict[str, Path]:
     return {s: save_random_checkpoint(root / f"{s}.pt", s, config=most) for s in ("stage1", "stage2", "baseline")}
 
 
-def test_sequence_generation_shapes_and_frame_mixing(sequence_checkpoints, random_ema_checkpoints):
+def nudge_frame_1(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every sampler's x_1 gets +0.5 on frame 1 of each sequence; frame 0's noise is untouched."""
+    draw = sampling._randn
+
+    def nudged(shape, generator, device):
+        x = draw(shape, generator, device)
+        if len(shape) == 5:  # (B, L, C, H, W)
+            x[:, 1] += 0.5
+        return x
+
+    monkeypatch.setattr(sampling, "_randn", nudged)
+
+
+def without_temporal_branch(loaded):
+    """A copy whose MoST blocks have a zero temporal conv and constant gates: its frames never meet."""
+    net = copy.deepcopy(loaded[0])
+    with torch.no_grad():
+        for block in net.modules():
+            if isinstance(block, MoSTBlock):
+                for layer in (block.temporal, block.gate[-1]):
+                    layer.weight.zero_()
+                block.temporal.bias.zero_()
+    return net, loaded[1]
+
+
+def test_sequence_generation_shapes_and_frame_mixing(sequence_checkpoints, random_ema_checkpoints, monkeypatch):
     stage1, stage2 = load_generator(sequence_checkpoints["stage1"]), load_generator(sequence_checkpoints["stage2"])
     assert stage2[1].frames == 2 and stage2[0].most_names
     a = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7))
     b = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7))
     assert a["x0"].shape == (2, 2, 2, 16, 64) and a["m_u_pred"].shape == (2, 2, 1, 16, 64)
     assert torch.equal(a["x0"], b["x0"]) and not torch.equal(a["x0"][:, 0], a["x0"][:, 1])
+    # frames mix: changing only frame 1's starting noise changes frame 0's sample, through the temporal branch
+    alone = without_temporal_branch(stage1), without_temporal_branch(stage2)
+    c = generate_u4d(*alone, 2, 3, torch.Generator().manual_seed(7))
+    with monkeypatch.context() as patch:
+        nudge_frame_1(patch)
+        nudged = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7))
+        nudged_alone = generate_u4d(*alone, 2, 3, torch.Generator().manual_seed(7))
+    assert float((nudged["x0"][:, 0] - a["x0"][:, 0]).abs().max()) > 1e-2
+    assert float((nudged["x0_u"][:, 0] - a["x0_u"][:, 0]).abs().max()) > 1e-2  # stage 1 mixes its frames too
+    # without it frame 0 is bit for bit what it was: nothing else in the net looks across frames
+    assert torch.equal(nudged_alone["x0"][:, 0], c["x0"][:, 0]) and torch.equal(
+        nudged_alone["x0_u"][:, 0], c["x0_u"][:, 0]
+    )
+    assert not torch.equal(nudged_alone["x0"][:, 1], c["x0"][:, 1])  # the nudge itself reached frame 1
     m = a["m_u_pred"].bool().expand_as(a["x0_u"])
     assert bool((a["x0_u"][~m] == -1).all())
     clouds = to_points(a["x0"], hdl64(), stage2[1].row_mode)
