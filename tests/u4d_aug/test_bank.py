@@ -15,10 +15,12 @@ from u4d_aug.bank import BankLayout, file_sha256, read_manifest, write_sample
 from u4d_aug.config import load_config
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
+from u4d_aug.data.sensors import get_sensor
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.generate import GenerateConfig, add_generate_arguments, generate_bank, run_generate
 from u4d_aug.io import atomic_save_npy, atomic_torch_save
+from u4d_aug.range_view import project
 from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state
 
 
@@ -100,6 +102,22 @@ def test_manifest_digests_find_a_sample_truncated_by_hand_and_it_is_generated_ag
     assert not list(bank.rglob("*.tmp")) and not (bank / ".lock").exists()
 
 
+def real_uncertainty(root: Path, probs_root: Path, frame: str, k: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """(m_u (16, 64) bool, entropy map (16, 64)) of scan 00/FRAME, computed apart from the library in float64:
+    the projection of the round(k N) points of highest entropy (k = uncertainty.k of configs/u4d/tiny.yaml), and
+    the entropy of the point each pixel of the whole scan shows (NaN where none)."""
+    points = read_kitti_scan(root / "sequences" / "00" / "velodyne" / f"{frame}.bin")
+    probs = np.load(probs_root / "sequences" / "00" / "probs" / f"{frame}.npy").astype(np.float64)
+    h = -(probs * np.log(np.where(probs > 0, probs, 1.0))).sum(axis=1)  # (N,) nats
+    count = round(k * len(points))
+    order = np.argsort(-h, kind="stable")
+    assert h[order[count - 1]] - h[order[count]] > 1e-5  # no near-tie at the cut: float32 picks the same points
+    sensor = get_sensor("hdl64")
+    mask = project(torch.from_numpy(points[order[:count]]), sensor, 16, 64, "linear").mask.numpy()
+    winner = project(torch.from_numpy(points), sensor, 16, 64, "linear").winner.numpy()
+    return mask, np.where(winner >= 0, h[np.maximum(winner, 0)], np.nan)
+
+
 def test_completion_mode_keeps_real_uncertainty(untrained_checkpoints, tmp_path):
     root, probs_root = tmp_path / "world", tmp_path / "probs"
     rng = np.random.default_rng(0)
@@ -124,6 +142,10 @@ def test_completion_mode_keeps_real_uncertainty(untrained_checkpoints, tmp_path)
     x0_u = np.load(layout.stage1_path(0))  # the real P_u that stage 2 completed
     assert np.all(x0_u[:, ~mask] == -1) and np.all(x0_u[0, mask] > -1)
     assert np.array_equal(mask, np.load(layout.mask_path(2)))  # same source scan, same P_u
+    for i in range(2):  # mask and map of samples 0, 1 are those of scans 0, 1 (computed here in float64)
+        mask, uncertainty = real_uncertainty(root, probs_root, f"{i:06d}")
+        assert np.array_equal(np.load(layout.mask_path(i)), mask), i
+        np.testing.assert_allclose(np.load(layout.uncertainty_path(i)), uncertainty, atol=2e-3, rtol=1e-3)  # float16
 
 
 def test_cli_entry(untrained_checkpoints, tmp_path):
@@ -243,7 +265,11 @@ def test_completion_sequence_bank_keeps_real_poses_for_temporal_metrics(untraine
         np.testing.assert_allclose(read_calib(folder / "calib.txt")["Tr"], np.eye(4)[:3])
         relative = np.linalg.inv(poses[start]) @ poses[start : start + 2]
         np.testing.assert_allclose(read_poses(folder / "poses.txt", read_calib(folder / "calib.txt")), relative)
-        assert np.load(layout.mask_path(i, 1)).any() and np.load(layout.uncertainty_path(i, 1)).shape == (16, 64)
+        for frame in range(2):
+            mask, uncertainty = real_uncertainty(root, probs_root, f"{start + frame:06d}")
+            written = np.load(layout.mask_path(i, frame))
+            assert written.any() and np.array_equal(written, mask)
+            np.testing.assert_allclose(np.load(layout.uncertainty_path(i, frame)), uncertainty, atol=2e-3, rtol=1e-3)
     assert np.array_equal(np.load(layout.mask_path(0, 1)), np.load(layout.mask_path(2, 1)))  # same source
     table = evaluate(bank, bank, metrics=("ctc",))["table2"]["bank"]
     assert table["sequences"] == ["00", "01", "02"] and table["ctc_pairs"]["1"] == 3
