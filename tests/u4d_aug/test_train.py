@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.tiny_nets import TINY, diffusion_config
+from tests.tiny_nets import REPO, TINY, diffusion_config
 from tests.tiny_worlds import write_tiny_world
 from u4d_aug.config import load_config
 from u4d_aug.data.formats import write_kitti_scan
@@ -65,13 +65,35 @@ def test_resume_continues_to_the_same_weights(tiny_world, tmp_path):
     train(part, progress=False)
     with pytest.raises(InputError, match="--resume"):
         train(diffusion_config(tiny_world, tmp_path / "part", "stage2"), progress=False)
-    record = train(diffusion_config(tiny_world, tmp_path / "part", "stage2"), resume="last", progress=False)
-    assert record["step"] == 4
+    # a new process resumes from the checkpoint of step 2 (nothing of the first run's memory reaches it)
+    subprocess.run(
+        [sys.executable, "-m", "u4d_aug.train", str(TINY), f"data_root={tiny_world[0]}", f"probs_root={tiny_world[1]}",
+         "stage=stage2", "--out", str(tmp_path / "part"), "--resume", "--no-progress"],
+        check=True, cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, timeout=300,
+    )  # fmt: skip
     assert [r["step"] for r in read_jsonl(tmp_path / "part" / "log.jsonl")] == [2, 4]
     a = torch.load(tmp_path / "full" / "checkpoints" / "step_0000004.pt", weights_only=False)
     b = torch.load(tmp_path / "part" / "checkpoints" / "step_0000004.pt", weights_only=False)
+    assert_same_training_state(a, b)
+    assert (
+        read_jsonl(tmp_path / "part" / "log.jsonl")[-1]["loss"]
+        == read_jsonl(tmp_path / "full" / "log.jsonl")[-1]["loss"]
+    )
+
+
+def assert_same_training_state(a: dict, b: dict) -> None:
+    """Bit for bit: the scans and noise of step s depend only on (seed, step, rank), so a resumed run ends with the
+    model, EMA and optimizer state of an uninterrupted one (same device, same world size)."""
+    assert a["step"] == b["step"]
+    assert a["model"].keys() == b["model"].keys() and a["ema"]["params"].keys() == b["ema"]["params"].keys()
     for name, value in a["model"].items():
-        torch.testing.assert_close(b["model"][name], value)
+        assert torch.equal(b["model"][name], value), name
+    for name, value in a["ema"]["params"].items():
+        assert torch.equal(b["ema"]["params"][name], value), name
+    assert a["ema"]["num_updates"] == b["ema"]["num_updates"]
+    for index, state in a["optimizer"]["state"].items():
+        for key, value in state.items():
+            assert torch.equal(b["optimizer"]["state"][index][key], value), (index, key)
 
 
 def test_a_run_killed_before_its_first_checkpoint_starts_again_from_step_0(tiny_world, tmp_path, caplog):
@@ -262,9 +284,9 @@ def test_frames_training_logs_gates_and_resumes_exactly(tiny_world, tmp_path):
     resumed = train(tiny_most_config(tiny_world, tmp_path / "part", "stage2"), resume="last", progress=False)
     assert resumed["step"] == 4 and resumed["loss"] == record["loss"]
     assert resumed["most_alpha_t"] == record["most_alpha_t"]
-    b = torch.load(tmp_path / "part" / "checkpoints" / "step_0000004.pt", weights_only=False)
-    for name, value in ckpt["model"].items():
-        torch.testing.assert_close(b["model"][name], value)
+    assert_same_training_state(
+        ckpt, torch.load(tmp_path / "part" / "checkpoints" / "step_0000004.pt", weights_only=False)
+    )
 
 
 def test_frames_without_most_train_frames_independently(tiny_world, tmp_path):
