@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from matplotlib.figure import Figure
 from sklearn.metrics import confusion_matrix as sk_confusion_matrix
 
 from segmentation.metrics import (
@@ -204,7 +205,7 @@ def _is_png(path) -> bool:
     return path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_plots_write_png_atomically(tmp_path):
+def test_plots_write_png_atomically(tmp_path, monkeypatch):
     acc = CalibrationAccumulator(2)
     acc.update(np.array(SCAN1_PROBS), SCAN1_TARGET)
     plot_reliability(acc.pooled, tmp_path / "rel.png", title="toy")
@@ -218,3 +219,14 @@ def test_plots_write_png_atomically(tmp_path):
         assert _is_png(tmp_path / name)
     leftovers = [p.name for p in tmp_path.rglob("*") if p.name.endswith(".tmp")]
     assert leftovers == []
+
+    def killed_midway(fig, file, **kwargs):  # the PNG encoder dies after its first bytes
+        file.write(b"\x89PNG\r\n\x1a\n half")
+        raise MemoryError("killed midway")
+
+    old = (tmp_path / "rel.png").read_bytes()
+    monkeypatch.setattr(Figure, "savefig", killed_midway)
+    with pytest.raises(MemoryError):
+        plot_reliability(acc.pooled, tmp_path / "rel.png", title="toy")
+    assert (tmp_path / "rel.png").read_bytes() == old  # the previous figure, whole
+    assert [p.name for p in tmp_path.rglob("*") if p.name.endswith(".tmp")] == []

@@ -5,14 +5,19 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.tiny_nets import REPO
 from u4d_aug.errors import InputError
 from u4d_aug.io import (
+    atomic_open,
     atomic_save_npy,
     atomic_write_json,
     atomic_write_text,
@@ -77,6 +82,62 @@ def test_a_full_disk_is_one_line_and_leaves_no_temp_file(tmp_path, monkeypatch):
     with pytest.raises(InputError, match=r"a\.txt: cannot write \(No space left on device\)"):
         atomic_write_text(tmp_path / "a.txt", "x")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_write_interrupted_midway_keeps_the_old_file_and_leaves_no_temp_file(tmp_path, monkeypatch):
+    target = tmp_path / "a.json"
+    target.write_text("old")
+    with pytest.raises(RuntimeError, match="midway"), atomic_open(target) as f:  # the writer fails after some bytes
+        f.write(b'{"half": ')
+        raise RuntimeError("midway")
+    assert target.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["a.json"]
+
+    def full_disk(array_file, array):  # np.save runs out of space halfway through the array
+        array_file.write(b"\x93NUMPY half")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "save", full_disk)
+    (tmp_path / "b.npy").write_bytes(b"old array")
+    with pytest.raises(InputError, match="No space left on device"):
+        atomic_save_npy(tmp_path / "b.npy", np.zeros(1000))
+    assert (tmp_path / "b.npy").read_bytes() == b"old array"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.npy"]
+
+
+def test_a_write_interrupted_at_the_rename_keeps_the_old_file_and_leaves_no_temp_file(tmp_path, monkeypatch):
+    target = tmp_path / "a.txt"
+    target.write_text("old")
+
+    def interrupted(src, dst):  # Ctrl-C between the written temp file and the rename
+        assert Path(src).read_text() == "new" and Path(src).parent == tmp_path
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        atomic_write_text(target, "new")
+    assert target.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+
+
+def test_a_writer_killed_midway_leaves_the_old_file_whole(tmp_path):
+    """SIGKILL runs no clean-up: the old file stays whole beside a half temp file, which `remove_temp_files` finds."""
+    target = tmp_path / "model.pt"
+    target.write_bytes(b"old weights")
+    code = (
+        "import sys, time; from u4d_aug.io import atomic_open\n"
+        "with atomic_open(sys.argv[1]) as f:\n"
+        "    f.write(b'x' * 1_000_000); f.flush(); print('written', flush=True); time.sleep(60)\n"
+    )
+    writer = subprocess.Popen([sys.executable, "-c", code, str(target)], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        assert writer.stdout.readline().strip() == "written"
+    finally:
+        writer.kill()
+        writer.wait(timeout=30)
+    assert writer.returncode == -signal.SIGKILL
+    assert target.read_bytes() == b"old weights"
+    (temp,) = [p for p in tmp_path.iterdir() if p != target]
+    assert temp.name.startswith(".model.pt.") and temp.name.endswith(".tmp") and temp.stat().st_size == 1_000_000
+    assert remove_temp_files(tmp_path) == 1 and list(tmp_path.iterdir()) == [target]
 
 
 def test_temp_files_of_killed_writes_are_removed_and_nothing_else(tmp_path):
