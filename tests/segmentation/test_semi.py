@@ -346,26 +346,6 @@ def test_burn_in_teacher_copies_the_student_or_averages_it(toy_root, tmp_path, p
         semi_config(toy_root, tmp_path / "bad", "semi.burn_in_teacher=late")
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("level", ["point", "voxel"])
-def test_two_process_semi_training(toy_root, tmp_path, level):
-    """torchrun with 2 processes (gloo): one log record per step, the teacher evaluated and saved."""
-    out = tmp_path / "ddp"
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--standalone"]
-    cmd += ["-m", "segmentation.train", str(TINY_SEMI), f"data.root={toy_root}", "optim.steps=2", "eval_every=2"]
-    cmd += [f"loss.level={level}"]
-    result = subprocess.run(
-        [*cmd, "--out", str(out), "--no-progress"], cwd=REPO, env=env, capture_output=True, text=True, timeout=240
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert [r["step"] for r in read_jsonl(out / "log.jsonl") if "loss" in r] == [1, 2]
-    ckpt = torch.load(out / "checkpoints" / "step_0000002.pt", weights_only=True)
-    final = torch.load(out / "model.pt", weights_only=True)
-    assert final["metrics"]["num_scans"] == 3
-    assert all(torch.equal(ckpt["ema"][k], final["model"][k]) for k in final["model"])
-
-
 def largest_azimuth_gap_deg(points: torch.Tensor) -> float:
     """Largest circular gap (degrees) between the sorted azimuths of (N, >=2) points."""
     azimuth = torch.rad2deg(torch.atan2(points[:, 1], points[:, 0]).double()).sort().values
