@@ -147,7 +147,7 @@ def burn_in_signature(run: SegTrainConfig) -> str | None:
     """What fixes a run's first semi.burn_in_steps steps, as text; None when it has none to share.
 
     The config without mode, out_dir and the semi keys that act only after burn-in: a supervised run and a
-    mean-teacher run with the same signature take the same first steps bit for bit (tests/test_semi.py). A
+    mean-teacher run with the same signature take the same first steps bit for bit (tests/segmentation/test_semi.py). A
     mean teacher whose burn-in teacher is an EMA (burn_in_teacher "ema") has its own teacher state: not shared.
     """
     if run.semi.burn_in_steps <= 0 or (run.mode == "semi" and run.semi.burn_in_teacher != "copy"):

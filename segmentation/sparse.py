@@ -10,7 +10,7 @@ per kernel offset (`index_select`, `mm`, `index_add_`) with weights `(K, C_in, C
 function either recomputes the gathers in backward, so that only the input features are kept for it, or keeps
 the forward's gathers (`keep_gathers`: more memory, one gather fewer per offset).
 
-Every operation works on CPU and CUDA tensors alike. Dense equivalents (checked in tests/test_sparse.py):
+Every operation works on CPU and CUDA tensors alike. Dense equivalents (checked in tests/segmentation/test_sparse.py):
 - submanifold conv, odd kernel k      == conv3d(kernel k, padding k // 2) read at the input sites
 - downsampling conv, kernel 2 stride 2 == conv3d(kernel 2, stride 2) read at the occupied output sites
 - downsampling conv, kernel 3 stride 2 == conv3d(kernel 3, stride 2, padding 1) read at the same sites

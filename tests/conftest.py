@@ -1,20 +1,32 @@
-"""Shared fixtures: the real-scan folder beside the checkout, tiny seeded generators."""
+"""Shared fixtures: the real-scan folder beside the checkout, tiny seeded generators, one intra-op thread, the toy
+SemanticKITTI root and tiny diffusion checkpoints that several test modules read."""
 
 from __future__ import annotations
 
-import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from tests.tiny_nets import TINY, TINY_MOST, save_checkpoint, save_random_checkpoint
+from tests.tiny_worlds import REAL_ROOT, write_toy_root
+
+STAGES = ("stage1", "stage2", "baseline")
+
 # Tiny tensors gain nothing from intra-op threads, and spinning OpenMP threads slow everything down when the
 # 2 cores are shared; one thread keeps the suite fast and its timings steady.
 torch.set_num_threads(1)
 
-# ../shared/data/real beside the checkout; U4D_REAL_DATA points elsewhere (a git worktree one folder deeper)
-REAL_ROOT = Path(os.environ.get("U4D_REAL_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data" / "real")
+
+@pytest.fixture(autouse=True)
+def one_thread() -> Iterator[None]:
+    """Every test starts on one thread, whatever the test before it (or the code it ran) set."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="session")
@@ -39,3 +51,36 @@ def rng() -> np.random.Generator:
 @pytest.fixture
 def generator() -> torch.Generator:
     return torch.Generator().manual_seed(0)
+
+
+@pytest.fixture(scope="module")
+def toy_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The toy SemanticKITTI root (tests/tiny_worlds.py), one per module: training runs may write a split file."""
+    return write_toy_root(tmp_path_factory.mktemp("toy"))
+
+
+@pytest.fixture(scope="session")
+def untrained_checkpoints(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Untrained tiny checkpoints of the three stages (EMA = initial weights; seeds 0, 1, 2)."""
+    root = tmp_path_factory.mktemp("ckpt")
+    return {
+        stage: save_checkpoint(root / f"{stage}.pt", TINY, (f"diffusion.stage={stage}", f"seed={seed}"))
+        for seed, stage in enumerate(STAGES)
+    }
+
+
+@pytest.fixture(scope="session")
+def untrained_sequence_checkpoints(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Untrained tiny 2-frame MoST checkpoints (configs/u4d/tiny_most.yaml) of the three stages."""
+    root = tmp_path_factory.mktemp("ckpt_most")
+    return {
+        stage: save_checkpoint(root / f"{stage}.pt", TINY_MOST, (f"diffusion.stage={stage}", f"seed={seed}"))
+        for seed, stage in enumerate(STAGES)
+    }
+
+
+@pytest.fixture(scope="session")
+def random_ema_checkpoints(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Tiny checkpoints of the three stages: random EMA weights, zero raw weights (`save_random_checkpoint`)."""
+    root = tmp_path_factory.mktemp("ckpt_random_ema")
+    return {stage: save_random_checkpoint(root / f"{stage}.pt", stage) for stage in STAGES}

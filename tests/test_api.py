@@ -6,17 +6,13 @@ import pkgutil
 import re
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
-from test_collate import write_toy_bank
-from test_pipeline import save_random_checkpoint
-from test_seg_train import write_toy_root
 
 import segmentation
 import u4d_aug
-
-REPO = Path(__file__).resolve().parents[1]
+from tests.tiny_nets import REPO, save_random_checkpoint
+from tests.tiny_worlds import write_toy_bank, write_toy_root
 
 
 def test_import_is_cheap():

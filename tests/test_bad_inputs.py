@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_seg_train import TINY as SEG_TINY
-from test_seg_train import write_toy_root
 
+from tests.tiny_nets import REPO, SEG_TINY
+from tests.tiny_worlds import write_toy_root
 from u4d_aug.cli import main
 from u4d_aug.config import load_config
 from u4d_aug.data.formats import write_kitti_label, write_kitti_scan, write_nuscenes_scan
@@ -28,7 +28,6 @@ from u4d_aug.ema import EMA
 from u4d_aug.io import atomic_save_npy, atomic_torch_save
 from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state
 
-REPO = Path(__file__).resolve().parents[1]
 U4D_TINY = REPO / "configs" / "u4d" / "tiny.yaml"
 EXTRACTOR_TINY = REPO / "configs" / "extractor" / "tiny.yaml"
 EXPERIMENT_TINY = REPO / "configs" / "experiment" / "tiny.yaml"

@@ -7,21 +7,18 @@ naming it, and the checkpoints our own training runs write still load.
 from __future__ import annotations
 
 import functools
-import importlib.util
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 import torch
-from test_extractors import _tiny_cfg, write_tiny_root
-from test_seg_train import TINY as SEG_TINY
-from test_seg_train import write_toy_root
-from test_u4d_train import tiny_config, write_tiny_world
 
 from segmentation.config import SegTrainConfig
 from segmentation.experiment import start_from_burn_in
 from segmentation.predict import load_checkpoint as load_seg_checkpoint
 from segmentation.train import train as train_segmentor
+from tests.tiny_nets import SEG_TINY, diffusion_config, extractor_config, load_script
+from tests.tiny_worlds import write_tiny_root, write_tiny_world, write_toy_root
 from u4d_aug.config import load_config
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
@@ -31,8 +28,6 @@ from u4d_aug.metrics.extractors import load_extractor, train_extractor
 from u4d_aug.pipeline import load_generator
 from u4d_aug.train import build_net, checkpoint_state
 from u4d_aug.train import train as train_diffusion
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 class Payload:
@@ -51,13 +46,7 @@ def write_malicious(path: Path, marker: Path) -> Path:
     return path
 
 
-@functools.cache
-def bench_module(name: str):
-    """benchmarks/<name>.py imported as a module (the folder is not a package)."""
-    spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+bench_module = functools.cache(load_script)  # each benchmark script imported once
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +71,7 @@ def loaders(roots: dict[str, Path], tmp_path: Path) -> dict[str, Callable[[Path]
     world = (roots["world"], roots["probs"])
 
     def diffusion_resume(path: Path) -> object:
-        return train_diffusion(tiny_config(world, tmp_path / "resume", "baseline"), resume=path, progress=False)
+        return train_diffusion(diffusion_config(world, tmp_path / "resume", "baseline"), resume=path, progress=False)
 
     def segmentor_resume(path: Path) -> object:
         return train_segmentor(seg_config(roots, tmp_path / "seg_resume"), resume=path, progress=False)
@@ -133,7 +122,7 @@ def _bad_files(tmp_path: Path, marker: Path) -> dict[str, Path]:
     """A malicious pickle, the first half of a real checkpoint and a text file, each in its own folder."""
     for kind in ("malicious", "truncated", "text"):
         (tmp_path / kind).mkdir()
-    cfg = tiny_config((tmp_path, tmp_path), tmp_path / "unused", "baseline")
+    cfg = diffusion_config((tmp_path, tmp_path), tmp_path / "unused", "baseline")
     net = build_net(cfg)
     atomic_torch_save(tmp_path / "whole.pt", checkpoint_state(cfg, 1, net, EMA(net)))
     data = (tmp_path / "whole.pt").read_bytes()
@@ -167,14 +156,14 @@ def test_our_own_checkpoints_still_load(roots, tmp_path):
     """Tiny real runs of each kind load through every loader that reads them (weights_only=True)."""
     world = (roots["world"], roots["probs"])
     run = tmp_path / "diffusion"
-    train_diffusion(tiny_config(world, run, "stage1", "steps=2"), progress=False)
+    train_diffusion(diffusion_config(world, run, "stage1", "steps=2"), progress=False)
     net, cfg = load_generator(run)
     assert cfg.diffusion.stage == "stage1" and net.mask_conv is not None
     assert bench_module("bench_generation").training_budget(run)["steps"] == 2
-    record = train_diffusion(tiny_config(world, run, "stage1", "steps=3"), resume="last", progress=False)
+    record = train_diffusion(diffusion_config(world, run, "stage1", "steps=3"), resume="last", progress=False)
     assert record["step"] == 3
 
-    frd_path, frd_hash = train_extractor("frd", _tiny_cfg(roots["extractor"], tmp_path / "extractor"))
+    frd_path, frd_hash = train_extractor("frd", extractor_config(roots["extractor"], tmp_path / "extractor"))
     assert load_extractor(frd_path).hash == frd_hash
 
     seg = tmp_path / "seg"

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from u4d_aug.cli import CONFIGS_DIR, DELEGATED, EXAMPLES, main
+from u4d_aug.data.formats import read_kitti_scan
 
 
 def test_help_lists_every_command(capsys):
@@ -71,13 +72,35 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert len(list((out / "probs" / "sequences" / "00" / "probs").glob("*.npy"))) == 6
     for name in ["generated.png", "u4d_stage1/checkpoints", "u4d_stage2/checkpoints", "baseline/checkpoints"]:
         assert (out / name).exists(), name
+    disjoint = np.sqrt(np.log(2))  # the JS distance of BEV histograms with disjoint supports
     for method in ["u4d", "baseline"]:
-        manifest = json.loads((out / f"bank_{method}" / "manifest.json").read_text())
+        bank = out / f"bank_{method}"
+        manifest = json.loads((bank / "manifest.json").read_text())
         assert manifest["mode"] == method and manifest["complete"] and len(manifest["samples"]) == 4
-        written = list((out / f"bank_{method}" / "sequences" / "00" / "velodyne").glob("*.bin"))
-        assert len(written) + len(manifest["empty"]) == 4
-        evaluation = json.loads((out / f"eval_{method}" / "evaluation.json").read_text())
-        assert 0.0 <= evaluation["table1"]["jsd"]["value"] <= np.sqrt(np.log(2)) + 1e-9
+        assert manifest["empty"] == []
+        written = sorted((bank / "sequences" / "00" / "velodyne").glob("*.bin"))
+        assert len(written) == 4
+        pixels = manifest["height"] * manifest["width"]  # at most one return per range-image pixel
+        counts = [len(read_kitti_scan(path)) for path in written]  # measured 5.4k-5.8k of 8192
+        assert all(pixels // 4 <= count <= pixels for count in counts), counts
+        # BEV JS distance to the held-out sequence 02: measured 0.50-0.51 (the whole simulated world against its
+        # sequence 02: 0.27), well below the 0.83 of disjoint supports
+        jsd = json.loads((out / f"eval_{method}" / "evaluation.json").read_text())["table1"]["jsd"]["value"]
+        assert 0.1 < jsd < 0.75 * disjoint, (method, jsd)
+    # the same command on identical inputs (a bank against itself) gives 0
+    same = out / "eval_same"
+    assert main(["evaluate", "--bank", str(out / "bank_u4d"), "--real", str(out / "bank_u4d"), "--metrics", "jsd",
+                 "--json", "--out", str(same)]) == 0  # fmt: skip
+    assert json.loads((same / "evaluation.json").read_text())["table1"]["jsd"]["value"] == pytest.approx(0.0, abs=1e-9)
+    # the downstream comparison at toy size: every arm trained and scored on sequence 02, the banks really mixed in
+    results = json.loads((out / "downstream" / "results.json").read_text())
+    arms = {e["arm"]: e for e in results["arms"]}
+    assert set(arms) == {"sup-only", "mt", "mt+baseline", "mt+u4d"}
+    assert all(e["status"] == "done" and 0.02 < e["miou"]["mean"] < 1 for e in arms.values())
+    assert arms["mt+u4d"]["bank"] == str(out / "bank_u4d") and arms["mt+baseline"]["bank"] == str(out / "bank_baseline")
+    assert arms["mt+u4d"]["miou"]["mean"] != arms["mt"]["miou"]["mean"]  # the bank's scans changed the training
+    assert [(c["arm"], c["reference"]) for c in results["contrasts"]] == [("mt+u4d", "mt"), ("mt+u4d", "mt+baseline")]
+    assert "## Contrasts (points)" in (out / "downstream" / "results.md").read_text()
 
 
 # ---------------------------------------------------------------------------------------------------- conventions

@@ -10,14 +10,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_collate import write_toy_bank
-from test_seg_train import write_toy_root
 
+from tests.tiny_nets import REPO
+from tests.tiny_worlds import write_toy_bank, write_toy_root
 from u4d_aug.data.formats import read_kitti_label
 from u4d_aug.data.labels import map_semantickitti
 from u4d_aug.io import atomic_save_npy
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+EXAMPLES = REPO / "examples"
 
 
 def run_example(name: str, *args: str, cwd: Path) -> str:

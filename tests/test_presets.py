@@ -10,6 +10,7 @@ import pytest
 
 from segmentation.config import SegTrainConfig
 from segmentation.experiment import ExperimentConfig, run_config
+from tests.tiny_nets import REPO
 from u4d_aug.config import load_config
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.data.sim.config import SimConfig
@@ -17,8 +18,8 @@ from u4d_aug.generate import GenerateConfig
 from u4d_aug.metrics.extractors import ExtractorConfig
 from u4d_aug.train import DiffusionTrainConfig
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-RECORDED = CONFIGS.parent / "benchmarks" / "experiments"  # the experiment configs behind recorded results
+CONFIGS = REPO / "configs"
+RECORDED = REPO / "benchmarks" / "experiments"  # the experiment configs behind recorded results
 PRESETS = sorted(CONFIGS.glob("*/*.yaml")) + sorted(RECORDED.glob("*.yaml"))
 
 

@@ -13,15 +13,14 @@ from setuptools import find_packages
 
 from segmentation.config import SegTrainConfig
 from segmentation.experiment import ExperimentConfig, run_config
-from u4d_aug.cli import DEMO_PRESETS, demo_steps
+from tests.tiny_nets import REPO
+from u4d_aug.cli import DEMO_PRESETS, demo_experiment, demo_steps
 from u4d_aug.config import load_config, read_yaml
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.errors import InputError
 from u4d_aug.generate import GenerateConfig
 from u4d_aug.presets import configs_root, list_presets, resolve_config_path
 from u4d_aug.train import DiffusionTrainConfig
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture
@@ -71,7 +70,9 @@ def test_demo_presets_resolve_outside_the_repository(elsewhere):
     assert load_config(GenerateConfig, DEMO_PRESETS["generate"]).num > 0
     commands = [command for _, command in demo_steps(elsewhere / "demo", 0, elsewhere / "no-real")]
     named = [word for command in commands for word in command if word in DEMO_PRESETS.values()]
+    named.append(demo_experiment(elsewhere / "demo", 0)["base"])  # the downstream step's config file names it
     assert sorted(set(named)) == sorted(DEMO_PRESETS.values())
+    assert load_config(SegTrainConfig, DEMO_PRESETS["experiment_base"]).mode == "semi"
     assert not [word for command in commands for word in command if "configs/" in word]
 
 

@@ -24,7 +24,7 @@ from torch import Tensor
 from u4d_aug.errors import InputError
 
 WEIGHTS_FORMAT = "u4d-weights-v1"
-# The checkpoint kinds, as their writers name them (tests/test_weights.py checks they agree; u4d_aug does not
+# The checkpoint kinds, as their writers name them (tests/u4d_aug/test_weights.py checks they agree; u4d_aug does not
 # import segmentation): u4d_aug.train.CHECKPOINT_KIND, u4d_aug.metrics.extractors.EXTRACTOR_KINDS,
 # segmentation.train.CHECKPOINT_FORMAT (seg-train checkpoints carry it as "format", not "kind").
 DIFFUSION_KIND = "u4d-diffusion"

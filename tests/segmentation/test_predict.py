@@ -1,0 +1,281 @@
+"""Per-point probability export (the contract with u4d_aug.uncertainty) and checkpoint evaluation."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from segmentation.config import SegTrainConfig
+from segmentation.evaluate import (
+    add_seg_eval_arguments,
+    evaluate,
+    evenly_spaced,
+    format_summary,
+    run_seg_eval,
+)
+from segmentation.metrics import CalibrationAccumulator, ConfusionMatrix, mean_iou, top_confusions
+from segmentation.predict import (
+    add_seg_predict_arguments,
+    checkpoint_hash,
+    load_checkpoint,
+    model_from_checkpoint,
+    parse_sequences,
+    predict_probs,
+    predict_root,
+    probs_path,
+    run_seg_predict,
+)
+from segmentation.train import train
+from tests.tiny_nets import SEG_TINY as TINY
+from tests.tiny_worlds import write_toy_root
+from u4d_aug.config import load_config
+from u4d_aug.data.datasets import ScanDataset
+from u4d_aug.data.formats import load_kitti_frame, read_kitti_scan, write_kitti_scan
+from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
+from u4d_aug.errors import InputError
+from u4d_aug.uncertainty import load_probs
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(toy root, model.pt of a 4-step tiny run on it)."""
+    torch.set_num_threads(1)
+    root = write_toy_root(tmp_path_factory.mktemp("toy"))
+    out = tmp_path_factory.mktemp("run")
+    cfg = load_config(SegTrainConfig, TINY, [f"data.root={root}", f"out_dir={out}", "optim.steps=4", "eval_every=4"])
+    train(cfg, progress=False)
+    return root, out / "model.pt"
+
+
+def _predict_args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_seg_predict_arguments(parser)
+    return parser.parse_args(list(argv))
+
+
+def test_predict_writes_float16_probs_in_scan_order_and_resumes(trained, tmp_path):
+    root, ckpt = trained
+    out = tmp_path / "probs"
+    assert run_seg_predict(_predict_args(str(ckpt), str(root), "--out", str(out), "--no-progress")) == 0
+    files = sorted(out.glob("sequences/*/probs/*.npy"))
+    assert [f"{f.parent.parent.name}/{f.stem}" for f in files] == [
+        f"{s}/{i:06d}" for s in ("00", "01") for i in range(3)
+    ]
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["checkpoint_sha256"] == checkpoint_hash(ckpt) and len(manifest["checkpoint_sha256"]) == 16
+    assert manifest["complete"] and manifest["num_classes"] == 19 and manifest["dtype"] == "float16"
+    assert manifest["config"]["model"]["voxel_size"] == 0.5
+
+    # same rows as a direct forward of the scan, in the scan's point order
+    model = model_from_checkpoint(load_checkpoint(ckpt), torch.device("cpu"))
+    points = read_kitti_scan(root / "sequences" / "01" / "velodyne" / "000002.bin")
+    probs = np.load(probs_path(out, "01", "000002"))
+    assert probs.dtype == np.float16 and probs.shape == (len(points), 19)
+    np.testing.assert_allclose(probs.astype(np.float32).sum(1), 1.0, atol=1e-2)
+    np.testing.assert_allclose(probs, predict_probs(model, points, torch.device("cpu")).numpy(), atol=1e-3)
+    # permuting the points permutes the rows
+    perm = np.random.default_rng(0).permutation(len(points))
+    np.testing.assert_allclose(predict_probs(model, points[perm], torch.device("cpu")).numpy(), probs[perm], atol=1e-3)
+
+    # resumable: existing files are skipped, a missing one is rewritten
+    probs_path(out, "00", "000001").unlink()
+    stamp = probs_path(out, "01", "000000").stat().st_mtime_ns
+    result = predict_root(ckpt, root, out, progress=False)
+    assert (result["written"], result["skipped"]) == (1, 5)
+    assert probs_path(out, "01", "000000").stat().st_mtime_ns == stamp
+
+
+def test_predict_refuses_to_mix_checkpoints_and_drops_nan_points(trained, tmp_path):
+    root, ckpt = trained
+    out = tmp_path / "probs"
+    predict_root(ckpt, root, out, sequences=["01"], progress=False)
+    other = tmp_path / "other.pt"
+    state = torch.load(ckpt, weights_only=True)
+    state["step"] = 99
+    torch.save(state, other)
+    with pytest.raises(InputError, match="manifest.json"):
+        predict_root(other, root, out, sequences=["01"], progress=False)
+
+    # a NaN point is dropped with a counted warning: the rows follow the points every reader of the scan sees
+    # (load_kitti_frame drops them too), so U4D's load_probs(path, len(points)) matches
+    nan_root = tmp_path / "nan"
+    points = read_kitti_scan(root / "sequences" / "00" / "velodyne" / "000000.bin").copy()
+    points[5] = np.nan
+    write_kitti_scan(nan_root / "sequences" / "00" / "velodyne" / "000000.bin", points)
+    with pytest.warns(UserWarning, match="dropped 1 of 3000 points with NaN/inf values"):
+        predict_root(ckpt, nan_root, tmp_path / "nan_probs", progress=False)
+    kept = load_kitti_frame(nan_root / "sequences" / "00" / "velodyne" / "000000.bin").points
+    probs = load_probs(probs_path(tmp_path / "nan_probs", "00", "000000"), len(kept)).astype(np.float32)
+    assert probs.shape == (len(points) - 1, 19) and np.isfinite(probs).all()
+
+
+def test_a_checkpoint_of_another_kind_is_refused_in_one_line(trained, tmp_path):
+    root, ckpt = trained
+    state = torch.load(ckpt, weights_only=True)
+    diffusion = {"kind": "u4d-diffusion", "config": {"net": {}}, "model": state["model"], "step": 4}
+    torch.save(diffusion, tmp_path / "diffusion.pt")
+    with pytest.raises(InputError, match="diffusion.pt: not a segmentation checkpoint \\(a u4d-diffusion checkpoint"):
+        predict_root(tmp_path / "diffusion.pt", root, tmp_path / "o", progress=False)
+    wrong = {**state, "model": {key: value.reshape(-1)[:1] for key, value in state["model"].items()}}
+    torch.save(wrong, tmp_path / "wrong.pt")
+    with pytest.raises(InputError, match="wrong.pt: its weights do not fit the net its config describes"):
+        predict_root(tmp_path / "wrong.pt", root, tmp_path / "o", progress=False)
+
+
+def test_predict_rejects_bad_inputs(trained, tmp_path):
+    root, ckpt = trained
+    with pytest.raises(InputError, match="checkpoint not found"):
+        predict_root(tmp_path / "missing.pt", root, tmp_path / "o", progress=False)
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(InputError, match="junk.pt"):
+        predict_root(tmp_path / "junk.pt", root, tmp_path / "o", progress=False)
+    with pytest.raises(InputError, match="07"):
+        predict_root(ckpt, root, tmp_path / "o", sequences=["07"], progress=False)
+
+
+def test_views_average_the_softmax_over_mirror_and_turned_views(trained, tmp_path):
+    """Test-time augmentation: views=k is the mean of the single-view softmax of the first k mirror / turned views."""
+    root, ckpt = trained
+    model = model_from_checkpoint(load_checkpoint(ckpt), torch.device("cpu"))
+    points = torch.from_numpy(read_kitti_scan(root / "sequences" / "00" / "velodyne" / "000001.bin").copy())
+    cpu = torch.device("cpu")
+    signs = [(1, 1), (-1, 1), (1, -1), (-1, -1)]
+    single = []
+    for sx, sy in signs:
+        view = points.clone()
+        view[:, 0] *= sx
+        view[:, 1] *= sy
+        single.append(predict_probs(model, view, cpu))  # (N, K)
+    assert not torch.allclose(single[0], single[1], atol=1e-4)  # the mirror views do change the prediction
+    for views in (1, 2, 4):
+        expected = torch.stack(single[:views]).mean(dim=0)
+        torch.testing.assert_close(predict_probs(model, points, cpu, views), expected, atol=1e-5, rtol=1e-4)
+    # views 8 adds the four mirrors turned by 45 degrees about z: another voxel grid, another prediction
+    c = math.sqrt(0.5)
+    turned = []
+    for sx, sy in signs:
+        x, y = points[:, 0] * sx, points[:, 1] * sy
+        view = points.clone()
+        view[:, 0], view[:, 1] = c * (x - y), c * (x + y)
+        turned.append(predict_probs(model, view, cpu))
+    assert not torch.allclose(turned[0], single[0], atol=1e-4)
+    expected = torch.stack(single + turned).mean(dim=0)
+    torch.testing.assert_close(predict_probs(model, points, cpu, 8), expected, atol=1e-5, rtol=1e-4)
+    assert torch.equal(points, torch.from_numpy(read_kitti_scan(root / "sequences" / "00" / "velodyne" / "000001.bin")))
+
+    # seg-eval scores the averaged probabilities; seg-predict records the views and refuses to mix two counts
+    summary = evaluate(ckpt, root, ["00"], views=2)
+    cm = ConfusionMatrix(19, SEMANTICKITTI_IGNORE)
+    for item in ScanDataset(root, ["00"]):
+        cm.update(predict_probs(model, item["points"], cpu, 2).argmax(1), item["labels"])
+    assert summary["views"] == 2 and summary["miou"] == pytest.approx(mean_iou(cm.matrix))
+    out = tmp_path / "probs"
+    assert run_seg_predict(_predict_args(str(ckpt), str(root), "--out", str(out), "--views", "4", "--no-progress")) == 0
+    assert json.loads((out / "manifest.json").read_text())["views"] == 4
+    probs = np.load(probs_path(out, "00", "000001")).astype(np.float32)
+    np.testing.assert_allclose(probs, torch.stack(single).mean(dim=0).numpy(), atol=2e-3)
+    with pytest.raises(InputError, match="--views 4, not 1"):
+        predict_root(ckpt, root, out, progress=False)
+    for bad in (0, 5, 36):
+        with pytest.raises(InputError, match="--views must be 1-4"):
+            evaluate(ckpt, root, ["00"], views=bad)
+
+
+def test_evaluate_matches_metrics_by_hand(trained, tmp_path):
+    root, ckpt = trained
+    png = tmp_path / "rel.png"
+    summary = evaluate(ckpt, root, ["01"], reliability_png=png)
+    assert png.is_file() and summary["num_scans"] == 3 and summary["sequences"] == ["01"]
+
+    model = model_from_checkpoint(load_checkpoint(ckpt), torch.device("cpu"))
+    cm, calibration = ConfusionMatrix(19, SEMANTICKITTI_IGNORE), CalibrationAccumulator(SEMANTICKITTI_IGNORE)
+    for item in ScanDataset(root, ["01"]):
+        probs = predict_probs(model, item["points"], torch.device("cpu"))
+        cm.update(probs.argmax(1), item["labels"])
+        calibration.update(probs, item["labels"])
+    assert summary["miou"] == pytest.approx(mean_iou(cm.matrix))
+    assert summary["ece_per_scan"] == pytest.approx(calibration.ece_per_scan)
+    assert summary["ece_pooled"] == pytest.approx(calibration.ece_pooled)
+    assert summary["classes_present"] == ["car", "road", "building"]
+    present = [summary["iou"][c] for c in summary["classes_present"]]
+    assert summary["miou_present"] == pytest.approx(np.mean(present))
+    np.testing.assert_array_equal(summary["confusion"], cm.matrix)
+    assert "mIoU" in format_summary(summary)
+
+
+def test_run_seg_eval_prints_table_and_json(trained, tmp_path, capsys):
+    root, ckpt = trained
+    parser = argparse.ArgumentParser()
+    add_seg_eval_arguments(parser)
+    assert run_seg_eval(parser.parse_args([str(ckpt), str(root), "--sequences", "01", "--json"])) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert set(summary) >= {"miou", "iou", "ece_per_scan", "ece_pooled", "bins", "miou_present"}
+    png, confusion_png = tmp_path / "r.png", tmp_path / "c.png"
+    # the 3 scans of sequence 01 again, so that the table shows the summary printed as json above
+    args = [str(ckpt), str(root), "--sequences", "01", "--max-scans", "3", "--png", str(png)]
+    args += ["--confusion-png", str(confusion_png)]
+    assert run_seg_eval(parser.parse_args(args)) == 0
+    text = capsys.readouterr().out
+    assert "ECE per scan" in text and "road" in text and png.is_file()
+    assert confusion_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # each class row names what its points are mistaken for, from the confusion matrix of the summary
+    names, checked = list(summary["iou"]), 0
+    for k, confused in enumerate(top_confusions(summary["confusion"])):
+        if confused:
+            row = next(line for line in text.splitlines() if line.startswith(names[k] + " "))
+            assert f"{names[confused[0][0]]} {100 * confused[0][1]:.0f} %" in row
+            checked += 1
+    assert checked > 0  # the tiny net mistakes some class for another
+
+
+def test_evenly_spaced():
+    assert evenly_spaced(5, None) == [0, 1, 2, 3, 4]
+    assert evenly_spaced(10, 3) == [0, 4, 9] or evenly_spaced(10, 3) == [0, 5, 9]
+    assert evenly_spaced(3, 10) == [0, 1, 2]
+
+
+@pytest.mark.real
+def test_evaluate_on_real_semantickitti(trained, real_root):
+    """Sim-to-real style: a checkpoint evaluated on real labeled scans; only GT classes enter miou_present."""
+    _, ckpt = trained
+    summary = evaluate(ckpt, real_root / "semantickitti", ["00"], max_scans=1)
+    assert summary["num_scans"] == 1 and summary["num_points"] > 100_000
+    assert {"road", "car", "building", "vegetation"} <= set(summary["classes_present"])
+    assert 0.0 <= summary["miou_present"] <= 1.0 and not math.isnan(summary["ece_pooled"])
+
+
+def test_cli_sequence_ranges() -> None:
+    assert parse_sequences(["88-99"]) == ["88-99"]  # expanded by resolve_sequences
+    assert parse_sequences(["00-02,05", "07"]) == ["00-02", "05", "07"]
+    assert parse_sequences(["train"]) == "train" and parse_sequences(None) is None
+
+
+def test_readout_override_in_eval_and_predict(trained, tmp_path):
+    """--readout trilinear rereads the same weights (a MinkUNet checkpoint trained with the voxel readout):
+    seg-eval scores the interpolated softmax and records the readout; seg-predict will not mix two readouts."""
+    root, ckpt = trained
+    cpu = torch.device("cpu")
+    voxel = model_from_checkpoint(load_checkpoint(ckpt), cpu)
+    trilinear = model_from_checkpoint(load_checkpoint(ckpt), cpu, readout="trilinear")
+    assert (voxel.cfg.readout, trilinear.cfg.readout) == ("voxel", "trilinear")
+    points = torch.from_numpy(read_kitti_scan(root / "sequences" / "00" / "velodyne" / "000001.bin").copy())
+    a, b = predict_probs(voxel, points, cpu), predict_probs(trilinear, points, cpu)
+    assert not torch.allclose(a, b, atol=1e-4)  # points near voxel borders read their neighbours too
+    torch.testing.assert_close(b.sum(dim=1), torch.ones(b.shape[0]))
+    summary = evaluate(ckpt, root, ["00"], readout="trilinear")
+    cm = ConfusionMatrix(19, SEMANTICKITTI_IGNORE)
+    for item in ScanDataset(root, ["00"]):
+        cm.update(predict_probs(trilinear, item["points"], cpu).argmax(1), item["labels"])
+    assert summary["readout"] == "trilinear" and summary["miou"] == pytest.approx(mean_iou(cm.matrix))
+    out = tmp_path / "probs"
+    args = ("--out", str(out), "--sequences", "00", "--no-progress")
+    assert run_seg_predict(_predict_args(str(ckpt), str(root), *args, "--readout", "trilinear")) == 0
+    assert json.loads((out / "manifest.json").read_text())["readout"] == "trilinear"
+    with pytest.raises(InputError, match="readout trilinear, not voxel"):
+        predict_root(ckpt, root, out, sequences=["00"], progress=False)

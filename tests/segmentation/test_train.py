@@ -1,0 +1,513 @@
+"""Supervised segmentation training: Lovász-softmax, schedule, data order, a tiny run, exact resume, CLI."""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import re
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from segmentation.config import LossConfig, OptimConfig, SegTrainConfig
+from segmentation.losses import class_weights, lovasz_softmax, segmentation_loss, voxel_targets
+from segmentation.models import build_model
+from segmentation.train import (
+    TrainBatches,
+    add_seg_train_arguments,
+    batch_indices,
+    learning_rate,
+    run_seg_train,
+    supervised_step,
+    train,
+    train_class_counts,
+    train_scans,
+)
+from tests.tiny_nets import CPU, REPO, SEG_TINY
+from u4d_aug.config import load_config
+from u4d_aug.data.datasets import ScanDataset
+from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
+from u4d_aug.distributed import DistInfo
+from u4d_aug.errors import InputError
+from u4d_aug.io import read_jsonl
+from u4d_aug.validate import NonFiniteLossError
+
+TINY = SEG_TINY
+
+
+def tiny_config(root: Path, out: Path, *overrides: str) -> SegTrainConfig:
+    return load_config(SegTrainConfig, TINY, [f"data.root={root}", f"out_dir={out}", *overrides])
+
+
+# ------------------------------------------------------------------------------------------------ Lovász
+
+
+def _jaccard_loss(errors_set: np.ndarray, fg: np.ndarray) -> float:
+    """Δ_J(M) = |M| / |fg ∪ M| for the mispredicted set M (Berman et al. 2018, Eq. 5)."""
+    union = np.logical_or(fg, errors_set).sum()
+    return 0.0 if union == 0 else errors_set.sum() / union
+
+
+def _lovasz_brute(probs: np.ndarray, target: np.ndarray) -> float:
+    """Lovász extension in integral form f(m) = ∫_0^1 Δ({i : m_i >= t}) dt per class, mean over present."""
+    losses = []
+    for c in np.unique(target):
+        fg = target == c
+        m = np.abs(fg.astype(float) - probs[:, c])
+        levels = np.concatenate([[0.0], np.sort(np.unique(m))])
+        total = 0.0
+        for lo, hi in itertools.pairwise(levels):  # on (lo, hi] the set {m >= t} is {m >= hi}
+            total += (hi - lo) * _jaccard_loss(m >= hi, fg)
+        losses.append(total)
+    return float(np.mean(losses))
+
+
+def test_lovasz_matches_brute_force_extension():
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        logits = torch.from_numpy(rng.normal(size=(7, 3)))
+        target = torch.from_numpy(rng.integers(0, 3, 7))
+        probs = logits.softmax(1)
+        got = float(lovasz_softmax(probs, target))
+        assert got == pytest.approx(_lovasz_brute(probs.numpy(), target.numpy()), abs=1e-12)
+
+
+def test_lovasz_on_hard_predictions_is_one_minus_iou_and_ignores():
+    target = torch.tensor([0, 0, 0, 1, 1, 2, 2])
+    pred = torch.tensor([0, 0, 1, 1, 2, 2, 2])
+    probs = torch.nn.functional.one_hot(pred, 3).double()
+    # IoU: class 0 = 2/3, class 1 = 1/3, class 2 = 2/3 -> mean Jaccard loss = (1/3 + 2/3 + 1/3) / 3
+    assert float(lovasz_softmax(probs, target)) == pytest.approx(4 / 9)
+    # a point with the ignore id changes nothing; perfect predictions give 0
+    assert float(lovasz_softmax(torch.cat([probs, probs[:1]]), torch.cat([target, torch.tensor([9])]), 9)) == (
+        pytest.approx(4 / 9)
+    )
+    assert float(lovasz_softmax(torch.nn.functional.one_hot(target, 3).double(), target)) == 0.0
+
+
+def test_segmentation_loss_weights_and_all_ignored():
+    logits = torch.randn(10, 4, requires_grad=True)
+    target = torch.tensor([0, 1, 2, 3, 4, 4, 0, 1, 2, 3])  # 4 = ignore
+    out = segmentation_loss(logits, target, LossConfig(ce_weight=1.0, lovasz_weight=2.0), ignore_index=4)
+    ce = torch.nn.functional.cross_entropy(logits, target, ignore_index=4)
+    assert float(out["loss_ce"].detach()) == pytest.approx(float(ce.detach()))
+    assert float(out["loss"].detach()) == pytest.approx(float((ce + 2 * out["loss_lovasz"]).detach()))
+    out["loss"].backward()
+    assert logits.grad[4:6].abs().sum() == 0  # ignored points get no gradient
+    empty = segmentation_loss(logits, torch.full((10,), 4), LossConfig(), ignore_index=4)
+    assert float(empty["loss"].detach()) == 0.0 and empty["loss"].requires_grad
+
+
+def test_voxel_targets_are_majority_labels_by_hand():
+    ignore = 19
+    # voxel 0: 2 x class 3 + 1 x class 5; voxel 1: only ignored points; voxel 2: tie 1 / 4 -> lower id;
+    # voxel 3: class 7 beats 2 ignored points
+    target = torch.tensor([3, 5, 3, ignore, ignore, 4, 1, 7, ignore, ignore])
+    inverse = torch.tensor([0, 0, 0, 1, 1, 2, 2, 3, 3, 3])
+    assert voxel_targets(target, inverse, 4, ignore).tolist() == [3, ignore, 1, 7]
+    # a voxel without any point (not produced by voxelize, but well defined) is ignored; all-ignored input too
+    assert voxel_targets(target, inverse, 5, ignore).tolist() == [3, ignore, 1, 7, ignore]
+    assert voxel_targets(torch.full((3,), ignore), torch.tensor([0, 1, 1]), 2, ignore).tolist() == [ignore] * 2
+    with pytest.raises(ValueError, match="must match"):
+        voxel_targets(target, inverse[:-1], 4, ignore)
+
+
+def test_inverse_sqrt_class_weights_by_hand():
+    counts = torch.tensor([64, 16, 0, 4])  # shares 64/84, 16/84, -, 4/84
+    share = counts.double() / 84
+    raw = share.clamp_min(1e-12).rsqrt()
+    scale = (share * raw)[[0, 1, 3]].sum()  # = sum of sqrt(share) over present classes
+    weight = class_weights(counts, LossConfig(class_weighting="inverse_sqrt"))
+    expected = torch.tensor([raw[0] / scale, raw[1] / scale, 1.0, raw[3] / scale], dtype=torch.float32)
+    torch.testing.assert_close(weight, expected)
+    assert float((share * weight.double())[[0, 1, 3]].sum()) == pytest.approx(1.0)  # a point weighs 1 on average
+    assert float(weight[3] / weight[0]) == pytest.approx(4.0)  # 16x rarer -> 4x the weight
+    capped = class_weights(counts, LossConfig(class_weighting="inverse_sqrt", max_class_weight=1.5))
+    assert float(capped.max()) == 1.5 and float(capped[0]) == pytest.approx(float(expected[0]))
+    assert class_weights(counts, LossConfig()) is None
+    with pytest.raises(ValueError, match="class_weighting"):
+        LossConfig(class_weighting="inverse")
+
+
+def test_weighted_cross_entropy_is_torch_weighted_mean():
+    logits = torch.randn(12, 3, generator=torch.Generator().manual_seed(1))
+    target = torch.tensor([0, 0, 0, 0, 0, 0, 1, 1, 2, 3, 3, 0])  # 3 = ignore
+    weight = torch.tensor([0.5, 2.0, 4.0])
+    out = segmentation_loss(logits, target, LossConfig(), ignore_index=3, class_weight=weight)
+    keep = target != 3
+    per_point = torch.nn.functional.cross_entropy(logits[keep], target[keep], reduction="none")
+    w = weight[target[keep]]
+    assert float(out["loss_ce"]) == pytest.approx(float((w * per_point).sum() / w.sum()), rel=1e-6)
+
+
+def test_class_counts_of_the_training_scans(toy_root):
+    scans = ScanDataset(toy_root, ["00"], labeled_only=True)
+    counts = train_class_counts(scans)
+    expected = sum(np.bincount(scans[i]["labels"], minlength=20)[:19] for i in range(len(scans)))
+    np.testing.assert_array_equal(counts.numpy(), expected)
+    assert counts[0] > 0 and counts[8] > 0 and counts[12] > 0  # car, road, building of the toy scans
+
+
+# ------------------------------------------------------------------------------------------- schedule, data
+
+
+def test_learning_rate_warmup_then_cosine():
+    cfg = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1)
+    assert learning_rate(0, cfg) == pytest.approx(0.1)
+    assert learning_rate(9, cfg) == pytest.approx(1.0)
+    assert learning_rate(10, cfg) == pytest.approx(1.0)
+    assert learning_rate(60, cfg) == pytest.approx(0.55)  # half-way down the cosine
+    assert learning_rate(110, cfg) == pytest.approx(0.1)
+    lrs = [learning_rate(s, cfg) for s in range(10, 111)]
+    assert all(a >= b for a, b in itertools.pairwise(lrs))
+
+
+def test_learning_rate_warm_restart_keeps_the_steps_before_it():
+    one = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1)
+    cfg = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1, restart_step=60, restart_lr=0.5)
+    assert [learning_rate(s, cfg) for s in range(60)] == [learning_rate(s, one) for s in range(60)]
+    assert learning_rate(60, cfg) == pytest.approx(0.05)  # warm-up again, to restart_lr
+    assert learning_rate(69, cfg) == pytest.approx(0.5)
+    assert learning_rate(90, cfg) == pytest.approx(0.05 + 0.5 * 0.45)  # half-way down the second cosine
+    assert learning_rate(110, cfg) == pytest.approx(0.05)  # min_lr_ratio of restart_lr
+    assert learning_rate(69, OptimConfig(lr=1.0, warmup_steps=10, steps=110, restart_step=60)) == pytest.approx(1.0)
+    with pytest.raises(InputError, match="optim.restart_step must be 0 or in"):
+        load_config(SegTrainConfig, TINY, ["optim.restart_step=100000"])
+    with pytest.raises(InputError, match="optim.restart_lr must be positive and needs optim.restart_step"):
+        load_config(SegTrainConfig, TINY, ["optim.restart_lr=0.5"])  # would be ignored without a restart step
+
+
+def test_learning_rate_annealed_to_the_budget_follows_the_larger_progress():
+    cfg = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1, anneal_to="budget")
+    assert learning_rate(60, cfg, 0.0) == learning_rate(60, cfg) == pytest.approx(0.55)  # steps ahead of time
+    assert learning_rate(60, cfg, 0.25) == pytest.approx(0.55)
+    assert learning_rate(20, cfg, 0.5) == pytest.approx(0.55)  # time ahead of steps: half-way down anyway
+    assert learning_rate(20, cfg, 1.0) == pytest.approx(0.1)  # budget used: min lr
+    assert learning_rate(5, cfg, 1.0) == pytest.approx(0.6)  # warm-up is counted in steps only
+    with pytest.raises(InputError, match="anneal_to=budget needs a wall-clock budget"):
+        load_config(SegTrainConfig, TINY, ["optim.anneal_to=budget"])
+    with pytest.raises(InputError, match="anneal_to"):
+        load_config(SegTrainConfig, TINY, ["optim.anneal_to=time", "max_minutes=1"])
+
+
+def test_budget_annealed_run_reaches_min_lr_when_the_budget_is_gone(toy_root, tmp_path):
+    """A budget used up before the first step: that step already runs at min lr, and the run stops after it."""
+    cfg = tiny_config(toy_root, tmp_path / "run", "optim.anneal_to=budget", "max_minutes=1e-9", "optim.warmup_steps=0")
+    train(cfg, progress=False)
+    records = [r for r in read_jsonl(tmp_path / "run" / "log.jsonl") if "loss" in r]
+    assert [r["step"] for r in records] == [1]
+    assert records[0]["lr"] == pytest.approx(cfg.optim.lr * cfg.optim.min_lr_ratio)
+
+
+def test_batch_indices_are_epochs_of_permutations_and_depend_on_seed_and_step_only():
+    order = [i for step in range(6) for i in batch_indices(step, 5, 3, seed=7)]  # 18 draws = 3 epochs + 3
+    for epoch in range(3):
+        assert sorted(order[5 * epoch : 5 * epoch + 5]) == list(range(5))
+    assert batch_indices(4, 5, 3, seed=7) == batch_indices(4, 5, 3, seed=7)
+    assert [batch_indices(s, 50, 2, 1) for s in range(5)] != [batch_indices(s, 50, 2, 2) for s in range(5)]
+
+
+def test_config_rejects_bad_values(tmp_path):
+    with pytest.raises(InputError, match="label_fraction"):
+        load_config(SegTrainConfig, TINY, ["data.label_fraction=0"])
+    with pytest.raises(InputError, match="optim.step"):
+        load_config(SegTrainConfig, TINY, ["optim.step=3"])
+    with pytest.raises(InputError, match="loss.level=voxel needs model.name=minkunet"):
+        load_config(SegTrainConfig, TINY, ["loss.level=voxel", "model.name=spvcnn"])
+    with pytest.raises(InputError, match="loss.level"):
+        load_config(SegTrainConfig, TINY, ["loss.level=cell"])
+    cfg = load_config(SegTrainConfig, TINY, ["data.val_sequences=[8, '09']"])
+    assert cfg.data.val_sequences == ["08", "09"]
+
+
+# --------------------------------------------------------------------------------------------- training
+
+
+def _final_weights(out: Path) -> dict[str, torch.Tensor]:
+    return torch.load(out / "model.pt", weights_only=True)["model"]
+
+
+def test_tiny_run_writes_outputs_and_learns(toy_root, tmp_path):
+    out = tmp_path / "run"
+    summary = train(tiny_config(toy_root, out, "optim.steps=12", "eval_every=6"), progress=False)
+    for name in (
+        "config.yaml",
+        "log.jsonl",
+        "learning_curve.png",
+        "reliability.png",
+        "model.pt",
+        "metrics.json",
+    ):
+        assert (out / name).is_file(), name
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == [f"step_{s:07d}.pt" for s in (3, 6, 9, 12)]
+    records = read_jsonl(out / "log.jsonl")
+    train_records = [r for r in records if "loss" in r]
+    assert [r["step"] for r in train_records] == list(range(1, 13))
+    assert all(np.isfinite(r["loss"]) and r["lr"] > 0 for r in train_records)
+    evals = [r for r in records if "val_miou" in r]
+    assert [r["step"] for r in evals] == [6, 12]
+    assert train_records[-1]["loss"] < train_records[0]["loss"]
+    assert summary["num_scans"] == 3 and summary["miou"] == evals[-1]["val_miou"]  # the last evaluation's
+    scored = [v for v in summary["iou"].values() if v is not None]  # classes seen in the labels or predictions
+    assert summary["miou"] == pytest.approx(np.mean(scored)) and max(scored) > 0
+    assert set(summary["classes_present"]) == {"car", "road", "building"}
+    ckpt = torch.load(out / "checkpoints" / "step_0000012.pt", weights_only=True)
+    assert ckpt["step"] == 12 and ckpt["ema"] is None and ckpt["config"]["optim"]["steps"] == 12
+    assert {"model", "optimizer", "scheduler", "rng", "metrics"} <= set(ckpt)
+    # a second run into the same folder must not silently mix with the first
+    with pytest.raises(InputError, match="--resume"):
+        train(tiny_config(toy_root, out), progress=False)
+
+
+def test_voxel_level_loss_reads_majority_labels_and_learns(toy_root, tmp_path):
+    cfg = tiny_config(toy_root, tmp_path / "voxel", "loss.level=voxel", "loss.lovasz_weight=1.0")
+    torch.manual_seed(0)
+    model = build_model(cfg.model)
+    batch = TrainBatches(train_scans(cfg, CPU), cfg, 0, 1)[0]
+    losses = supervised_step(model, batch, cfg, torch.device("cpu"))
+    # the same losses by hand: voxel logits against the majority label of each voxel
+    out = model(batch["points"], voxel_output=True)
+    target = voxel_targets(torch.cat(batch["labels"]), out.inverse, len(out.logits), SEMANTICKITTI_IGNORE)
+    want = segmentation_loss(out.logits, target, cfg.loss, SEMANTICKITTI_IGNORE)
+    for key in ("loss", "loss_ce", "loss_lovasz"):
+        assert float(losses[key].detach()) == pytest.approx(float(want[key].detach()), rel=1e-5), key
+    assert len(out.logits) < sum(len(p) for p in batch["points"])  # fewer rows than points
+    out_dir = tmp_path / "voxel_run"
+    train(tiny_config(toy_root, out_dir, "loss.level=voxel", "optim.steps=12", "eval_every=12"), progress=False)
+    records = [r for r in read_jsonl(out_dir / "log.jsonl") if "loss" in r]
+    assert records[-1]["loss"] < records[0]["loss"]
+
+
+def test_point_fraction_loss_reads_the_sampled_points(toy_root, tmp_path):
+    """loss.point_fraction=0.25: each scan's batch item holds a quarter of its rows (sorted, distinct, the same
+    for the same step), and the losses are those of the full point logits at those rows."""
+    cfg = tiny_config(toy_root, tmp_path / "frac", "loss.point_fraction=0.25", "loss.lovasz_weight=1.0")
+    batches = TrainBatches(train_scans(cfg, CPU), cfg, 0, 1)
+    batch = batches[0]
+    for rows, labels in zip(batch["loss_rows"], batch["labels"]):
+        assert len(rows) == round(0.25 * len(labels)) and bool((rows.diff() > 0).all()) and int(rows[-1]) < len(labels)
+    torch.testing.assert_close(batches[0]["loss_rows"], batch["loss_rows"])
+    assert not torch.equal(batches[1]["loss_rows"][0][:50], batch["loss_rows"][0][:50])
+    torch.manual_seed(0)
+    model = build_model(cfg.model).eval()  # eval: batch norm does not see which points were computed
+    losses = supervised_step(model, batch, cfg, torch.device("cpu"))
+    start = len(batch["points"][0])
+    rows = torch.cat([batch["loss_rows"][0], batch["loss_rows"][1] + start])
+    want = segmentation_loss(
+        model(batch["points"])[rows], torch.cat(batch["labels"])[rows], cfg.loss, SEMANTICKITTI_IGNORE
+    )
+    for key in ("loss", "loss_ce", "loss_lovasz"):
+        assert float(losses[key].detach()) == pytest.approx(float(want[key].detach()), rel=1e-5), key
+    assert "loss_rows" not in TrainBatches(train_scans(cfg, CPU), tiny_config(toy_root, tmp_path), 0, 1)[0]
+    with pytest.raises(ValueError, match="loss.level=point"):
+        tiny_config(toy_root, tmp_path, "loss.level=voxel", "loss.point_fraction=0.5")
+    with pytest.raises(ValueError, match="point_fraction must be in"):
+        tiny_config(toy_root, tmp_path, "loss.point_fraction=0")
+    with pytest.raises(ValueError, match="mode=supervised"):
+        tiny_config(toy_root, tmp_path, "mode=semi", "loss.point_fraction=0.5")
+
+
+def test_class_weighted_run_logs_its_weights(toy_root, tmp_path):
+    out = tmp_path / "weighted"
+    train(tiny_config(toy_root, out, "optim.steps=2", "loss.class_weighting=inverse_sqrt"), progress=False)
+    first = read_jsonl(out / "log.jsonl")[0]
+    weight = first["class_weight"]
+    assert first["step"] == 0 and weight["car"] > weight["road"] > 0  # the toy scans hold 2x road as car
+    ckpt = torch.load(out / "checkpoints" / "step_0000002.pt", weights_only=True)
+    assert ckpt["class_weight"].tolist() == pytest.approx(list(weight.values()))
+
+
+def test_paste_augmentation_adds_labelled_copies_in_the_batch(toy_root, tmp_path):
+    base = ["optim.steps=1", "augment.paste_classes=[car]", "augment.paste_copies=2", "data.max_points=null"]
+    scans = ScanDataset(toy_root, ["00", "01"], labeled_only=True)
+    plain = TrainBatches(scans, tiny_config(toy_root, tmp_path, *base), 0, 1)[0]
+    pasted = TrainBatches(scans, tiny_config(toy_root, tmp_path, *base, "augment.paste_prob=1.0"), 0, 1)[0]
+    for before, after, labels in zip(plain["labels"], pasted["labels"], pasted["points"]):
+        extra = len(after) - len(before)
+        assert extra > 0 and extra % 2 == 0 and len(labels) == len(after)
+        assert int((after == 0).sum()) == int((before == 0).sum()) + extra  # every pasted point is a car
+    with pytest.raises(InputError, match="paste_classes: unknown class names \\['lorry'\\]"):
+        tiny_config(toy_root, tmp_path, "augment.paste_classes=[lorry]")  # refused when the config loads
+
+
+def test_label_fraction_trains_on_the_split(toy_root, tmp_path):
+    cfg = tiny_config(toy_root, tmp_path / "run", "data.label_fraction=0.5", "optim.steps=1", "eval_every=1")
+    train(cfg, progress=False)
+    files = list((toy_root / "splits").glob("uniform_50pct_seed0_*.json"))
+    assert len(files) == 1  # named by the fraction, seed and a digest of the train set
+    split = json.loads(files[0].read_text())
+    assert (
+        split["labeled"]
+        and split["unlabeled"]
+        and not {tuple(x) for x in split["labeled"]} & {tuple(x) for x in split["unlabeled"]}
+    )
+
+
+def test_resume_in_a_fresh_process_is_bit_exact(toy_root, tmp_path):
+    """N = 6 steps with a checkpoint at 3; a new process resumes from step 3; final weights are identical."""
+    full = tmp_path / "full"
+    cfg = tiny_config(toy_root, full, "model.name=spvcnn")  # dropout: the global RNG matters too
+    train(cfg, progress=False)
+
+    half = tmp_path / "half"
+    half_cfg = tiny_config(toy_root, half, "model.name=spvcnn")
+    (half / "checkpoints").mkdir(parents=True)
+    # the killed run: only its checkpoint of step 3 (and the log up to there) survived
+    (half / "checkpoints" / "step_0000003.pt").write_bytes((full / "checkpoints" / "step_0000003.pt").read_bytes())
+    (half / "log.jsonl").write_text((full / "log.jsonl").read_text())
+    code = (
+        "import sys; from segmentation.train import train; from segmentation.config import SegTrainConfig; "
+        "from u4d_aug.config import load_config; "
+        "train(load_config(SegTrainConfig, sys.argv[1], sys.argv[2:]), resume='last', progress=False)"
+    )
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    subprocess.run(
+        [sys.executable, "-c", code, str(TINY), *_overrides(half_cfg)],
+        check=True,
+        cwd=REPO,
+        env=env,
+        timeout=300,
+    )
+    a, b = _final_weights(full), _final_weights(half)
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    steps = [r["step"] for r in read_jsonl(half / "log.jsonl") if "loss" in r]
+    assert steps == list(range(1, 7))  # records after the checkpoint were replaced, not duplicated
+    hosts = read_jsonl(half / "hosts.jsonl")  # one machine record per start: here only the resume at step 3
+    assert [h["step"] for h in hosts] == [3] and hosts[0]["cores"] >= 1 and hosts[0]["world_size"] == 1
+    assert [h["step"] for h in read_jsonl(full / "hosts.jsonl")] == [0]
+
+
+def test_a_run_killed_before_its_first_checkpoint_starts_again_from_step_0(toy_root, tmp_path, caplog):
+    """Issue 44: config, log, a temp file of a half-written checkpoint and the lock of a dead process are all a
+    killed run left; a new run, with or without --resume, takes the folder over and trains from step 0."""
+    fresh = tmp_path / "fresh"
+    train(tiny_config(toy_root, fresh), progress=False)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    for resume in (None, "last"):
+        out = tmp_path / f"killed_{resume}"
+        (out / "checkpoints").mkdir(parents=True)
+        (out / "config.yaml").write_text("mode: supervised\n")
+        (out / "log.jsonl").write_text('{"step": 1, "loss": 9.0}\n{"step": 2, "lo')
+        (out / "checkpoints" / ".step_0000003.pt.k1ll3d.tmp").write_bytes(b"half a checkpoint")
+        holder = {"pid": dead.pid, "host": socket.gethostname(), "start": None, "started": 0}
+        (out / ".lock").write_text(json.dumps(holder))
+        with caplog.at_level("INFO"):
+            train(tiny_config(toy_root, out), resume=resume, progress=False)
+        assert "took over the lock" in caplog.text and "starting it again from step 0" in caplog.text
+        steps = [r["step"] for r in read_jsonl(out / "log.jsonl") if "loss" in r]
+        assert steps == list(range(1, 7))
+        assert not list(out.rglob("*.tmp")) and not (out / ".lock").exists()
+        a, b = _final_weights(fresh), _final_weights(out)
+        assert all(torch.equal(a[key], b[key]) for key in a)
+
+
+def test_a_second_run_on_the_folder_is_refused_while_the_first_holds_it(toy_root, tmp_path):
+    out = tmp_path / "busy"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", f"from u4d_aug.runlock import run_lock\nwith run_lock({str(out)!r}): input()"],
+        stdin=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        for _ in range(600):
+            if (out / ".lock").is_file() and (out / ".lock").read_text().strip():
+                break
+            time.sleep(0.05)
+        with pytest.raises(InputError, match=f"in use by another run \\(pid {holder.pid} on host"):
+            train(tiny_config(toy_root, out), progress=False)
+        assert not (out / "log.jsonl").exists()
+    finally:
+        holder.communicate("\n", timeout=60)
+    assert not (out / ".lock").exists()
+    assert train(tiny_config(toy_root, out, "optim.steps=1"), progress=False) is not None  # free again
+
+
+def test_a_non_finite_loss_stops_the_run_and_keeps_the_last_good_checkpoint(toy_root, tmp_path, monkeypatch):
+    import segmentation.train as seg_train
+
+    def nan_from_step_4(model, batch, *args, **kwargs):
+        losses = supervised_step(model, batch, *args, **kwargs)
+        return {**losses, "loss": losses["loss"] * (float("nan") if batch["step"] >= 3 else 1.0)}
+
+    monkeypatch.setattr(seg_train, "supervised_step", nan_from_step_4)
+    out = tmp_path / "nan"
+    with pytest.raises(NonFiniteLossError, match="training step 4: the loss is nan"):
+        train(tiny_config(toy_root, out), progress=False)
+    assert [c.name for c in (out / "checkpoints").glob("step_*.pt")] == ["step_0000003.pt"]
+    state = torch.load(out / "checkpoints" / "step_0000003.pt", weights_only=True)
+    assert all(torch.isfinite(value).all() for value in state["model"].values())
+    assert not (out / "model.pt").exists() and not (out / ".lock").exists()
+
+
+@pytest.mark.parametrize(
+    ("override", "key"),
+    [("optim.lr=.inf", "optim.lr"), ("optim.lr=.nan", "optim.lr"), ("optim.grad_clip=-1", "optim.grad_clip"),
+     ("data.sector_deg=.nan", "data.sector_deg"), ("loss.ce_weight=.inf", "loss.ce_weight"),
+     ("semi.consistency_weight=.nan", "semi.consistency_weight"), ("max_minutes=.inf", "max_minutes")],
+)  # fmt: skip
+def test_non_finite_or_negative_numbers_are_refused_at_config_time(toy_root, tmp_path, override, key):
+    with pytest.raises(InputError, match=re.escape(key)):
+        tiny_config(toy_root, tmp_path, override)
+
+
+def _overrides(cfg: SegTrainConfig) -> list[str]:
+    return [f"data.root={cfg.data.root}", f"out_dir={cfg.out_dir}", f"model.name={cfg.model.name}"]
+
+
+def test_cli_functions(toy_root, tmp_path, capsys):
+    parser = argparse.ArgumentParser()
+    add_seg_train_arguments(parser)
+    out = tmp_path / "cli"
+    args = parser.parse_args(
+        [
+            str(TINY),
+            f"data.root={toy_root}",
+            "optim.steps=2",
+            "eval_every=2",
+            "--out",
+            str(out),
+            "--no-progress",
+        ]
+    )
+    assert run_seg_train(args) == 0
+    assert (out / "model.pt").is_file()
+    args = parser.parse_args([str(TINY), f"data.root={toy_root}", "optim.steps=3", "--out", str(out), "--resume"])
+    assert args.resume == "last"
+    with pytest.warns(UserWarning, match="optim.steps"):
+        assert run_seg_train(args) == 0
+    assert torch.load(out / "model.pt", weights_only=True)["step"] == 3
+
+
+def test_global_batch_does_not_depend_on_the_number_of_ranks(toy_root):
+    from segmentation.train import TrainBatches, train_scans
+
+    cfg = tiny_config(toy_root, toy_root / "unused", "optim.batch_size=3", "data.max_points=500")
+    scans = train_scans(cfg, DistInfo(0, 1, 0, torch.device("cpu")))
+    single = TrainBatches(scans, cfg, 0, 1)[5]
+    rank0, rank1 = TrainBatches(scans, cfg, 0, 2)[5], TrainBatches(scans, cfg, 1, 2)[5]
+    merged = [rank0["points"][0], rank1["points"][0], rank0["points"][1]]  # slots 0, 1, 2
+    assert all(torch.equal(a, b) for a, b in zip(single["points"], merged))
+    assert all(p.shape == (500, 4) for p in single["points"])
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "configs" / "seg").glob("*.yaml")), ids=lambda p: p.name)
+def test_seg_presets_load(path: Path) -> None:
+    cfg = load_config(SegTrainConfig, path, [])
+    assert cfg.optim.steps >= 1 and cfg.model.voxel_size > 0
+    if path.name.startswith("cpu_"):  # CPU presets: the held-out sequences never train
+        train, val = cfg.data.train_sequences, cfg.data.val_sequences
+        assert isinstance(val, (str, list)) and train != val
+        # supervised 30-minute presets stop at their wall-clock budget; the experiment's semi base has none, so
+        # that every arm of `u4d experiment` trains the same number of steps
+        assert cfg.max_minutes > 0 if cfg.mode == "supervised" else cfg.max_minutes == 0

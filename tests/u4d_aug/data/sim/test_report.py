@@ -1,0 +1,110 @@
+"""`u4d sim-report` (u4d_aug/data/sim/report.py): ring recovery, histograms, JS distances, per-place spread, CLI."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.distance import jensenshannon
+
+from tests.tiny_nets import REPO
+from u4d_aug.config import load_config
+from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
+from u4d_aug.data.sim.config import SimConfig
+from u4d_aug.data.sim.report import (
+    RANGE_BINS,
+    add_sim_report_arguments,
+    compare,
+    place_spread,
+    rings_from_storage,
+    run_sim_report,
+)
+from u4d_aug.data.sim.writer import simulate
+from u4d_aug.errors import InputError
+
+TINY = REPO / "configs" / "sim" / "tiny.yaml"
+
+
+@pytest.fixture(scope="module")
+def tiny_world(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("simreport") / "w"
+    simulate(out, sequences=2, frames=3, seed=3, config=load_config(SimConfig, TINY, []), progress=False)
+    return out
+
+
+def _ring_major_scan(rings: int, per_ring: int) -> np.ndarray:
+    """Synthetic KITTI-ordered scan: each ring sweeps the azimuth once, starting facing forward."""
+    azimuth = np.tile(np.linspace(0.0, 2 * np.pi, per_ring, endpoint=False), rings)
+    elevation = np.repeat(np.linspace(0.03, -0.4, rings), per_ring)
+    r = 10.0
+    xyz = np.column_stack(
+        [r * np.cos(elevation) * np.cos(azimuth), r * np.cos(elevation) * np.sin(azimuth), r * np.sin(elevation)]
+    )
+    return np.column_stack([xyz, np.zeros(len(xyz))]).astype(np.float32)
+
+
+def test_rings_recovered_from_storage_order() -> None:
+    scan = _ring_major_scan(rings=5, per_ring=600)
+    np.testing.assert_array_equal(rings_from_storage(scan), np.repeat(np.arange(5), 600))
+
+
+def test_identical_roots_have_zero_distance(tiny_world: Path) -> None:
+    report, sim, _ = compare(tiny_world, tiny_world)
+    assert report["range_js"] == pytest.approx(0.0, abs=1e-7)
+    assert report["elevation_js"] == pytest.approx(0.0, abs=1e-7)
+    assert report["frames"] == {"sim": 6, "real": 6}
+    shares = [s["sim"] for s in report["class_share"].values()]
+    assert sum(shares) == pytest.approx(1.0)
+    assert sum(s["sim"] for s in report["range_share"].values()) == pytest.approx(1.0, abs=1e-6)
+    ranges = [np.linalg.norm(read_kitti_scan(p)[:, :3], axis=1) for p in tiny_world.rglob("*.bin")]
+    assert sim["range_hist"].sum() == sum(int((r < RANGE_BINS[-1]).sum()) for r in ranges)  # every point 0-80 m
+
+
+def test_place_spread_is_the_js_of_each_sequence_start(tiny_world: Path) -> None:
+    pooled = np.zeros(len(RANGE_BINS) - 1)
+    for scan in sorted(tiny_world.rglob("*.bin")):
+        pooled += np.histogram(np.linalg.norm(read_kitti_scan(scan)[:, :3], axis=1), RANGE_BINS)[0]
+    spread = place_spread(tiny_world, 2, pooled)
+    assert spread["places"] == 2 and set(spread["per_place"]) == {"00", "01"}
+    for seq, value in spread["per_place"].items():
+        scans = sorted((tiny_world / "sequences" / seq / "velodyne").glob("*.bin"))[:2]
+        hist = sum(np.histogram(np.linalg.norm(read_kitti_scan(s)[:, :3], axis=1), RANGE_BINS)[0] for s in scans)
+        assert value == pytest.approx(float(jensenshannon(hist, pooled, base=2)))
+        assert 0.0 < value < 1.0  # one place of a 2-sequence world is not the pool
+    assert spread["min"] <= spread["median"] <= spread["max"]
+    assert place_spread(tiny_world, 4, pooled)["places"] == 0  # no sequence holds 4 scans
+
+
+def test_shifted_ranges_raise_the_distance(tiny_world: Path, tmp_path: Path) -> None:
+    far = tmp_path / "far"
+    for scan in sorted(tiny_world.rglob("*.bin")):
+        points = read_kitti_scan(scan)
+        points[:, :3] *= 1.5  # every return 50 % farther
+        write_kitti_scan(far / scan.relative_to(tiny_world), points)
+    report, _, _ = compare(far, tiny_world)
+    assert 0.2 < report["range_js"] <= 1.0
+
+
+def test_cli_report_against_real_scans(tiny_world: Path, kitti_root: Path, tmp_path: Path, capsys) -> None:
+    parser = argparse.ArgumentParser()
+    add_sim_report_arguments(parser)
+    png = tmp_path / "report.png"
+    assert run_sim_report(parser.parse_args([str(tiny_world), "--real", str(kitti_root), "--png", str(png)])) == 0
+    text = capsys.readouterr().out
+    assert "range JS distance" in text and "one simulated place (6 consecutive scans)" not in text  # 3 < 6 frames
+    assert png.is_file() and png.stat().st_size > 10_000
+    assert run_sim_report(parser.parse_args([str(tiny_world), "--real", str(kitti_root), "--json"])) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["frames"] == {"sim": 6, "real": 6}
+    assert report["points_per_scan"]["real"] == pytest.approx(124301.8, abs=0.1)  # real seq 00, frames 0-5
+    assert 0.0 < report["range_js"] < 1.0
+    assert report["class_share"]["road"]["real"] > 0.2  # labelled real frames 0-2: ~27 % road
+    assert report["range_js_place_spread"]["places"] == 0
+
+
+def test_root_without_scans_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="no sequences"):
+        compare(tmp_path, tmp_path)
