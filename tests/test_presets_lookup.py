@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import zipfile
@@ -91,8 +92,7 @@ def test_pyproject_lists_every_package_and_maps_configs_into_the_wheel():
     assert setuptools["package-data"]["u4d_aug.configs"] == ["**/*.yaml"]
 
 
-@pytest.mark.slow
-def test_the_wheel_holds_the_presets(tmp_path):
+def build_wheel(tmp_path: Path) -> Path:
     """Build the wheel from a copy of the sources (not in the checkout: setuptools writes build/ beside them)."""
     source = tmp_path / "src"
     files = subprocess.run(
@@ -109,9 +109,62 @@ def test_the_wheel_holds_the_presets(tmp_path):
         cwd=source, check=True,
     )  # fmt: skip
     (wheel,) = tmp_path.glob("u4d_aug-*.whl")
-    names = set(zipfile.ZipFile(wheel).namelist())
+    return wheel
+
+
+@pytest.mark.slow
+def test_the_wheel_holds_the_presets(tmp_path):
+    names = set(zipfile.ZipFile(build_wheel(tmp_path)).namelist())
     shipped = {
         f"u4d_aug/configs/{p.relative_to(REPO / 'configs').as_posix()}" for p in (REPO / "configs").glob("**/*.yaml")
     }
     assert shipped <= names
     assert "u4d_aug/presets.py" in names and not any(n.startswith("configs/") for n in names)
+
+
+BANK_IN_A_LOADER = """
+import numpy as np
+from pathlib import Path
+from torch.utils.data import DataLoader
+from u4d_aug import ScanDataset, collate_scans
+import u4d_aug
+from u4d_aug.bank import BankLayout, sample_digests, write_manifest, write_sample
+assert "site-packages" in u4d_aug.__file__, u4d_aug.__file__  # the installed copy, not the checkout
+layout, samples = BankLayout(Path("bank"), 1), []
+for i in range(3):  # a bank as `u4d generate` writes it
+    points = np.random.default_rng(i).uniform(0, 1, (100 + i, 4)).astype(np.float32)
+    write_sample(layout, i, points, mask=np.ones((2, 8), dtype=bool))
+    samples.append({"index": i, "seed": i, "sha256": sample_digests(layout, i)})
+write_manifest(Path("bank"), {"mode": "u4d", "frames": 1, "samples": samples, "complete": True})
+batch = next(iter(DataLoader(ScanDataset(Path("bank")), batch_size=2, collate_fn=collate_scans)))
+assert batch["points"].shape == (201, 4) and batch["labels"] is None
+assert batch["offsets"].tolist()[0] == 0 and len(batch["offsets"]) == 3 and batch["points"].shape[1] == 4
+print("batch", tuple(batch["points"].shape))
+"""
+
+
+@pytest.mark.slow
+def test_non_editable_install_runs_from_an_empty_folder(tmp_path):
+    """`pip install` of the wheel into a fresh venv (torch and the other dependencies from the system site), then,
+    in an empty folder: simulate a tiny world, seg-train two steps of a preset named by path, a DataLoader batch."""
+    wheel = build_wheel(tmp_path / "build")
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)], check=True)
+    python = venv / "bin" / "python"
+    subprocess.run([python, "-m", "pip", "install", "-q", "--no-deps", str(wheel)], check=True)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": ""}
+    u4d = [str(python), "-m", "u4d_aug.cli"]
+
+    def run(*argv: str) -> str:
+        result = subprocess.run(argv, cwd=empty, env=env, capture_output=True, text=True, timeout=600)
+        assert result.returncode == 0, result.stderr[-2000:]
+        return result.stdout
+
+    run(*u4d, "simulate", "--out", "world", "--sequences", "2", "--frames", "2", "--seed", "0", "--config",
+        "sim/tiny")  # fmt: skip
+    out = run(*u4d, "seg-train", "seg/tiny", "data.root=world", 'data.train_sequences=["00"]',
+              'data.val_sequences=["01"]', "optim.steps=2", "eval_every=2", "--out", "seg", "--no-progress")  # fmt: skip
+    assert "step 2: val mIoU" in out and (empty / "seg" / "model.pt").is_file()
+    assert "batch (" in run(str(python), "-c", BANK_IN_A_LOADER)

@@ -1,0 +1,220 @@
+"""A bank of generated scans in SemanticKITTI layout, written atomically and resumably.
+
+BANK/sequences/00/velodyne/NNNNNN.bin   (N, 4) float32 points (read back with `read_kitti_scan`)
+BANK/sequences/00/mask/NNNNNN.npy       (H, W) bool: the stage-1 mask m_u (predicted, or real in completion mode)
+BANK/sequences/00/uncertainty/NNNNNN.npy (H, W) float16 entropy image, where the source had probabilities
+BANK/sequences/00/stage1/NNNNNN.npy     (2, H, W) float16 x0_u in [-1, 1]: stage 1's output (u4d) or the real P_u
+                                        that stage 2 completed (complete mode)
+BANK/sequences/00/empty/NNNNNN         marker of a sample with no return at all (it gets no .bin: SemanticKITTI
+                                        readers reject empty scans, and consumers should not see one)
+BANK/manifest.json                      config, per-sample seeds and file sha256[:16], checkpoint sha256[:16], empty
+                                        samples, completion
+The .npy side files are written before the .bin (or marker), so its presence means the sample is complete; the
+digests of a finished sample's files let a resumed run find a sample changed or truncated since (`changed_files`).
+
+Sequence banks (generators trained on L > 1 frames) hold one sequence per sample: sample i is
+BANK/sequences/NN/ (NN = i as %02d) with the same side folders and frames 000000 .. L-1 in velodyne/, so any
+SemanticKITTI reader sees L consecutive scans. Completion-mode sequences also get poses.txt (the real frames'
+poses relative to the first) and calib.txt with an identity Tr, which TTCE/CTC (`u4d evaluate`) read; so do
+sequences of nets with an ego-motion input (the motion they were conditioned on); other generated sequences have
+no poses. Poses are written before the frames, and a sample is complete when all L frames are.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from u4d_aug.data.formats import label_path_for, write_calib, write_kitti_scan, write_poses
+from u4d_aug.errors import InputError
+from u4d_aug.io import atomic_save_npy, atomic_write_bytes, atomic_write_json, file_sha256
+
+logger = logging.getLogger(__name__)
+
+BANK_SEQUENCE = "00"
+MANIFEST = "manifest.json"
+
+
+def sequence_name(index: int) -> str:
+    """Sequence folder of sample `index` of a sequence bank ('00', '01', ..., '99', '100', ...)."""
+    return f"{index:02d}"
+
+
+@dataclass(frozen=True)
+class BankLayout:
+    """Paths of frame f of sample i of a bank rooted at `root`: scan i of sequence 00 when frames = 1, frame f
+    of sequence `sequence_name(i)` when frames = L > 1."""
+
+    root: Path
+    frames: int = 1
+
+    def __post_init__(self) -> None:
+        if self.frames < 1:
+            raise ValueError(f"BankLayout: frames must be >= 1, got {self.frames}")
+
+    def sequence_dir(self, index: int = 0) -> Path:
+        name = BANK_SEQUENCE if self.frames == 1 else sequence_name(index)
+        return Path(self.root) / "sequences" / name
+
+    @property
+    def manifest_path(self) -> Path:
+        return Path(self.root) / MANIFEST
+
+    def _file(self, folder: str, index: int, frame: int, suffix: str) -> Path:
+        if not 0 <= frame < self.frames:
+            raise ValueError(f"BankLayout: frame {frame} outside 0..{self.frames - 1}")
+        number = index if self.frames == 1 else frame
+        return self.sequence_dir(index) / folder / f"{number:06d}{suffix}"
+
+    def scan_path(self, index: int, frame: int = 0) -> Path:
+        return self._file("velodyne", index, frame, ".bin")
+
+    def mask_path(self, index: int, frame: int = 0) -> Path:
+        return self._file("mask", index, frame, ".npy")
+
+    def uncertainty_path(self, index: int, frame: int = 0) -> Path:
+        return self._file("uncertainty", index, frame, ".npy")
+
+    def empty_path(self, index: int, frame: int = 0) -> Path:
+        return self._file("empty", index, frame, "")
+
+    def stage1_path(self, index: int, frame: int = 0) -> Path:
+        return self._file("stage1", index, frame, ".npy")
+
+    def poses_path(self, index: int) -> Path:
+        return self.sequence_dir(index) / "poses.txt"
+
+    def calib_path(self, index: int) -> Path:
+        return self.sequence_dir(index) / "calib.txt"
+
+    def is_empty(self, index: int, frame: int = 0) -> bool:
+        return self.empty_path(index, frame).is_file()
+
+    def is_done(self, index: int) -> bool:
+        """Each frame's .bin (or empty marker) is written last: all present means every file of the sample is."""
+        return all(self.scan_path(index, f).is_file() or self.is_empty(index, f) for f in range(self.frames))
+
+
+def sample_files(layout: BankLayout, index: int) -> list[Path]:
+    """The files of sample `index` that exist: per frame the side .npy files and the .bin (or empty marker), and
+    a sequence bank's poses.txt and calib.txt."""
+    paths = []
+    for frame in range(layout.frames):
+        paths += [
+            layout.mask_path(index, frame),
+            layout.uncertainty_path(index, frame),
+            layout.stage1_path(index, frame),
+            layout.scan_path(index, frame),
+            layout.empty_path(index, frame),
+        ]
+    if layout.frames > 1:
+        paths += [layout.poses_path(index), layout.calib_path(index)]
+    return [path for path in paths if path.is_file()]
+
+
+def sample_digests(layout: BankLayout, index: int) -> dict[str, str]:
+    """{path relative to the bank: sha256[:16]} of every file of sample `index` (the manifest's record)."""
+    return {path.relative_to(layout.root).as_posix(): file_sha256(path) for path in sample_files(layout, index)}
+
+
+def changed_files(layout: BankLayout, recorded: dict[str, str]) -> list[str]:
+    """Recorded files of a sample that are missing or whose bytes no longer match their digest."""
+    changed = []
+    for name, digest in recorded.items():
+        path = Path(layout.root) / name
+        if not path.is_file() or file_sha256(path) != digest:
+            changed.append(name)
+    return changed
+
+
+def remove_sample(layout: BankLayout, index: int) -> None:
+    """Delete every file of sample `index` (and an exported label file, which would no longer fit the scan), so
+    that a resumed `u4d generate` writes it again."""
+    for path in sample_files(layout, index):
+        path.unlink(missing_ok=True)
+    for frame in range(layout.frames):
+        label_path_for(layout.scan_path(index, frame)).unlink(missing_ok=True)
+
+
+def verify_samples(layout: BankLayout, manifest: dict[str, Any] | None) -> dict[int, dict[str, str]]:
+    """{index: digests} of the finished samples whose files match `manifest`; a changed sample is removed (warning)."""
+    verified = {}
+    for entry in (manifest or {}).get("samples", []):
+        index, recorded = entry.get("index"), entry.get("sha256")
+        if not isinstance(index, int) or not isinstance(recorded, dict) or not layout.is_done(index):
+            continue
+        changed = changed_files(layout, recorded)
+        if changed:
+            logger.warning(
+                "%s: sample %d changed since it was written (%s); generating it again", layout.root, index, changed[0]
+            )
+            remove_sample(layout, index)
+        else:
+            verified[index] = recorded
+    return verified
+
+
+def write_sample(
+    layout: BankLayout,
+    index: int,
+    points: np.ndarray,
+    mask: np.ndarray | None = None,
+    uncertainty: np.ndarray | None = None,
+    x0_u: np.ndarray | None = None,
+    frame: int = 0,
+) -> None:
+    """Write frame `frame` of sample `index`: side files first, the scan last (an empty scan as a marker)."""
+    if mask is not None:
+        atomic_save_npy(layout.mask_path(index, frame), np.asarray(mask, dtype=bool))
+    if uncertainty is not None:
+        atomic_save_npy(layout.uncertainty_path(index, frame), np.asarray(uncertainty, dtype=np.float16))
+    if x0_u is not None:
+        atomic_save_npy(layout.stage1_path(index, frame), np.asarray(x0_u, dtype=np.float16))
+    if len(points) == 0:
+        atomic_write_bytes(layout.empty_path(index, frame), b"0 points\n")
+    else:
+        write_kitti_scan(layout.scan_path(index, frame), np.asarray(points, dtype=np.float32))
+
+
+def write_sequence_poses(layout: BankLayout, index: int, poses: np.ndarray) -> None:
+    """calib.txt (identity Tr and P0-P3 = [I | 0]) and poses.txt of the (L, 4, 4) LiDAR poses of sample `index`."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if layout.frames == 1 or poses.shape != (layout.frames, 4, 4):
+        raise ValueError(f"write_sequence_poses: expected ({layout.frames}, 4, 4) poses of a sequence bank")
+    identity = np.eye(4)[:3]  # (3, 4)
+    write_calib(layout.calib_path(index), {key: identity for key in ("P0", "P1", "P2", "P3", "Tr")})
+    write_poses(layout.poses_path(index), poses)  # with Tr = I the LiDAR poses are the cam0 poses
+
+
+def read_manifest(root: str | Path) -> dict[str, Any] | None:
+    """The bank's manifest, or None if it has none yet."""
+    path = BankLayout(Path(root)).manifest_path
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path}: not valid json ({exc.msg})") from None
+
+
+def check_compatible(root: str | Path, identity: dict[str, Any]) -> None:
+    """Refuse to add samples to a bank written with another config or other checkpoints."""
+    old = read_manifest(root)
+    if old is None:
+        return
+    for key, value in identity.items():
+        if old.get(key) != value:
+            raise InputError(
+                f"{BankLayout(Path(root)).manifest_path}: bank was generated with a different {key}; "
+                "choose another --out or delete the bank"
+            )
+
+
+def write_manifest(root: str | Path, manifest: dict[str, Any]) -> None:
+    """Write BANK/manifest.json atomically."""
+    atomic_write_json(BankLayout(Path(root)).manifest_path, manifest)

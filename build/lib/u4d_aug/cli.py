@@ -1,0 +1,549 @@
+"""The `u4d` command: one sub-command per job; the only u4d_aug module that may import `segmentation` (lazily)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from u4d_aug import __version__
+from u4d_aug.cmdline import (
+    VERBOSITY_FLAGS,
+    CommandParser,
+    add_verbosity_arguments,
+    configure_logging,
+    parse_command_line,
+    split_verbosity,
+)
+from u4d_aug.errors import InputError
+from u4d_aug.io import atomic_write_text, check_output_file, dumps_json
+from u4d_aug.presets import configs_root
+from u4d_aug.runlock import run_lock
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `u4d` console script."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    argv, level = split_verbosity(argv)  # --quiet / --verbose anywhere
+    configure_logging(level)
+    parser = build_parser()
+    if argv and argv[0] in dict(DELEGATED):
+        # The implementing module parses everything after the command name (incl. its own --help).
+        args = argparse.Namespace(command=argv[0], func=run_delegated, delegated=argv[0], rest=argv[1:])
+    else:
+        args = parser.parse_args(argv)
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return 0
+    args.log_level = level
+    warnings.simplefilter("default")
+    warnings.formatwarning = lambda message, category, *a, **k: f"warning: {message}\n"
+    try:
+        return int(args.func(args) or 0)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a file system refusal the command did not name itself: still one line
+        print(f"error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted; finished files are kept and a re-run resumes", file=sys.stderr)
+        return 130
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """All sub-commands, in the order of the data flow (DESIGN.md §3)."""
+    parser = CommandParser(
+        prog="u4d",
+        description="U4D: uncertainty-aware 4D LiDAR scene synthesis as segmentation data augmentation.",
+        epilog=f"example: {EXAMPLES['demo']}   (`u4d COMMAND --help` shows an example of each command)",
+    )
+    parser.add_argument("--version", action="version", version=f"u4d-aug {__version__}")
+    add_verbosity_arguments(parser)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = _command(sub, "info", "summarise a dataset root: sequences, frames, points, classes")
+    p.add_argument("root", type=Path)
+    p.add_argument(
+        "--format",
+        choices=["semantickitti", "nuscenes"],
+        default="semantickitti",
+        help="layout of ROOT: semantickitti (sequences/XX/velodyne) or nuscenes (v1.0 tables; scenes, keyframes)",
+    )
+    p.add_argument("--nuscenes-version", default="v1.0-trainval", help="--format nuscenes: the table folder")
+    p.add_argument("--json", action="store_true", help="print json instead of a table")
+    p.set_defaults(func=run_info)
+
+    p = _command(sub, "show", "render one scan: range image + BEV to PNG, .ply export, projection stats")
+    p.add_argument("scan", type=Path, help="a KITTI .bin or a nuScenes .pcd.bin")
+    p.add_argument("--sensor", default=None, help="hdl64 | hdl32 | sensor yaml (default: from the file type)")
+    p.add_argument("--width", type=int, default=None, help="range-image width (default: the sensor's)")
+    p.add_argument("--row-mode", choices=["beam", "linear"], default="beam")
+    p.add_argument("--png", type=Path, default=None, help="write the picture here")
+    p.add_argument("--ply", type=Path, default=None, help="export the points as .ply (open3d)")
+    p.add_argument("--json", action="store_true", help="print projection statistics as json")
+    p.set_defaults(func=run_show)
+
+    p = _command(sub, "demo", "the main job end to end on the built-in simulated world (small, CPU)")
+    p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="everything goes here")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--real",
+        type=Path,
+        default=None,
+        help="real SemanticKITTI root for the realism report (default: ../shared/data/real/semantickitti when present)",
+    )
+    p.set_defaults(func=run_demo)
+
+    for name, help_text in DELEGATED:
+        p = sub.add_parser(name, help=help_text, add_help=False)
+        p.add_argument("rest", nargs=argparse.REMAINDER)
+        p.set_defaults(func=run_delegated, delegated=name)
+    return parser
+
+
+def _command(sub, name: str, help_text: str) -> argparse.ArgumentParser:
+    """A sub-command whose --help ends with its example line and the global options."""
+    parser = sub.add_parser(name, help=help_text, description=help_text, epilog=f"example: {EXAMPLES[name]}")
+    add_verbosity_arguments(parser)
+    return parser
+
+
+# Commands whose arguments live beside their implementation; each module is imported only when its command runs
+# (so `u4d --help` stays fast and u4d_aug never imports segmentation at import time).
+DELEGATED = (
+    ("simulate", "write a simulated 4D LiDAR world in SemanticKITTI layout"),
+    ("sim-report", "compare simulated scans with real ones: histograms, JS distance, PNG"),
+    ("seg-train", "train a segmentation net (supervised or semi-supervised), torchrun-ready"),
+    ("seg-eval", "mIoU, per-class IoU, ECE (per scan and pooled), reliability diagram of a checkpoint"),
+    ("seg-predict", "write per-point class probabilities (float16 .npy) for U4D's uncertainty"),
+    ("train-diffusion", "train a U4D stage (stage1 | stage2) or the R2DM-style baseline, torchrun-ready"),
+    ("generate", "write a bank of generated scans (U4D, baseline or completion of real scans), torchrun-ready"),
+    ("gen-report", "real vs generated scans side by side: uncertainty, stage-1, stage-2, baseline; range + BEV PNG"),
+    ("train-extractor", "train the FRD (range-view) or FPD (PointNet) feature extractor on labeled scans"),
+    ("export-weights", "float16 inference weights + config + hash of a trained net (diffusion, extractor, segmentor)"),
+    ("gates", "MoST gate analysis: mean spatial / temporal gate per block over the sampling of a sequence net"),
+    ("evaluate", "generation metrics of a bank vs real scans: FRD, FPD, BEV JSD/MMD (Table 1), TTCE/CTC (Table 2)"),
+    ("experiment", "sup-only / LaserMix / +R2DM bank / +U4D bank comparison: mIoU and ECE over seeds"),
+    ("export", "make a bank readable by other codebases: all-ignore .label files, mmdetection3d info .pkl"),
+)
+
+
+def _delegated_command(name: str) -> tuple[Callable[[argparse.ArgumentParser], None], Callable[..., int]]:
+    """(add_arguments, run) of a delegated command, importing its module only now (explicit choices, no registry)."""
+    if name == "simulate":
+        from u4d_aug.data.sim import writer
+
+        return writer.add_simulate_arguments, writer.run_simulate
+    elif name == "sim-report":
+        from u4d_aug.data.sim import report
+
+        return report.add_sim_report_arguments, report.run_sim_report
+    elif name == "seg-train":
+        from segmentation import train as seg_train
+
+        return seg_train.add_seg_train_arguments, seg_train.run_seg_train
+    elif name == "seg-eval":
+        from segmentation import evaluate as seg_eval
+
+        return seg_eval.add_seg_eval_arguments, seg_eval.run_seg_eval
+    elif name == "seg-predict":
+        from segmentation import predict
+
+        return predict.add_seg_predict_arguments, predict.run_seg_predict
+    elif name == "train-diffusion":
+        from u4d_aug import train
+
+        return train.add_train_diffusion_arguments, train.run_train_diffusion
+    elif name == "generate":
+        from u4d_aug import generate
+
+        return generate.add_generate_arguments, generate.run_generate
+    elif name == "gen-report":
+        from u4d_aug import gen_report
+
+        return gen_report.add_gen_report_arguments, gen_report.run_gen_report
+    elif name == "train-extractor":
+        from u4d_aug.metrics import extractors
+
+        return extractors.add_train_extractor_arguments, extractors.run_train_extractor
+    elif name == "export-weights":
+        from u4d_aug import export_weights
+
+        return export_weights.add_export_weights_arguments, export_weights.run_export_weights
+    elif name == "gates":
+        from u4d_aug import gates
+
+        return gates.add_gates_arguments, gates.run_gates
+    elif name == "evaluate":
+        from u4d_aug.metrics import evaluate
+
+        return evaluate.add_evaluate_arguments, evaluate.run_evaluate
+    elif name == "experiment":
+        from segmentation import experiment
+
+        return experiment.add_experiment_arguments, experiment.run_experiment
+    elif name == "export":
+        from u4d_aug import export_bank
+
+        return export_bank.add_export_arguments, export_bank.run_export
+    raise ValueError(f"unknown command {name!r}; allowed: {', '.join(n for n, _ in DELEGATED)}")
+
+
+# One example line per command, shown at the end of its --help (tests/test_cli.py parses each of them).
+EXAMPLES = {
+    "info": "u4d info data/sim --json",
+    "show": "u4d show data/sim/sequences/00/velodyne/000000.bin --png scan.png --ply scan.ply",
+    "demo": "u4d demo --out outputs/demo",
+    "simulate": "u4d simulate --out data/sim --sequences 2 --frames 20 --seed 0 agents.cars_per_100m=3",
+    "sim-report": "u4d sim-report data/sim --real ../shared/data/real/semantickitti --png sim_vs_real.png",
+    "seg-train": "u4d seg-train seg/cpu_minkunet data.root=data/sim --out runs/seg optim.steps=100",
+    "seg-eval": "u4d seg-eval runs/seg/model.pt data/sim --sequences 02 --png reliability.png",
+    "seg-predict": "u4d seg-predict runs/seg/model.pt data/sim --out runs/probs",
+    "train-diffusion": "u4d train-diffusion u4d/cpu stage=stage1 data_root=data/sim probs_root=runs/probs "
+    "--out runs/u4d_stage1",
+    "generate": "u4d generate u4d/generate_cpu --out banks/u4d stage1=runs/u4d_stage1 stage2=runs/u4d_stage2 num=16",
+    "gen-report": "u4d gen-report data/sim --bank u4d=banks/u4d --bank baseline=banks/baseline --png generated.png",
+    "train-extractor": "u4d train-extractor frd extractor/cpu data.root=data/semantickitti train.steps=500",
+    "export-weights": "u4d export-weights runs/u4d_stage2 --out weights/u4d_stage2.pt",
+    "gates": "u4d gates runs/u4d_most_stage2 --png gates.png --json",
+    "evaluate": "u4d evaluate --bank banks/u4d --real data/sim --real-sequences 02 --metrics jsd,mmd,ctc --md "
+    "--out runs/eval_u4d",
+    "experiment": "u4d experiment experiment/cpu --arms sup-only 'seeds=[0]'",
+    "export": "u4d export banks/u4d --labels --mmdet3d-infos",
+}
+
+
+def delegated_parser(name: str) -> tuple[argparse.ArgumentParser, Callable[[argparse.Namespace], int]]:
+    """The parser of a delegated command (the module's own arguments, its example, the global options)."""
+    add_arguments, run = _delegated_command(name)
+    help_text = dict(DELEGATED)[name]
+    parser = CommandParser(prog=f"u4d {name}", description=help_text, epilog=f"example: {EXAMPLES[name]}")
+    add_arguments(parser)
+    add_verbosity_arguments(parser)
+    return parser, run
+
+
+def run_delegated(args: argparse.Namespace) -> int:
+    """Parse the rest of the command line with the implementing module's own arguments, then run it."""
+    parser, run = delegated_parser(args.delegated)
+    return int(run(parse_command_line(parser, args.rest)) or 0)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# info
+
+
+def run_info(args: argparse.Namespace) -> int:
+    """`u4d info ROOT`: what a dataset root holds (nuScenes: the keyframes of each scene)."""
+    from u4d_aug.data.datasets import open_scans
+
+    root = args.root
+    dataset = open_scans(root, None, False, args.format, args.nuscenes_version)
+    names = dataset.label_set.classes
+    per_sequence = {seq: {"sequence": seq, "frames": 0, "labeled_frames": 0} for seq in dataset.sequences}
+    counts = np.zeros(len(names) + 1, dtype=np.int64)
+    num_points = []
+    for index in range(len(dataset)):
+        item = dataset[index]
+        num_points.append(len(item["points"]))
+        per_sequence[item["seq"]]["frames"] += 1
+        if item["labels"] is not None:
+            per_sequence[item["seq"]]["labeled_frames"] += 1
+            counts += np.bincount(item["labels"], minlength=len(counts))[: len(counts)]
+    per_sequence = list(per_sequence.values())
+    pts = np.asarray(num_points) if num_points else np.zeros(1)
+    classes = {name: int(counts[i]) for i, name in enumerate(names)}
+    classes["ignore"] = int(counts[len(names)])
+    summary = {
+        "root": str(root),
+        "sequences": per_sequence,
+        "frames": int(sum(s["frames"] for s in per_sequence)),
+        "labeled_frames": int(sum(s["labeled_frames"] for s in per_sequence)),
+        "points_per_scan": {"mean": float(pts.mean()), "min": int(pts.min()), "max": int(pts.max())},
+        "class_histogram": classes,
+    }
+    if args.json:
+        print(dumps_json(summary, indent=2))
+        return 0
+    print(f"root: {root}")
+    for s in per_sequence:
+        print(f"  sequence {s['sequence']}: {s['frames']} frames, {s['labeled_frames']} labeled")
+    pps = summary["points_per_scan"]
+    print(f"points/scan: mean {pps['mean']:.0f}, min {pps['min']}, max {pps['max']}")
+    total = max(int(counts.sum()), 1)
+    if counts.sum():
+        print("class histogram (labeled frames, train ids):")
+        width = max(14, *(len(name) for name in names))
+        for i, name in enumerate([*names, "ignore"]):
+            print(f"  {i:2d} {name:<{width}s} {counts[i]:>10d}  {100.0 * counts[i] / total:5.1f}%")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# show
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# demo
+
+
+# The shipped presets (u4d_aug.presets): configs/ of the checkout, or the package data of an installed wheel.
+CONFIGS_DIR = configs_root()
+
+# The presets the demo runs with, named as `u4d` takes them from any folder (tests/test_presets_lookup.py).
+DEMO_PRESETS = {
+    "seg": "seg/tiny",
+    "diffusion": "u4d/demo",
+    "generate": "u4d/generate_cpu",
+    "experiment_base": "seg/tiny_semi",
+}
+
+
+def demo_steps(out: Path, seed: int, real: Path) -> list[tuple[str, list[str]]]:
+    """(title, `u4d` command line) of every demo step, in the order of DESIGN.md §3."""
+    world = out / "world"
+    frame0 = world / "sequences" / "00" / "velodyne" / "000000.bin"
+    steps = [
+        (
+            "simulate a small world (3 sequences x 6 frames, HDL-64E)",
+            ["simulate", "--out", str(world), "--sequences", "3", "--frames", "6", "--seed", str(seed)],
+        ),
+        ("summarise it", ["info", str(world)]),
+        ("picture of frame 0: range image + BEV", ["show", str(frame0), "--png", str(out / "frame0.png")]),
+    ]
+    if (real / "sequences").is_dir():
+        steps.append(
+            (
+                "realism report against the real scans",
+                [
+                    "sim-report",
+                    str(world),
+                    "--real",
+                    str(real),
+                    "--png",
+                    str(out / "sim_vs_real.png"),
+                    "--max-frames",
+                    "6",
+                ],
+            )
+        )
+    seg_dir = out / "seg"
+    steps += [
+        (
+            "train a small MinkUNet-like segmentor (sequences 00-01, held-out 02)",
+            [
+                "seg-train",
+                DEMO_PRESETS["seg"],
+                f"data.root={world}",
+                'data.train_sequences=["00", "01"]',
+                'data.val_sequences=["02"]',
+                "optim.steps=40",
+                "eval_every=20",
+                "checkpoint_every=20",
+                f"seed={seed}",
+                "--out",
+                str(seg_dir),
+            ],
+        ),
+        (
+            "evaluate it: mIoU, ECE, reliability diagram",
+            [
+                "seg-eval",
+                str(seg_dir / "model.pt"),
+                str(world),
+                "--sequences",
+                "02",
+                "--png",
+                str(out / "reliability.png"),
+            ],
+        ),
+        (
+            "per-point probabilities for U4D's uncertainty",
+            ["seg-predict", str(seg_dir / "model.pt"), str(world), "--out", str(out / "probs")],
+        ),
+    ]
+    diffusion = [DEMO_PRESETS["diffusion"], f"data_root={world}", 'sequences=["00", "01"]', f"seed={seed}"]
+    probs = f"probs_root={out / 'probs'}"
+    banks = {"u4d": out / "bank_u4d", "baseline": out / "bank_baseline"}
+    generate = [DEMO_PRESETS["generate"], "steps=16", "stage1_steps=8", "num=4", f"seed={seed}"]
+    steps += [
+        ("U4D stage 1: diffusion of the uncertain region P_u + mask head",
+         ["train-diffusion", *diffusion, "stage=stage1", probs, "--out", str(out / "u4d_stage1")]),
+        ("U4D stage 2: completion conditioned on (x0_u, m_u)",
+         ["train-diffusion", *diffusion, "stage=stage2", probs, "--out", str(out / "u4d_stage2")]),
+        ("R2DM-style baseline: one unconditional stage",
+         ["train-diffusion", *diffusion, "stage=baseline", "--out", str(out / "baseline")]),
+        ("generate 4 scans hard-to-easy with U4D",
+         ["generate", *generate, "mode=u4d", f"stage1={out / 'u4d_stage1'}", f"stage2={out / 'u4d_stage2'}",
+          "--out", str(banks["u4d"])]),
+        ("generate 4 scans with the baseline",
+         ["generate", *generate, "mode=baseline", f"baseline={out / 'baseline'}", "--out", str(banks["baseline"])]),
+        ("real vs U4D vs baseline: uncertainty, stage 1, stage 2, BEV",
+         ["gen-report", str(world), "--sequences", "02", "--probs", str(out / "probs"),
+          "--bank", f"u4d={banks['u4d']}", "--bank", f"baseline={banks['baseline']}",
+          "--png", str(out / "generated.png")]),
+    ]  # fmt: skip
+    for name, bank in banks.items():
+        steps.append(
+            (f"generation metrics of the {name} bank vs held-out sequence 02 (BEV JSD/MMD, CTC)",
+             ["evaluate", "--bank", str(bank), "--real", str(world), "--real-sequences", "02",
+              "--metrics", "jsd,mmd,ctc", "--json", "--md", "--out", str(out / f"eval_{name}")])
+        )  # fmt: skip
+    steps.append(
+        (
+            "downstream, toy size: sup-only vs MT+LaserMix vs + baseline bank vs + U4D bank (mIoU, ECE on sequence 02)",
+            ["experiment", str(out / "downstream.yaml"), "--no-progress"],
+        )
+    )
+    return steps
+
+
+def demo_experiment(out: Path, seed: int) -> dict:
+    """The demo's `u4d experiment` config: the four arms of the comparison on the demo world and its two banks."""
+    world = out / "world"
+    overrides = [f"data.root={world}", 'data.train_sequences=["00", "01"]', 'data.val_sequences=["02"]']
+    overrides += ["optim.steps=12", "semi.burn_in_steps=6", "eval_every=12", "checkpoint_every=6", "log_every=2"]
+    return {
+        "base": DEMO_PRESETS["experiment_base"],
+        "overrides": overrides,
+        "arms": [
+            {"name": "sup-only", "mode": "supervised"},
+            {"name": "mt", "mode": "semi"},
+            {"name": "mt+baseline", "mode": "semi", "bank": str(out / "bank_baseline"), "bank_ratio": 0.5},
+            {"name": "mt+u4d", "mode": "semi", "bank": str(out / "bank_u4d"), "bank_ratio": 0.5},
+        ],
+        "contrasts": [["mt+u4d", "mt"], ["mt+u4d", "mt+baseline"]],
+        "backbones": ["minkunet"],
+        "seeds": [seed],
+        "final_eval": True,
+        "out_dir": str(out / "downstream"),
+    }
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    """`u4d demo`: every stage that exists, in the order of DESIGN.md §3, each through its own command."""
+    real = args.real or Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "semantickitti"
+    steps = demo_steps(args.out, args.seed, real)
+    verbosity = [flag for flag, level in VERBOSITY_FLAGS.items() if level == args.log_level and flag.startswith("--")]
+    print(
+        "u4d demo: every stage at toy size (minutes on 2 CPU cores), ending with the downstream comparison at toy "
+        "size (one seed, a few steps: it shows the pipeline, not whether U4D helps; that is `u4d experiment "
+        "experiment/downstream_10pct`, hours). Not run here: FRD/FPD (need trained extractors)."
+    )
+    import yaml
+
+    with run_lock(args.out):  # one demo per output folder; each step locks its own sub-folder too
+        atomic_write_text(args.out / "downstream.yaml", yaml.safe_dump(demo_experiment(args.out, args.seed)))
+        for number, (title, command) in enumerate(steps, start=1):
+            command = _resume_if_started(command)
+            print(f"\n[{number}/{len(steps)}] {title}\n$ u4d {' '.join(command)}", flush=True)
+            status = main([*verbosity, *command])
+            if status != 0:
+                print(f"demo stopped at step {number} (exit {status}); re-run to resume", file=sys.stderr)
+                return status
+    print(f"\ndemo done: outputs in {args.out}; the downstream table: {args.out / 'downstream' / 'results.md'}")
+    return 0
+
+
+def _resume_if_started(command: list[str]) -> list[str]:
+    """A training step of a re-run demo continues from its newest checkpoint (a finished one just returns)."""
+    if command[0] not in ("seg-train", "train-diffusion") or "--out" not in command:
+        return command
+    out = Path(command[command.index("--out") + 1])
+    return [*command, "--resume"] if any((out / "checkpoints").glob("step_*.pt")) else command
+
+
+def run_show(args: argparse.Namespace) -> int:
+    """`u4d show SCAN`: picture, .ply and projection round-trip statistics of one scan."""
+    import torch
+
+    from u4d_aug.data.beams import check_beams
+    from u4d_aug.data.scan import read_scan
+    from u4d_aug.data.sensors import get_sensor
+    from u4d_aug.range_view import project, roundtrip_stats, scatter_to_image
+
+    scan = read_scan(args.scan)
+    points, labels = scan.points, scan.labels
+    sensor = get_sensor(args.sensor or scan.sensor)
+    check_beams(points, sensor, str(args.scan))
+    width = sensor.width if args.width is None else args.width
+    height = sensor.height
+    if width < 3:
+        raise InputError(f"--width {width}: a range image needs at least 3 columns")
+    if args.png is not None:
+        check_output_file(args.png, "picture")
+    if args.ply is not None:
+        check_output_file(args.ply, ".ply export")
+    stats = roundtrip_stats(torch.from_numpy(points), sensor, height, width, args.row_mode)
+    stats = {
+        "scan": str(args.scan),
+        "sensor": sensor.name,
+        "height": height,
+        "width": width,
+        "row_mode": args.row_mode,
+        **{k: float(v) if k != "points" else int(v) for k, v in stats.items()},
+    }
+    if args.png is not None:
+        from u4d_aug.viz import plot_scan
+
+        proj = project(torch.from_numpy(points), sensor, height, width, args.row_mode)
+        label_image = None
+        if labels is not None:
+            label_image = scatter_to_image(torch.from_numpy(labels), proj, fill=-1).numpy()
+        plot_scan(
+            args.png,
+            points,
+            proj.depth.numpy(),
+            proj.reflectance.numpy(),
+            labels,
+            label_image,
+            title=f"{args.scan.name}  {sensor.name} {height}x{width} ({args.row_mode})",
+        )
+        stats["png"] = str(args.png)
+    if args.ply is not None:
+        _write_ply(args.ply, points, labels)
+        stats["ply"] = str(args.ply)
+    if args.json:
+        print(dumps_json(stats, indent=2))
+    else:
+        for key, value in stats.items():
+            print(f"{key}: {value}")
+    return 0
+
+
+def _write_ply(path: Path, points: np.ndarray, labels: np.ndarray | None) -> None:
+    """Export positions, intensity and labels (when known) as .ply attributes with open3d's tensor API, atomically."""
+    import contextlib
+    import os
+    import tempfile
+
+    import open3d as o3d
+
+    from u4d_aug.io import current_umask, make_folder
+
+    cloud = o3d.t.geometry.PointCloud()
+    cloud.point.positions = o3d.core.Tensor(np.ascontiguousarray(points[:, :3], dtype=np.float32))  # (N, 3)
+    cloud.point.intensity = o3d.core.Tensor(np.ascontiguousarray(points[:, 3:4], dtype=np.float32))  # (N, 1)
+    if labels is not None:
+        cloud.point.labels = o3d.core.Tensor(np.asarray(labels, dtype=np.int32).reshape(-1, 1))  # (N, 1)
+    make_folder(path.parent)
+    # open3d picks the format from the name, so the temp file (same folder, for one os.replace) ends in .ply
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".ply", dir=path.parent)
+    try:
+        os.close(fd)
+        os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp makes 0600; the umask's mode like every other output
+        if not o3d.t.io.write_point_cloud(tmp, cloud):
+            raise InputError(f"{path}: open3d could not write the .ply file")
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""SemanticKITTI / nuScenes readers and writers, sensors, datasets and the simulated world."""

@@ -1,0 +1,217 @@
+"""LiDAR sensors: ring elevation tables, range limits, default range-image sizes (HDL-64E, HDL-32E, yaml)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from u4d_aug.errors import InputError
+from u4d_aug.presets import resolve_config_path
+
+__all__ = [
+    "SENSOR_NAMES",
+    "Sensor",
+    "get_sensor",
+    "hdl32",
+    "hdl64",
+    "load_sensor_yaml",
+    "measure_ring_elevations",
+]
+
+SENSOR_NAMES = ("hdl64", "hdl32")
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """A spinning LiDAR: ring elevations (top ring first), valid range and default range-image size."""
+
+    name: str
+    elevations_deg: tuple[float, ...]  # (num_rings,) degrees, strictly decreasing: top ring = row 0
+    min_range: float  # metres; returns closer than this are dropped
+    max_range: float  # metres; returns farther than this are dropped; also d_max of the depth encoding
+    height: int  # default range-image rows
+    width: int  # default range-image columns (azimuth bins)
+    fov_up_deg: float  # upper edge of the "linear" row mode (R2DM spherical projection)
+    fov_down_deg: float  # lower edge of the "linear" row mode
+
+    def __post_init__(self) -> None:
+        where = f"sensor {self.name!r}"
+        if len(self.elevations_deg) < 1:
+            raise InputError(f"{where}: elevations_deg must list at least one ring elevation")
+        elevations = np.asarray(self.elevations_deg, dtype=np.float64)
+        if not np.all(np.isfinite(elevations)) or np.any(np.abs(elevations) >= 90.0):
+            raise InputError(f"{where}: elevations_deg must be finite degrees in (-90, 90)")
+        if np.any(np.diff(elevations) >= 0):
+            raise InputError(f"{where}: elevations_deg must be strictly decreasing (top ring first)")
+        if not 0.0 < self.min_range < self.max_range or not math.isfinite(self.max_range):
+            raise InputError(
+                f"{where}: expected 0 < min_range < max_range < inf, got {self.min_range}, {self.max_range}"
+            )
+        if self.height < 1 or self.width < 1:
+            raise InputError(f"{where}: height and width must be positive, got {self.height}x{self.width}")
+        if not -90.0 <= self.fov_down_deg < self.fov_up_deg <= 90.0:
+            raise InputError(f"{where}: expected -90 <= fov_down_deg < fov_up_deg <= 90")
+
+    @property
+    def num_rings(self) -> int:
+        return len(self.elevations_deg)
+
+
+def measure_ring_elevations(points: np.ndarray, debounce: int = 500) -> np.ndarray:
+    """Median elevation (degrees) of each ring of a scan stored ring by ring, as in KITTI velodyne files.
+
+    A new ring starts where the azimuth, taken relative to the first point, wraps around (drops by more
+    than pi); a wrap within `debounce` points of the last ring start is ignored (jitter at the seam).
+    Returns (num_rings,) in storage order (top ring first for KITTI).
+    """
+    xyz = np.asarray(points, dtype=np.float64)[:, :3]
+    if len(xyz) == 0:
+        raise InputError("measure_ring_elevations: empty scan")
+    azimuth = np.mod(np.arctan2(xyz[:, 1], xyz[:, 0]) - np.arctan2(xyz[0, 1], xyz[0, 0]), 2.0 * np.pi)
+    wraps = np.flatnonzero(np.diff(azimuth) < -np.pi) + 1
+    starts = [0]
+    for index in wraps:  # loop over <= a few hundred wrap candidates, not over points
+        if index - starts[-1] >= debounce:
+            starts.append(int(index))
+    bounds = np.append(starts, len(xyz))
+    elevation = np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
+    return np.array([np.median(elevation[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)])
+
+
+# HDL-64E ring elevations (degrees, top ring first) MEASURED from the real KITTI scans in
+# ../shared/data/real/semantickitti/sequences/00/velodyne/00000{0..5}.bin: `measure_ring_elevations` on each
+# scan (64 rings in every scan), then the median over the 6 scans per ring, rounded to 2 decimals.
+# Upper block ~0.335 deg apart, lower block ~0.495 deg apart, 0.63 deg gap between the blocks.
+_HDL64_ELEVATIONS_DEG = (
+    2.61, 2.23, 2.00, 1.54, 1.26, 0.83, 0.57, 0.18,
+    -0.16, -0.57, -0.88, -1.22, -1.57, -1.87, -2.17, -2.52,
+    -2.84, -3.24, -3.52, -3.91, -4.22, -4.58, -4.89, -5.18,
+    -5.54, -5.85, -6.15, -6.41, -6.78, -7.14, -7.38, -7.77,
+    -8.40, -8.91, -9.37, -9.76, -10.22, -10.82, -11.32, -11.75,
+    -12.20, -12.62, -13.15, -13.67, -14.24, -14.68, -15.17, -15.55,
+    -16.17, -16.69, -17.26, -17.72, -18.21, -18.63, -19.07, -19.63,
+    -20.13, -20.79, -21.26, -21.68, -22.11, -22.75, -23.21, -23.74,
+)  # fmt: skip
+
+
+def hdl64() -> Sensor:
+    """Velodyne HDL-64E (KITTI): measured ring table, R2DM range 1.45-80 m, 64x1024, linear FOV +3/-25 deg."""
+    return Sensor(
+        name="hdl64",
+        elevations_deg=_HDL64_ELEVATIONS_DEG,
+        min_range=1.45,
+        max_range=80.0,
+        height=64,
+        width=1024,
+        fov_up_deg=3.0,
+        fov_down_deg=-25.0,
+    )
+
+
+def hdl32() -> Sensor:
+    """Velodyne HDL-32E (nuScenes): 32 rings evenly +10.67..-30.67 deg, 1-100 m, 32x1024, FOV +10/-30 deg.
+
+    Ring table from the HDL-32E datasheet; the ring medians of the nuScenes demo scan agree within 0.12 deg
+    (SOURCES.md: -30.61..+10.66). 1 m = the devkit's remove_close(1.0); 100 m drops 0.04% of that scan
+    (max 102.9 m). 32x1024 and +10/-30 deg are the LiDARGen/LiDM nuScenes settings.
+    """
+    elevations = np.linspace(10.67, -30.67, 32)
+    return Sensor(
+        name="hdl32",
+        elevations_deg=tuple(round(float(e), 4) for e in elevations),
+        min_range=1.0,
+        max_range=100.0,
+        height=32,
+        width=1024,
+        fov_up_deg=10.0,
+        fov_down_deg=-30.0,
+    )
+
+
+_FIELD_TYPES: dict[str, str] = {
+    "name": "str",
+    "elevations_deg": "list of numbers",
+    "min_range": "number",
+    "max_range": "number",
+    "height": "int",
+    "width": "int",
+    "fov_up_deg": "number",
+    "fov_down_deg": "number",
+}
+_REQUIRED = ("elevations_deg", "min_range", "max_range")
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _check_type(path: Path, key: str, value: Any) -> Any:
+    """Return the value converted to its field type, or raise InputError naming the key."""
+    expected = _FIELD_TYPES[key]
+    ok = {
+        "str": isinstance(value, str),
+        "int": isinstance(value, int) and not isinstance(value, bool),
+        "number": _is_number(value),
+        "list of numbers": isinstance(value, list) and all(_is_number(v) for v in value),
+    }[expected]
+    if not ok:
+        raise InputError(f"{path}: key '{key}' expects {expected}, got {value!r}")
+    if expected == "number":
+        return float(value)
+    if expected == "list of numbers":
+        return tuple(float(v) for v in value)
+    return value
+
+
+def load_sensor_yaml(path: str | Path) -> Sensor:
+    """Sensor from a yaml file with the fields of `Sensor`; height defaults to the ring count, width to 1024,
+    the linear FOV to the ring table widened by half a ring spacing at each end (presets: `sensors/NAME.yaml`)."""
+    path = resolve_config_path(path)
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as error:
+        raise InputError(f"{path}: cannot read sensor file ({error.strerror})") from error
+    except yaml.YAMLError as error:
+        raise InputError(f"{path}: not valid yaml ({str(error).splitlines()[0]})") from error
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a mapping of sensor fields ({', '.join(_FIELD_TYPES)})")
+    valid = [field.name for field in dataclasses.fields(Sensor)]
+    unknown = sorted(str(key) for key in data if key not in valid)
+    if unknown:
+        raise InputError(f"{path}: unknown key(s) {', '.join(unknown)}; valid keys: {', '.join(valid)}")
+    missing = [key for key in _REQUIRED if key not in data]
+    if missing:
+        raise InputError(f"{path}: missing required key(s) {', '.join(missing)}")
+    values = {key: _check_type(path, key, value) for key, value in data.items()}
+    elevations = values["elevations_deg"] or (0.0,)  # an empty table is rejected by Sensor below
+    half_spacing = (elevations[0] - elevations[-1]) / (2 * (len(elevations) - 1)) if len(elevations) > 1 else 0.5
+    values.setdefault("name", path.stem)
+    values.setdefault("height", len(values["elevations_deg"]))
+    values.setdefault("width", 1024)
+    values.setdefault("fov_up_deg", round(elevations[0] + abs(half_spacing), 4))
+    values.setdefault("fov_down_deg", round(elevations[-1] - abs(half_spacing), 4))
+    try:
+        return Sensor(**values)
+    except InputError as error:
+        raise InputError(f"{path}: {error}") from error
+
+
+def get_sensor(name_or_yaml: str | Path | Sensor) -> Sensor:
+    """'hdl64', 'hdl32' or the path of a sensor yaml file (see configs/sensors/example_sensor.yaml)."""
+    if isinstance(name_or_yaml, Sensor):
+        return name_or_yaml
+    text = str(name_or_yaml)
+    if text == "hdl64":
+        return hdl64()
+    if text == "hdl32":
+        return hdl32()
+    path = Path(text)
+    if path.suffix.lower() in (".yaml", ".yml") or path.is_file():
+        return load_sensor_yaml(path)
+    raise InputError(f"unknown sensor {text!r}; expected one of {', '.join(SENSOR_NAMES)} or a sensor .yaml file")

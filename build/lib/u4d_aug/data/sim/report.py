@@ -1,0 +1,264 @@
+"""`u4d sim-report`: do simulated scans look like real ones (points/scan, rings, range, elevation, classes).
+
+Range histogram: 1 m bins over 0-80 m, compared with the Jensen-Shannon distance (scipy `jensenshannon`,
+base 2, so 0 = identical and 1 = disjoint). A reference of a few consecutive real frames shows one place, so the
+report also measures how far one place of the simulated world lies from the simulated pool (`place_spread`:
+the same JS between the first n consecutive frames of each simulated sequence, n = the real frame count, and
+the pooled simulated histogram); a sim-vs-real JS inside that spread is as close as one place can get.
+Rings are recovered from the storage order (KITTI stores one ring after the other in azimuth order; a new ring
+starts where the azimuth wraps around), as in data/sensors.py.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.distance import jensenshannon
+
+from u4d_aug.data.formats import load_kitti_frame
+from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE, map_semantickitti
+from u4d_aug.errors import InputError
+from u4d_aug.io import check_output_file, dumps_json
+
+RANGE_BINS = np.arange(0.0, 81.0, 1.0)  # 1 m bins, 0-80 m
+ELEVATION_BINS = np.arange(-26.0, 4.01, 0.5)  # degrees
+MAX_RINGS = 128
+
+
+def rings_from_storage(points: np.ndarray, debounce: int = 500) -> np.ndarray:
+    """(N,) ring index of each point of a ring-major scan: a ring ends where the azimuth wraps around."""
+    xyz = np.asarray(points, dtype=np.float64)[:, :3]
+    azimuth = np.mod(np.arctan2(xyz[:, 1], xyz[:, 0]) - np.arctan2(xyz[0, 1], xyz[0, 0]), 2.0 * np.pi)
+    starts = [0]
+    for index in np.flatnonzero(np.diff(azimuth) < -np.pi) + 1:
+        if index - starts[-1] >= debounce:
+            starts.append(int(index))
+    ring = np.zeros(len(xyz), dtype=np.int64)
+    ring[starts[1:]] = 1
+    return np.cumsum(ring)
+
+
+def scan_stats(points: np.ndarray, semantic: np.ndarray | None = None) -> dict:
+    """Histograms of one scan: range, elevation, points per ring, train-id class counts (if labelled)."""
+    xyz = points[:, :3].astype(np.float64)
+    r = np.linalg.norm(xyz, axis=1)
+    elevation = np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
+    ring = rings_from_storage(points)
+    stats = {
+        "points": len(points),
+        "range_hist": np.histogram(r, RANGE_BINS)[0],
+        "elevation_hist": np.histogram(elevation, ELEVATION_BINS)[0],
+        "ring_counts": np.bincount(np.minimum(ring, MAX_RINGS - 1), minlength=MAX_RINGS),
+        "num_rings": int(ring.max()) + 1,
+        "beyond_50m": float(np.mean(r > 50.0)),
+        "median_range": float(np.median(r)),
+        "intensity_mean": float(points[:, 3].mean()),
+        "intensity_zero": float(np.mean(points[:, 3] == 0)),
+    }
+    if semantic is not None:
+        stats["class_counts"] = np.bincount(map_semantickitti(semantic), minlength=SEMANTICKITTI_IGNORE + 1)
+    return stats
+
+
+def _frames(root: Path, max_frames: int) -> list[tuple[Path, Path | None]]:
+    scans = sorted((Path(root) / "sequences").glob("*/velodyne/*.bin"))
+    if not scans:
+        raise InputError(f"{root}: no sequences/*/velodyne/*.bin scans (expected a SemanticKITTI-layout root)")
+    if len(scans) > max_frames:
+        scans = [scans[i] for i in np.linspace(0, len(scans) - 1, max_frames).round().astype(int)]
+    out = []
+    for scan in scans:
+        label = scan.parent.parent / "labels" / (scan.stem + ".label")
+        out.append((scan, label if label.is_file() else None))
+    return out
+
+
+def dataset_stats(root: Path, max_frames: int = 30) -> dict:
+    """Summed histograms over up to `max_frames` scans of a root (class counts over the labelled ones)."""
+    frames = _frames(root, max_frames)
+    total: dict = {}
+    points, example = [], None
+    for scan_path, label_path in frames:
+        frame = load_kitti_frame(scan_path, label_path)
+        stats = scan_stats(frame.points, frame.semantic)
+        points.append(stats["points"])
+        for key in ("range_hist", "elevation_hist", "ring_counts", "class_counts"):
+            if key in stats:
+                total[key] = total.get(key, 0) + stats[key]
+        if example is None:
+            example = (frame.points, frame.semantic)
+    total["frames"] = len(frames)
+    total["points_per_scan"] = float(np.mean(points))
+    total["ring_counts"] = total["ring_counts"] / len(frames)
+    total["example"] = example
+    return total
+
+
+def _range_hist(scan_path: Path) -> np.ndarray:
+    points = load_kitti_frame(scan_path).points
+    return np.histogram(np.linalg.norm(points[:, :3].astype(np.float64), axis=1), RANGE_BINS)[0]
+
+
+def place_spread(root: Path, frames_per_place: int, pooled: np.ndarray, max_places: int = 16) -> dict:
+    """Range JS between each sequence's first `frames_per_place` consecutive scans and the pooled histogram.
+
+    Returns {"frames_per_place", "places", "median", "min", "max", "per_place"} over up to `max_places` sequences
+    holding at least that many scans.
+    """
+    per_place = {}
+    for sequence in sorted((Path(root) / "sequences").glob("*/velodyne")):
+        scans = sorted(sequence.glob("*.bin"))
+        if len(scans) < frames_per_place or len(per_place) >= max_places:
+            continue
+        hist = sum(_range_hist(scan) for scan in scans[:frames_per_place])
+        per_place[sequence.parent.name] = float(jensenshannon(hist, pooled, base=2))
+    values = list(per_place.values())
+    return {
+        "frames_per_place": frames_per_place,
+        "places": len(values),
+        "median": float(np.median(values)) if values else None,
+        "min": min(values) if values else None,
+        "max": max(values) if values else None,
+        "per_place": per_place,
+    }
+
+
+def compare(sim_root: Path, real_root: Path, max_frames: int = 30) -> tuple[dict, dict, dict]:
+    """(report dict, sim stats, real stats)."""
+    sim, real = dataset_stats(sim_root, max_frames), dataset_stats(real_root, max_frames)
+    report = {
+        "sim_root": str(sim_root),
+        "real_root": str(real_root),
+        "frames": {"sim": sim["frames"], "real": real["frames"]},
+        "points_per_scan": {"sim": sim["points_per_scan"], "real": real["points_per_scan"]},
+        "range_js": float(jensenshannon(sim["range_hist"], real["range_hist"], base=2)),
+        "elevation_js": float(jensenshannon(sim["elevation_hist"], real["elevation_hist"], base=2)),
+        "range_js_place_spread": place_spread(sim_root, real["frames"], sim["range_hist"]),
+        "range_share": {},
+        "points_per_ring": {
+            "sim": np.round(sim["ring_counts"][: _rings(sim)], 1).tolist(),
+            "real": np.round(real["ring_counts"][: _rings(real)], 1).tolist(),
+        },
+        "class_share": {},
+    }
+    for name, (lo, hi) in {"<5m": (0, 5), "5-20m": (5, 20), "20-50m": (20, 50), ">50m": (50, 80)}.items():
+        report["range_share"][name] = {
+            key: float(stats["range_hist"][lo:hi].sum() / stats["range_hist"].sum())
+            for key, stats in (("sim", sim), ("real", real))
+        }
+    names = (*SEMANTICKITTI_CLASSES, "ignore")
+    for key, stats in (("sim", sim), ("real", real)):
+        counts = stats.get("class_counts")
+        if counts is not None:
+            share = counts / max(counts.sum(), 1)
+            for i, name in enumerate(names):
+                report["class_share"].setdefault(name, {})[key] = float(share[i])
+    return report, sim, real
+
+
+def _rings(stats: dict) -> int:
+    nonzero = np.flatnonzero(stats["ring_counts"] > 0)
+    return int(nonzero[-1]) + 1 if len(nonzero) else 0
+
+
+def plot_report(path: Path, report: dict, sim: dict, real: dict) -> Path:
+    """Side-by-side PNG: range/elevation/ring/class histograms, then BEV and range image of one scan each."""
+    from u4d_aug.viz import draw_bev, label_colors, plt, save_figure
+
+    fig = plt.figure(figsize=(16, 18))
+    grid = fig.add_gridspec(4, 2, height_ratios=[1, 1, 2.2, 0.7])
+    ax = fig.add_subplot(grid[0, 0])
+    for key, stats in (("sim", sim), ("real", real)):
+        ax.step(RANGE_BINS[:-1], stats["range_hist"] / stats["range_hist"].sum(), where="post", label=key)
+    ax.set_title(f"range histogram (1 m bins), JS distance {report['range_js']:.3f}", fontsize=10)
+    ax.set_xlabel("m")
+    ax.legend()
+    ax = fig.add_subplot(grid[0, 1])
+    for key, stats in (("sim", sim), ("real", real)):
+        ax.step(
+            ELEVATION_BINS[:-1],
+            stats["elevation_hist"] / stats["elevation_hist"].sum(),
+            where="post",
+            label=key,
+        )
+    ax.set_title(f"elevation histogram (0.5 deg), JS {report['elevation_js']:.3f}", fontsize=10)
+    ax.legend()
+    ax = fig.add_subplot(grid[1, 0])
+    for key in ("sim", "real"):
+        ax.plot(report["points_per_ring"][key], marker=".", label=key)
+    ax.set_title(
+        f"points per ring (storage order); points/scan sim {report['points_per_scan']['sim']:.0f}, "
+        f"real {report['points_per_scan']['real']:.0f}",
+        fontsize=10,
+    )
+    ax.legend()
+    ax = fig.add_subplot(grid[1, 1])
+    names = list(report["class_share"])
+    x = np.arange(len(names))
+    for k, key in enumerate(("sim", "real")):
+        ax.bar(x + (k - 0.5) * 0.4, [report["class_share"][n].get(key, 0.0) for n in names], 0.4, label=key)
+    ax.set_xticks(x, names, rotation=70, fontsize=8)
+    ax.set_yscale("log")
+    ax.set_title("class share (train ids)", fontsize=10)
+    ax.legend()
+    for k, (key, stats) in enumerate((("sim", sim), ("real", real))):
+        points, semantic = stats["example"]
+        colors = label_colors(map_semantickitti(semantic)) if semantic is not None else None
+        draw_bev(fig.add_subplot(grid[2, k]), points, colors, extent=40.0, title=f"{key}: BEV", point_size=0.3)
+        ax = fig.add_subplot(grid[3, k])
+        ax.imshow(_range_image(points), cmap="turbo", aspect="auto", interpolation="nearest", vmin=0, vmax=40)
+        ax.set_title(f"{key}: range image (rings x 1024 azimuth bins)", fontsize=9)
+        ax.set_xticks([])
+    return save_figure(fig, path)
+
+
+def _range_image(points: np.ndarray, width: int = 1024) -> np.ndarray:
+    ring = rings_from_storage(points)
+    azimuth = np.mod(np.arctan2(points[:, 1], points[:, 0]), 2 * np.pi)
+    col = np.minimum((azimuth / (2 * np.pi) * width).astype(int), width - 1)
+    image = np.full((ring.max() + 1, width), np.nan)
+    image[ring, col] = np.linalg.norm(points[:, :3], axis=1)
+    return image
+
+
+def add_sim_report_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of `u4d sim-report`."""
+    parser.add_argument("sim_root", type=Path, help="simulated SemanticKITTI-layout root")
+    parser.add_argument("--real", type=Path, required=True, help="real SemanticKITTI-layout root")
+    parser.add_argument("--png", type=Path, default=None, help="write the side-by-side figure here")
+    parser.add_argument("--json", action="store_true", help="print the report as json")
+    parser.add_argument("--max-frames", type=int, default=30, help="scans read per root (evenly spaced)")
+
+
+def run_sim_report(args: argparse.Namespace) -> int:
+    """`u4d sim-report SIM_ROOT --real REAL_ROOT [--png OUT] [--json]`."""
+    if args.max_frames < 1:
+        raise InputError(f"--max-frames must be >= 1, got {args.max_frames}")
+    check_output_file(args.png, "figure")
+    report, sim, real = compare(args.sim_root, args.real, args.max_frames)
+    if args.png is not None:
+        report["png"] = str(plot_report(args.png, report, sim, real))
+    if args.json:
+        print(dumps_json(report, indent=2))  # NaN as null
+        return 0
+    print(f"frames            sim {report['frames']['sim']:>8d}   real {report['frames']['real']:>8d}")
+    pps = report["points_per_scan"]
+    print(f"points/scan       sim {pps['sim']:>8.0f}   real {pps['real']:>8.0f}")
+    print(f"range JS distance {report['range_js']:.3f}   elevation JS distance {report['elevation_js']:.3f}")
+    spread = report["range_js_place_spread"]
+    if spread["places"]:
+        print(
+            f"  one simulated place ({spread['frames_per_place']} consecutive scans) vs the simulated pool: "
+            f"range JS median {spread['median']:.3f} (min {spread['min']:.3f}, max {spread['max']:.3f}, "
+            f"{spread['places']} places)"
+        )
+    for name, share in report["range_share"].items():
+        print(f"  range {name:<7s}  sim {share['sim']:7.2%}   real {share['real']:7.2%}")
+    print("class share        sim      real")
+    for name, share in report["class_share"].items():
+        print(f"  {name:<14s} {share.get('sim', 0.0):7.2%}  {share.get('real', 0.0):7.2%}")
+    if "png" in report:
+        print(f"figure: {report['png']}")
+    return 0

@@ -1,0 +1,584 @@
+"""Static world of one simulated sequence: roads, curbs, sidewalks, lots, buildings, vegetation, furniture.
+
+Everything within `view_radius` of the ego route is built into one labelled triangle mesh (numpy only); the
+ray caster adds it to an open3d RaycastingScene once per sequence. Layout follows a KITTI residential street:
+carriageway, parking strips, curb, sidewalk (sometimes with a grass strip and street trees), then lots.
+Blocks are laid out on the straight lattice and bent into the world by the network's warp as parts are added
+(streets.Warp): long surfaces are tessellated finely enough (<= 2-4 m) to follow the curves.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from u4d_aug.data.sim import objects
+from u4d_aug.data.sim.config import SimConfig
+from u4d_aug.data.sim.geometry import (
+    MATERIALS,
+    MeshBuilder,
+    TriangleMesh,
+    box,
+    concat_meshes,
+    densify,
+    flat_grid,
+    grid_surface,
+    merge,
+    polygon_fan,
+    quad,
+    sample_reflectivity,
+    strip,
+    transform,
+    wall_strip,
+)
+from u4d_aug.data.sim.streets import Network
+
+# block sides: 0 bottom (-y), 1 right (+x), 2 top (+y), 3 left (-x); u runs counter-clockwise, n points inward
+_SIDE_U = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+_SIDE_N = np.array([[0.0, 1.0], [-1.0, 0.0], [0.0, -1.0], [1.0, 0.0]])
+MARK_Z, PARK_Z = 0.004, 0.002  # overlays sit a few mm above the carriageway (no coplanar hits)
+STEP = 2.0  # m, longest edge of outlines that the warp bends (curbs, sidewalk edges, markings)
+
+
+@dataclass
+class Block:
+    """One city block: curb rectangle, inner (lot) rectangle and the pedestrians' walking loop."""
+
+    index: tuple[int, int]
+    curb: tuple[float, float, float, float]  # x0, y0, x1, y1 at the curb line, lattice coordinates
+    inner: tuple[float, float, float, float]  # lot rectangle, lattice coordinates
+    walk_loop: np.ndarray  # (K, 2) closed polyline on the sidewalk, counter-clockwise, world coordinates
+
+
+@dataclass
+class World:
+    """Static mesh plus what the agents need: the network, blocks, and the next free instance id."""
+
+    mesh: TriangleMesh
+    network: Network
+    blocks: list[Block]
+    next_instance: int
+
+
+class _Ids:
+    def __init__(self) -> None:
+        self.next = 1
+
+    def take(self) -> int:
+        self.next += 1
+        return self.next - 1
+
+
+def _terrain_height(rng: np.random.Generator):
+    """Smooth ground undulation (a few cm) as a closure-free callable object."""
+    freqs = rng.normal(0.0, 0.35, (4, 2))
+    phases = rng.uniform(0, 2 * np.pi, 4)
+    return _Undulation(freqs, phases)
+
+
+@dataclass
+class _Undulation:
+    freqs: np.ndarray
+    phases: np.ndarray
+    amplitude: float = 0.04
+
+    def __call__(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        arg = x[..., None] * self.freqs[:, 0] + y[..., None] * self.freqs[:, 1] + self.phases
+        return self.amplitude * np.sin(arg).mean(axis=-1)
+
+
+@dataclass
+class _GroundCover:
+    """Bumpy 0.2-0.7 m high shrub layer over a yard."""
+
+    base: float
+    height_fn: _Undulation
+
+    def __call__(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        bumps = 0.15 * np.sin(1.7 * x + 0.3) * np.cos(1.3 * y + 0.7) + 3.0 * self.height_fn(x, y)
+        return self.base + 0.45 + bumps
+
+
+def block_sides(net: Network, i: int, j: int) -> list[tuple[object, int]]:
+    """(street line, the line's side the block is on) for block sides 0..3."""
+    return [(net.ys[j], 1), (net.xs[i + 1], 0), (net.ys[j + 1], 0), (net.xs[i], 1)]
+
+
+def block_rects(net: Network, i: int, j: int):
+    """Curb and inner rectangles of block (i, j) and per-side sidewalk widths."""
+    x0 = net.xs[i].position + net.xs[i].curb(1)
+    x1 = net.xs[i + 1].position - net.xs[i + 1].curb(0)
+    y0 = net.ys[j].position + net.ys[j].curb(1)
+    y1 = net.ys[j + 1].position - net.ys[j + 1].curb(0)
+    sw = [line.sidewalk[side] for line, side in block_sides(net, i, j)]
+    inner = (x0 + sw[3], y0 + sw[0], x1 - sw[1], y1 - sw[2])
+    return (x0, y0, x1, y1), inner, sw
+
+
+def _rounded_corners(curb, radius: float, inset: float = 0.0, n: int = 8) -> list[np.ndarray]:
+    """Arc points of the 4 corners (BL, BR, TR, TL), counter-clockwise, of a rounded rectangle."""
+    x0, y0, x1, y1 = curb
+    x0, y0, x1, y1 = x0 + inset, y0 + inset, x1 - inset, y1 - inset
+    r = max(radius - inset, 0.3)
+    centers = [(x0 + r, y0 + r), (x1 - r, y0 + r), (x1 - r, y1 - r), (x0 + r, y1 - r)]
+    starts = [np.pi, 1.5 * np.pi, 0.0, 0.5 * np.pi]
+    arcs = []
+    for (cx, cy), a0 in zip(centers, starts):
+        angles = a0 + np.linspace(0.0, 0.5 * np.pi, n + 1)
+        arcs.append(np.column_stack([cx + r * np.cos(angles), cy + r * np.sin(angles)]))
+    return arcs
+
+
+def included_blocks(net: Network, route_xy: np.ndarray, radius: float) -> list[tuple[int, int]]:
+    """Blocks whose (warped) area comes within `radius` of the route (K, 2, world coordinates)."""
+    tree = cKDTree(route_xy[:: max(1, len(route_xy) // 2000)])
+    out = []
+    for i in range(len(net.xs) - 1):
+        for j in range(len(net.ys) - 1):
+            x0, x1 = net.xs[i].position, net.xs[i + 1].position
+            y0, y1 = net.ys[j].position, net.ys[j + 1].position
+            outline = densify(np.array([(x0, y0), (x1, y0), (x1, y1), (x0, y1)]), 5.0, closed=True)
+            if np.min(tree.query(net.warp.points(outline))[0]) < radius:
+                out.append((i, j))
+    return out
+
+
+def build_world(rng: np.random.Generator, cfg: SimConfig, net: Network, route_xy: np.ndarray) -> World:
+    """Build the static mesh around the ego route `route_xy` (K, 2, world coordinates); deterministic given rng."""
+    ids = _Ids()
+    height_fn = _terrain_height(rng)
+    parts: list[TriangleMesh] = []
+    blocks: list[Block] = []
+    chosen = included_blocks(net, route_xy, cfg.view_radius)
+    for i, j in chosen:
+        mb = MeshBuilder(net.warp)
+        blocks.append(_block(mb, rng, cfg, net, i, j, ids, height_fn))
+        parts.append(mb.build())
+    mb = MeshBuilder(net.warp)
+    segments = _segments_of(chosen)
+    for seg in segments:
+        mb.axis = 0 if seg[0] == "h" else 1
+        _segment_markings(mb, rng, cfg, net, seg)
+    mb.axis = None
+    xs = [b.curb[0] for b in blocks] + [b.curb[2] for b in blocks]
+    ys = [b.curb[1] for b in blocks] + [b.curb[3] for b in blocks]
+    _road_plane(mb, rng, (min(xs) - 40, min(ys) - 40, max(xs) + 40, max(ys) + 40))
+    parts.append(mb.build())
+    return World(concat_meshes(parts), net, blocks, ids.next)
+
+
+def _road_plane(mb: MeshBuilder, rng, bounds) -> None:
+    x0, y0, x1, y1 = bounds
+    v, t = grid_surface(x0, x1, y0, y1, 8.0)  # fine enough to follow the hills (sag <= 1.5 cm per cell)
+    mb.add((v, t), "road", "asphalt", sample_reflectivity(rng, "asphalt", len(t)))
+
+
+def _segments_of(blocks: list[tuple[int, int]]) -> list[tuple[str, int, int]]:
+    """Street segments bordering the blocks: ('h', j, i) = horizontal line j between nodes i, i+1."""
+    segs = set()
+    for i, j in blocks:
+        segs |= {("h", j, i), ("h", j + 1, i), ("v", i, j), ("v", i + 1, j)}
+    return sorted(segs)
+
+
+def _block(mb, rng, cfg: SimConfig, net: Network, i: int, j: int, ids: _Ids, height_fn) -> Block:
+    """Curb, sidewalk ring, grass strips, street furniture, parking strips and lots of block (i, j)."""
+    h = net.curb_height
+    curb, inner, sw = block_rects(net, i, j)
+    radius = net.corner_radius
+    arcs = _rounded_corners(curb, radius)
+    ix0, iy0, ix1, iy1 = inner
+    q = [np.array(p) for p in ((ix0, iy0), (ix1, iy0), (ix1, iy1), (ix0, iy1))]
+    outline, ring = [], []
+    for k in range(4):  # corner arc fanned to the inner corner, then the side as a band to the next corner
+        arc, nxt = arcs[k], arcs[(k + 1) % 4]
+        ring.append(polygon_fan(np.concatenate([q[k][None], arc]), h))
+        n = max(1, int(np.ceil(np.linalg.norm(nxt[0] - arc[-1]) / STEP)))
+        t = np.linspace(0.0, 1.0, n + 1)[:, None]
+        ring.append(strip(arc[-1] + t * (nxt[0] - arc[-1]), q[k] + t * (q[(k + 1) % 4] - q[k]), h))
+        outline += [arc, arc[-1] + t[1:-1] * (nxt[0] - arc[-1])]
+    mb.add(
+        wall_strip(np.concatenate(outline), 0.0, h, closed=True), "sidewalk", "curb", sample_reflectivity(rng, "curb")
+    )
+    paving = merge(*ring)
+    mb.add(paving, "sidewalk", "paving", sample_reflectivity(rng, "paving", len(paving[1])))
+    base = flat_grid(ix0, ix1, iy0, iy1, h - 0.01, 8.0)
+    mb.add(base, "terrain", "grass", sample_reflectivity(rng, "grass", len(base[1])))
+    for side, (line, line_side) in enumerate(block_sides(net, i, j)):
+        mb.axis = side % 2
+        _side_strip(mb, rng, cfg, net, curb, side, line, line_side, ids, height_fn)
+    _lots(mb, rng, cfg, inner, h, ids, height_fn)
+    mb.axis = None
+    ins = [line.grass[s] + 0.6 * (line.sidewalk[s] - line.grass[s]) for line, s in block_sides(net, i, j)]
+    walk_rect = (curb[0] + ins[3], curb[1] + ins[0], curb[2] - ins[1], curb[3] - ins[2])
+    loop = np.concatenate(_rounded_corners(walk_rect, max(radius - float(np.mean(ins)), 0.5)))
+    return Block((i, j), curb, inner, net.warp.points(densify(loop, STEP, closed=True)))
+
+
+def _side_strip(mb, rng, cfg: SimConfig, net: Network, curb, side, line, line_side, ids, height_fn) -> None:
+    """One block side: grass strip, trees, lights, signs, clutter; beyond the curb the parking strip."""
+    x0, y0, x1, y1 = curb
+    r, h = net.corner_radius, net.curb_height
+    start = np.array([(x0, y0), (x1, y0), (x1, y1), (x0, y1)][side], dtype=np.float64)
+    u, n = _SIDE_U[side], _SIDE_N[side]
+    length = (x1 - x0) if side % 2 == 0 else (y1 - y0)
+    t0, t1 = r, length - r
+    if t1 - t0 < 2.0:
+        return
+    grass, sidewalk = line.grass[line_side], line.sidewalk[line_side]
+
+    def at(t, offset):
+        return start + u * t + n * offset
+
+    if grass > 0:
+        a, b = at(t0 + 0.5, 0.15), at(t1 - 0.5, grass)
+        v, tr = grid_surface(
+            min(a[0], b[0]),
+            max(a[0], b[0]),
+            min(a[1], b[1]),
+            max(a[1], b[1]),
+            2.0,
+            lambda x, y: h + 0.03 + 0.5 * height_fn(x, y),
+        )
+        mb.add((v, tr), "terrain", "grass", sample_reflectivity(rng, "grass", len(tr)))
+    occupied: list[float] = []
+
+    def free(t, gap=1.5):
+        return all(abs(t - o) > gap for o in occupied)
+
+    obj = cfg.objects
+    if rng.random() < obj.street_tree_prob:
+        t = t0 + rng.uniform(2.0, 6.0)
+        offset = grass / 2 if grass > 0 else min(obj.tree_offset, sidewalk - 0.6)
+        scale = rng.uniform(0.8, 1.2)
+        while t < t1 - 2.0:
+            objects.tree(mb, rng, at(t, offset), h, scale * rng.uniform(0.85, 1.15), clearance=obj.tree_clearance)
+            occupied.append(t)
+            t += rng.uniform(*obj.tree_spacing)
+    t = t0 + rng.uniform(3.0, 15.0)
+    while t < t1 - 3.0:
+        if free(t):
+            objects.street_light(mb, rng, at(t, 0.45), h, float(np.arctan2(-n[1], -n[0])))
+            occupied.append(t)
+        t += rng.uniform(*obj.pole_spacing)
+    for end in (t0 + rng.uniform(1.5, 6.0), t1 - rng.uniform(1.5, 6.0)):
+        if rng.random() < obj.sign_prob / 2 and free(end, 1.0):
+            face = float(np.arctan2(u[1], u[0])) + (np.pi if rng.random() < 0.5 else 0.0)
+            objects.traffic_sign(mb, rng, at(end, 0.35), h, face)
+            occupied.append(end)
+    for t in np.arange(t0 + 5.0, t1 - 5.0, 20.0):
+        tt = t + rng.uniform(-5, 5)
+        if rng.random() < obj.object_prob and free(tt, 1.2):
+            off = 0.5 if rng.random() < 0.5 else sidewalk - 0.5
+            objects.other_object(mb, rng, at(tt, off), h, float(np.arctan2(u[1], u[0])))
+            occupied.append(tt)
+    if obj.sidewalk_bicycle_prob > 0 and sidewalk > 2.4:  # no draw when off: the default world stays as it was
+        for t in np.arange(t0 + 8.0, t1 - 8.0, 20.0):
+            tt = t + rng.uniform(-5, 5)
+            count = int(rng.integers(1, 5))
+            if rng.random() < obj.sidewalk_bicycle_prob and free(tt, 1.0 + 0.8 * count):
+                across = float(np.arctan2(n[1], n[0]))  # bicycles stand across the sidewalk, 0.8 m apart
+                for k in range(count):
+                    c = at(tt + 0.8 * (k - (count - 1) / 2), 1.2)
+                    mesh = objects.two_wheeler(rng, "bicycle", ids.take())
+                    _add_mesh(mb, objects.place(mesh, across + rng.normal(0, 0.1), (c[0], c[1], h)))
+                occupied.append(tt)
+    if rng.random() < 0.06 and sidewalk > 3.0:  # bus shelter: other-structure
+        tt = rng.uniform(t0 + 5, max(t0 + 6, t1 - 8))
+        c = at(tt, sidewalk - 0.8)
+        yaw = float(np.arctan2(u[1], u[0]))
+        shelter = merge(
+            box([3.0, 1.2, 0.08], [0, 0, 2.4]),
+            box([3.0, 0.05, 2.0], [0, 0.55, 1.2]),
+            box([0.05, 1.1, 2.0], [-1.45, 0, 1.2]),
+            box([0.05, 1.1, 2.0], [1.45, 0, 1.2]),
+        )
+        mb.add(transform(shelter, yaw, (c[0], c[1], h)), "other-structure", "metal", 0.3)
+    park = line.parking[line_side]
+    if park > 0:
+        if rng.random() < cfg.street.parking_label_prob:
+            ts = np.linspace(t0, t1, max(2, int(np.ceil((t1 - t0) / STEP)) + 1))
+            band = strip(np.array([at(t, 0.0) for t in ts]), np.array([at(t, -park) for t in ts]), PARK_Z)
+            mb.add(band, "parking", "parking", sample_reflectivity(rng, "parking", len(band[1])))
+        _parked_vehicles(mb, rng, cfg, lambda t, o: at(t, o), u, t0, t1, park, ids)
+
+
+def _parked_vehicles(mb, rng, cfg: SimConfig, at, u, t0, t1, park, ids: _Ids) -> None:
+    """Fill a parking strip with cars, vans, trucks and motorcycles, nose against the traffic direction."""
+    occupancy = rng.uniform(*cfg.objects.parked_occupancy)
+    t = t0 + rng.uniform(0.5, 3.0)
+    yaw = float(np.arctan2(-u[1], -u[0]))  # right-hand traffic circulates clockwise around a block
+    while True:
+        kind = rng.choice(4, p=np.asarray(cfg.objects.parked_weights) / np.sum(cfg.objects.parked_weights))
+        length = (4.8, 8.5, 5.6, 2.2)[kind]
+        if t + length > t1 - 0.5:
+            break
+        if rng.random() < occupancy:
+            center = at(t + length / 2, -park / 2 - rng.uniform(-0.15, 0.15))
+            inst = ids.take()
+            if kind == 0:
+                mesh = objects.car(rng, "car", inst, kind=str(rng.choice(["sedan", "hatch", "suv"], p=[0.5, 0.3, 0.2])))
+            elif kind == 1:
+                mesh = objects.truck(rng, "truck", inst)
+            elif kind == 2:
+                mesh = objects.van(rng, "other-vehicle", inst)
+            else:
+                mesh = objects.two_wheeler(rng, "motorcycle", inst, motor=True)
+            flip = np.pi if rng.random() < 0.1 else 0.0
+            _add_mesh(mb, objects.place(mesh, yaw + flip + rng.normal(0, 0.02), (center[0], center[1], 0.0)))
+        t += length + rng.uniform(0.6, 2.5)
+
+
+def _add_mesh(mb: MeshBuilder, mesh: TriangleMesh) -> None:
+    """Add a ready TriangleMesh (one object, moved rigidly by a warp) part by part, keeping its attributes."""
+    low, high = mesh.vertices[:, :2].min(axis=0), mesh.vertices[:, :2].max(axis=0)
+    with mb.rigid((low + high) / 2):
+        _add_parts(mb, mesh)
+
+
+def _add_parts(mb: MeshBuilder, mesh: TriangleMesh) -> None:
+    for key in np.unique(np.stack([mesh.semantic, mesh.instance, mesh.material]), axis=1).T:
+        sel = (mesh.semantic == key[0]) & (mesh.instance == key[1]) & (mesh.material == key[2])
+        used, inverse = np.unique(mesh.triangles[sel], return_inverse=True)
+        tri = inverse.reshape(-1, 3)
+        mb.add(
+            (mesh.vertices[used], tri),
+            int(key[0]),
+            MATERIALS[int(key[2])].name,
+            mesh.reflectivity[sel],
+            int(key[1]),
+        )
+
+
+def _segment_markings(mb, rng, cfg: SimConfig, net: Network, seg) -> None:
+    """Lane markings, crosswalks and traffic islands of one street segment."""
+    kind, line_index, node = seg
+    lines, cross = (net.ys, net.xs) if kind == "h" else (net.xs, net.ys)
+    if not (0 <= line_index < len(lines) and 0 <= node < len(cross) - 1):
+        return
+    line = lines[line_index]
+    a = cross[node].position + max(cross[node].curb(1), 0.0) + net.corner_radius
+    b = cross[node + 1].position - cross[node + 1].curb(0) - net.corner_radius
+    if b - a < 4.0:
+        return
+    c = line.position
+
+    def rect(s0, s1, o0, o1, z=MARK_Z):  # in pieces of <= STEP along the street, so that they bend with it
+        edges = np.linspace(s0, s1, max(1, int(np.ceil(abs(s1 - s0) / STEP))) + 1)
+        pieces = []
+        for a0, a1 in zip(edges[:-1], edges[1:]):
+            pts = [(a0, o0), (a1, o0), (a1, o1), (a0, o1)]
+            pieces.append(quad(*[(s, c + o, z) if kind == "h" else (c + o, s, z) for s, o in pts]))
+        return merge(*pieces)
+
+    stripes = []
+    median = line.main and rng.random() < cfg.street.median_prob and b - a > 30.0
+    if median:
+        width = rng.uniform(1.2, min(2.4, 2 * line.lane_width - 3.0))
+        m0, m1 = a + rng.uniform(3.0, 8.0), b - rng.uniform(3.0, 8.0)
+        h = net.curb_height
+        top = rect(m0, m1, -width / 2, width / 2, h)
+        corners = [(m0, -width / 2), (m1, -width / 2), (m1, width / 2), (m0, width / 2)]
+        ring = np.array([(s, c + o) if kind == "h" else (c + o, s) for s, o in corners])
+        island = merge(top, wall_strip(densify(ring, STEP, closed=True), 0.0, h, closed=True))
+        mb.add(island, "other-ground", "curb", sample_reflectivity(rng, "curb", len(island[1])))
+        for s in np.arange(m0 + 4.0, m1 - 2.0, rng.uniform(7.0, 12.0)):
+            xy = (s, c) if kind == "h" else (c, s)
+            objects.bush(mb, rng, xy, h, 0.6)
+    if line.center_line and not median:
+        if line.main:
+            stripes += [rect(a, b, o - 0.06, o + 0.06) for o in (-0.12, 0.12)]
+        else:
+            stripes += [rect(s, min(s + 3.0, b), -0.06, 0.06) for s in np.arange(a + 1.0, b, 9.0)]
+    if line.main:
+        for o in (-line.lane_width, line.lane_width):
+            stripes += [rect(s, min(s + 3.0, b), o - 0.06, o + 0.06) for s in np.arange(a + 2.0, b, 9.0)]
+    for side, sign in ((0, -1.0), (1, 1.0)):
+        if line.parking[side] > 0 or rng.random() < 0.5:
+            edge = sign * (line.half_road - 0.1)
+            stripes.append(rect(a, b, edge - 0.06, edge + 0.06))
+    for end, direction in ((a, 1.0), (b, -1.0)):
+        if rng.random() < cfg.street.crosswalk_prob:
+            s0 = end + direction * 1.0
+            s1 = s0 + direction * rng.uniform(3.0, 4.0)
+            for o in np.arange(-line.half_road + 0.3, line.half_road - 0.5, 1.0):
+                stripes.append(rect(min(s0, s1), max(s0, s1), o, o + 0.5))
+    if stripes:
+        paint = merge(*stripes)
+        mb.add(paint, "lane-marking", "paint", sample_reflectivity(rng, "paint", len(paint[1])))
+
+
+class _LotFrame:
+    """Lot coordinates: u along the street frontage, v inward from the sidewalk edge."""
+
+    def __init__(self, origin, u, n) -> None:
+        self.origin, self.u, self.n = np.asarray(origin, float), np.asarray(u, float), np.asarray(n, float)
+
+    def xy(self, uu, vv) -> np.ndarray:
+        return self.origin + self.u * uu + self.n * vv
+
+    def rect(self, u0, v0, u1, v1) -> tuple[float, float, float, float]:
+        a, b = self.xy(u0, v0), self.xy(u1, v1)
+        return min(a[0], b[0]), min(a[1], b[1]), max(a[0], b[0]), max(a[1], b[1])
+
+    @property
+    def yaw_out(self) -> float:
+        return float(np.arctan2(-self.n[1], -self.n[0]))
+
+
+def _lots(mb, rng, cfg: SimConfig, inner, h, ids: _Ids, height_fn) -> None:
+    """Split the inner rectangle into frontage strips of lots (each side) and a back courtyard."""
+    ix0, iy0, ix1, iy1 = inner
+    if ix1 - ix0 < 4 or iy1 - iy0 < 4:
+        return
+    depth = min(rng.uniform(*cfg.lots.depth), (ix1 - ix0) / 2, (iy1 - iy0) / 2)
+    urban = rng.random() < 0.35
+    # (side, start corner, frontage length)
+    strips = [
+        (0, (ix0, iy0), ix1 - ix0),
+        (2, (ix1, iy1), ix1 - ix0),
+        (1, (ix1, iy0 + depth), iy1 - iy0 - 2 * depth),
+        (3, (ix0, iy1 - depth), iy1 - iy0 - 2 * depth),
+    ]
+    for side, origin, length in strips:
+        mb.axis = side % 2
+        frame = _LotFrame(origin, _SIDE_U[side], _SIDE_N[side])
+        u = 0.0
+        while length - u > 3.0:
+            width = rng.uniform(*cfg.lots.frontage)
+            if length - u - width < cfg.lots.frontage[0] * 0.6:
+                width = length - u
+            _lot(mb, rng, cfg, frame, u, u + width, depth, h, ids, height_fn, urban, side)
+            u += width
+    mb.axis = None
+    if ix1 - ix0 > 2 * depth + 2 and iy1 - iy0 > 2 * depth + 2:
+        cx0, cy0, cx1, cy1 = ix0 + depth, iy0 + depth, ix1 - depth, iy1 - depth
+        v, t = grid_surface(cx0, cx1, cy0, cy1, 6.0, lambda x, y: h + 0.05 + height_fn(x, y))
+        mb.add((v, t), "terrain", "grass", sample_reflectivity(rng, "grass", len(t)))
+        for _ in range(int((cx1 - cx0) * (cy1 - cy0) / cfg.lots.courtyard_tree_area)):
+            objects.tree(mb, rng, (rng.uniform(cx0, cx1), rng.uniform(cy0, cy1)), h)
+
+
+def _lot(mb, rng, cfg: SimConfig, frame: _LotFrame, u0, u1, depth, h, ids, height_fn, urban, side) -> None:
+    """One lot: ground, maybe a building, a front fence/hedge, yard vegetation, parked cars or bicycles."""
+    lc = cfg.lots
+    weights = np.asarray(lc.kind_weights, dtype=np.float64)
+    if urban:
+        weights = weights * [0.3, 3.0, 0.5, 1.0, 1.0]
+    kind = ["house", "row", "garden", "parking", "commercial"][int(rng.choice(5, p=weights / weights.sum()))]
+    width = u1 - u0
+
+    def ground(label, material, v0=0.0, v1=depth, tessellate=False):
+        x0, y0, x1, y1 = frame.rect(u0, v0, u1, v1)
+        if tessellate:
+            v, t = grid_surface(x0, x1, y0, y1, 2.0, lambda x, y: h + 0.05 + height_fn(x, y))
+        else:
+            v, t = flat_grid(x0, x1, y0, y1, h + 0.005)
+        mb.add((v, t), label, material, sample_reflectivity(rng, material, len(t)))
+
+    if kind == "row":
+        setback = rng.uniform(*lc.row_setback)
+        if setback > 0.2:
+            ground("sidewalk", "paving", 0.0, setback)
+        bdepth = min(rng.uniform(10.0, 16.0), depth - setback - 0.5)
+        ground("terrain", "grass", setback + bdepth, depth, tessellate=True)
+        floors = int(rng.integers(lc.row_floors[0], lc.row_floors[1] + 1))
+        fp = frame.rect(u0, setback, u1, setback + bdepth)
+        objects.building(mb, rng, fp, floors, rng.uniform(*lc.floor_height), side, h - 0.2)
+        return
+    if kind == "parking":
+        ground("parking", "parking")
+        n_rows = int(rng.integers(1, 3))
+        for row in range(n_rows):
+            v = 3.0 + row * 11.0
+            if v + 2.5 > depth:
+                break
+            for uu in np.arange(u0 + 1.5, u1 - 1.5, rng.uniform(2.5, 3.0)):
+                if rng.random() < rng.uniform(0.4, 0.9):
+                    c = frame.xy(uu, v)
+                    inst = ids.take()
+                    mesh = objects.car(rng, "car", inst, kind=str(rng.choice(["sedan", "hatch", "suv"])))
+                    yaw = float(np.arctan2(frame.n[1], frame.n[0])) + (np.pi if rng.random() < 0.5 else 0)
+                    _add_mesh(mb, objects.place(mesh, yaw, (c[0], c[1], h)))
+        return
+    gravel = rng.random() < lc.other_ground_prob
+    if kind in ("house", "commercial", "garden"):
+        if gravel:
+            ground("other-ground", "gravel")
+        elif rng.random() < lc.ground_cover_prob:  # low shrubs / ground cover over the yard (vegetation)
+            x0, y0, x1, y1 = frame.rect(u0, 0.0, u1, depth)
+            v, t = grid_surface(x0, x1, y0, y1, 1.0, _GroundCover(h, height_fn))
+            mb.add((v, t), "vegetation", "hedge", sample_reflectivity(rng, "hedge", len(t)))
+        else:
+            ground("terrain", "grass", tessellate=True)
+    if kind == "garden":
+        for _ in range(int(width * depth / 40)):
+            objects.tree(mb, rng, frame.xy(rng.uniform(u0 + 1, u1 - 1), rng.uniform(2, depth - 1)), h)
+        for _ in range(int(width * depth / 15)):
+            objects.bush(mb, rng, frame.xy(rng.uniform(u0 + 1, u1 - 1), rng.uniform(1, depth - 1)), h)
+        _front_boundary(mb, rng, frame, u0, u1, h, 1.0, lc)
+        return
+    commercial = kind == "commercial"
+    setback = rng.uniform(*lc.setback) * (1.5 if commercial else 1.0)
+    gap = rng.uniform(1.0, 3.0) if not commercial else 0.5
+    bdepth = min(rng.uniform(8.0, 14.0) * (1.4 if commercial else 1.0), depth - setback - 1.0)
+    if width - 2 * gap > 5.0 and bdepth > 5.0:
+        floors = (
+            1 if commercial and rng.random() < 0.6 else int(rng.integers(lc.house_floors[0], lc.house_floors[1] + 1))
+        )
+        fp = frame.rect(u0 + gap, setback, u1 - gap, setback + bdepth)
+        objects.building(
+            mb, rng, fp, floors, rng.uniform(*lc.floor_height) * (1.3 if commercial else 1.0), side, h - 0.2
+        )
+        if rng.random() < cfg.objects.bicycle_prob:
+            for k in range(int(rng.integers(1, 4))):
+                c = frame.xy(u0 + gap + 1.0 + 0.8 * k, setback - 0.6)
+                mesh = objects.two_wheeler(rng, "bicycle", ids.take())
+                _add_mesh(mb, objects.place(mesh, float(np.arctan2(frame.n[1], frame.n[0])), (c[0], c[1], h)))
+        if not commercial and rng.random() < 0.3 and gap > 2.6 and setback > 5.5:
+            c = frame.xy(u0 + gap / 2, setback)
+            mesh = objects.car(rng, "car", ids.take())
+            _add_mesh(mb, objects.place(mesh, float(np.arctan2(frame.n[1], frame.n[0])), (c[0], c[1], h)))
+    if commercial and rng.random() < 0.5:
+        objects.traffic_sign(mb, rng, frame.xy(u0 + 1.0, 0.5), h, frame.yaw_out)
+    yard = max(setback - 1.0, 0.0)
+    for _ in range(int(rng.integers(lc.yard_trees[0], lc.yard_trees[1] + 1))):
+        if yard > 2.5:
+            objects.tree(mb, rng, frame.xy(rng.uniform(u0 + 1.5, u1 - 1.5), rng.uniform(1.5, yard)), h, 0.8)
+        else:
+            objects.tree(mb, rng, frame.xy(rng.uniform(u0 + 1, u1 - 1), setback + bdepth + 2.0), h)
+    for _ in range(int(rng.integers(lc.yard_bushes[0], lc.yard_bushes[1] + 1))):
+        if yard > 1.2:
+            objects.bush(
+                mb,
+                rng,
+                frame.xy(rng.uniform(u0 + 0.8, u1 - 0.8), rng.uniform(0.8, yard)),
+                h,
+                rng.uniform(0.8, 1.8),
+            )
+    if rng.random() < lc.front_fence_prob:
+        _front_boundary(mb, rng, frame, u0, u1, h, 0.0, lc)
+    if yard > 2.0 and rng.random() < lc.shrub_bed_prob:  # planted bed behind the fence line
+        depth_bed = rng.uniform(1.2, min(3.0, yard))
+        for uu in np.arange(u0 + 0.8, u1 - 0.8, rng.uniform(1.0, 1.6)):
+            objects.bush(mb, rng, frame.xy(uu, rng.uniform(0.8, depth_bed)), h, rng.uniform(0.6, 1.2))
+    if lc.shed_prob > 0 and yard > 2.5 and width > 5.0 and rng.random() < lc.shed_prob:
+        size = rng.uniform(1.2, [min(3.0, width - 2.0), min(2.5, yard - 1.0)])
+        uu = rng.uniform(u0 + 0.6 + size[0] / 2, u1 - 0.6 - size[0] / 2)
+        yaw = float(np.arctan2(frame.u[1], frame.u[0]))
+        objects.shed(mb, rng, frame.xy(uu, 1.0 + size[1] / 2), h, yaw, size)
+
+
+def _front_boundary(mb, rng, frame: _LotFrame, u0, u1, h, hedge_bias, lc) -> None:
+    """Fence, wall or hedge along the lot front with an entrance gap."""
+    gate = rng.uniform(u0 + 1.0, max(u0 + 1.5, u1 - 3.0))
+    for a, b in ((u0 + 0.2, gate), (gate + 1.5, u1 - 0.2)):
+        if b - a < 0.8:
+            continue
+        p0, p1 = frame.xy(a, 0.3), frame.xy(b, 0.3)
+        if rng.random() < lc.hedge_prob + (1.0 - lc.hedge_prob) * hedge_bias:
+            objects.hedge(mb, rng, p0, p1, h, lc.hedge_height)
+        else:
+            objects.fence(mb, rng, p0, p1, h)

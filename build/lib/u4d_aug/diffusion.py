@@ -1,0 +1,166 @@
+"""Continuous-time Gaussian diffusion: cosine log-SNR schedule and the training losses of the U4D stages.
+
+Schedule choice: continuous time, t ~ U(0, 1), cosine log-SNR as R2DM
+`models/diffusion/continuous_time.py` (generation_protocols.md §2.2):
+    logSNR(t) = -2 log tan(t_min + t (t_max - t_min)), t_min = atan(e^-7.5), t_max = atan(e^7.5) (+15 .. -15)
+    alpha = sqrt(sigmoid(logSNR)),  sigma = sqrt(sigmoid(-logSNR)),  x_t = alpha x0 + sigma eps.
+Why continuous rather than a discrete T-step table: the network is conditioned on log-SNR, which is defined
+for every t in [0, 1], so one trained model serves any sampler and any step count (256-step ancestral DDPM,
+32-step DDIM, ...) without retraining or re-spacing a table; the cosine shape spends its steps near the
+middle of the SNR range where the ε-loss is informative, and ±15 keeps alpha, sigma away from 0 in float32.
+
+The trained module's forward returns the loss (DESIGN §4.1, R2DM `GaussianDiffusion.forward`); the network
+only sees (x_t, log-SNR, condition), never the schedule (DESIGN §4.2); samplers live in `u4d_aug.sampling`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from u4d_aug.errors import InputError
+
+LOG_SNR_MAX = 15.0  # logSNR(t=0)
+LOG_SNR_MIN = -15.0  # logSNR(t=1)
+_T_MIN = math.atan(math.exp(-0.5 * LOG_SNR_MAX))
+_T_MAX = math.atan(math.exp(-0.5 * LOG_SNR_MIN))
+
+
+def log_snr(t: Tensor) -> Tensor:
+    """Cosine log-SNR of continuous time t in [0, 1]: +15 at t=0 down to -15 at t=1 (R2DM / VDM)."""
+    return -2.0 * torch.log(torch.tan(_T_MIN + t * (_T_MAX - _T_MIN)))
+
+
+def alpha_sigma(log_snr: Tensor) -> tuple[Tensor, Tensor]:
+    """(alpha, sigma) = (sqrt(sigmoid(logSNR)), sqrt(sigmoid(-logSNR))); alpha² + sigma² = 1 (R2DM, VP)."""
+    return torch.sigmoid(log_snr).sqrt(), torch.sigmoid(-log_snr).sqrt()
+
+
+def min_snr_weight(log_snr: Tensor, gamma: float | None) -> Tensor:
+    """Min-SNR-γ weight of the ε-loss: min(SNR, γ) / SNR (Hang et al. 2023; R2DM: γ = 5); 1 if γ is None."""
+    if gamma is None:
+        return torch.ones_like(log_snr)
+    return torch.clamp(gamma * torch.exp(-log_snr), max=1.0)
+
+
+@dataclass
+class DiffusionConfig:
+    """Diffusion stage and loss terms (paper §2: L_u for stage 1, L_c for stage 2; R2DM for the baseline)."""
+
+    stage: Literal["stage1", "stage2", "baseline"] = "baseline"
+    min_snr_gamma: float | None = 5.0  # None turns Min-SNR weighting off
+    mask_weight: float = 1.0  # λ of L_u = ε-MSE + λ · BCE(m_u, m_p) (stage 1 only)
+    mask_pos_weight: float = 1.0  # BCE weight of positive (uncertain) pixels; m_u is sparse
+    most_cv_weight: float = 0.01  # weight of Σ CV² of the MoST gate importances (nets with net.most only)
+
+    def __post_init__(self) -> None:
+        if self.stage not in ("stage1", "stage2", "baseline"):
+            raise InputError(f"diffusion.stage must be one of 'stage1', 'stage2', 'baseline', got {self.stage!r}")
+        if self.min_snr_gamma is not None and self.min_snr_gamma <= 0:
+            raise InputError(f"diffusion.min_snr_gamma must be > 0 or null, got {self.min_snr_gamma}")
+        if self.mask_weight < 0 or self.mask_pos_weight <= 0:
+            raise InputError("diffusion.mask_weight must be >= 0 and diffusion.mask_pos_weight > 0")
+        if self.most_cv_weight < 0:
+            raise InputError(f"diffusion.most_cv_weight must be >= 0, got {self.most_cv_weight}")
+
+
+def stage_cond(x0_u: Tensor, m_u: Tensor) -> Tensor:
+    """Stage-2 condition channels concat(x0_u, m_u): (..., 2, H, W) + (..., 1, H, W) -> (..., 3, H, W)."""
+    return torch.cat([x0_u, m_u.to(x0_u.dtype)], dim=-3)
+
+
+class GaussianDiffusion(nn.Module):
+    """Wraps ε_θ; forward returns the stage's training losses from clean data (R2DM `GaussianDiffusion`)."""
+
+    def __init__(self, net: nn.Module, cfg: DiffusionConfig):
+        super().__init__()
+        self.net = net
+        self.cfg = cfg
+        net_cfg = getattr(net, "cfg", None)
+        self.most = bool(getattr(net_cfg, "most", False))  # the net has MoST blocks: gate noise and the CV term
+        if net_cfg is not None:  # catch a net built for another stage before the first step, not at step 1
+            want_mask = cfg.stage == "stage1"
+            want_cond = 3 if cfg.stage == "stage2" else 0
+            if bool(net_cfg.mask_head) != want_mask:
+                raise InputError(f"diffusion.stage={cfg.stage} needs net.mask_head={str(want_mask).lower()}")
+            if net_cfg.cond_channels != want_cond:
+                raise InputError(
+                    f"diffusion.stage={cfg.stage} needs net.cond_channels={want_cond} "
+                    f"(stage 2 reads x0_u and m_u), got {net_cfg.cond_channels}"
+                )
+
+    def forward(
+        self,
+        x0: Tensor,
+        cond: Tensor | None = None,
+        m_u: Tensor | None = None,
+        generator: torch.Generator | None = None,
+        crop_offsets: Tensor | None = None,
+        poses: Tensor | None = None,
+    ) -> dict[str, Tensor]:
+        """Losses for clean x0 (B, [L,] 2, H, W) in [-1, 1].
+
+        crop_offsets (B,): the inputs are azimuth crops starting at these panorama columns (`RangeUNet.forward`).
+        poses (B, [L,] P): each frame's ego motion, for nets with net.pose_dim = P > 0.
+        stage1: x0 is x0_u, m_u (B, [L,] 1, H, W) is the BCE target; the net sees only x_t.
+        stage2: x0 is the full scan, cond is x0_u and m_u its mask; the net sees concat(x_t, x0_u, m_u).
+        baseline: x0 is the full scan, no condition.
+        Returns {"loss": total (with grad), "eps_mse": weighted ε term, "mask_bce": BCE (stage 1),
+        "most_cv": Σ CV² of the MoST gate importances (nets with MoST; weighted by most_cv_weight in "loss")}.
+        t, ε and the MoST gate noise are drawn from `generator` (torch's default generator if None).
+        """
+        stage = self.cfg.stage
+        net_cond = None
+        if stage == "stage2":
+            if cond is None or m_u is None:
+                raise ValueError("GaussianDiffusion(stage2): needs cond=x0_u and m_u")
+            net_cond = stage_cond(cond, m_u)
+        elif stage == "stage1":
+            if m_u is None:
+                raise ValueError("GaussianDiffusion(stage1): needs m_u, the target of the mask head")
+            if cond is not None:
+                raise ValueError("GaussianDiffusion(stage1): stage 1 is unconditional, got cond")
+        elif cond is not None or m_u is not None:
+            raise ValueError("GaussianDiffusion(baseline): the baseline is unconditional, got cond/m_u")
+
+        batch = x0.shape[0]
+        draw_device = generator.device if generator is not None else x0.device
+        t = torch.rand(batch, generator=generator, device=draw_device).to(x0.device)  # (B,)
+        eps = torch.randn(x0.shape, generator=generator, device=draw_device).to(x0.device, x0.dtype)
+        lam = log_snr(t)  # (B,)
+        alpha, sigma = alpha_sigma(lam.view(batch, *([1] * (x0.dim() - 1))))
+        x_t = alpha * x0 + sigma * eps
+
+        if crop_offsets is not None or poses is not None:
+            eps_pred, mask_logits = self.net(
+                x_t, lam, net_cond, generator=generator, crop_offsets=crop_offsets, poses=poses
+            )
+        elif self.most:
+            eps_pred, mask_logits = self.net(x_t, lam, net_cond, generator=generator)
+        else:
+            eps_pred, mask_logits = self.net(x_t, lam, net_cond)
+        mse = (eps_pred.float() - eps.float()).square().flatten(1).mean(dim=1)  # (B,)
+        eps_loss = (min_snr_weight(lam, self.cfg.min_snr_gamma) * mse).mean()
+        losses = {"eps_mse": eps_loss}
+        loss = eps_loss
+        if stage == "stage1":
+            if mask_logits is None:
+                raise ValueError("GaussianDiffusion(stage1): the net has no mask head")
+            pos_weight = torch.tensor(self.cfg.mask_pos_weight, device=x0.device)
+            bce = F.binary_cross_entropy_with_logits(
+                mask_logits.float(), m_u.to(mask_logits.device, torch.float32), pos_weight=pos_weight
+            )
+            losses["mask_bce"] = bce
+            loss = loss + self.cfg.mask_weight * bce
+        if self.most:
+            cv = self.net.most_aux_loss()  # Shazeer et al. (2017) importance loss, summed over the MoST blocks
+            losses["most_cv"] = cv
+            loss = loss + self.cfg.most_cv_weight * cv
+        losses = {k: v.detach() for k, v in losses.items()}
+        losses["loss"] = loss
+        return losses

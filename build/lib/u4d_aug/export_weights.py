@@ -1,0 +1,97 @@
+"""`u4d export-weights CKPT --out FILE`: a training checkpoint's inference weights in the shipped format.
+
+The format itself (float16 weights, hashes, loading) is `u4d_aug.weights`; this module writes it for the three
+checkpoint kinds and is the only one that knows their loaders (an extractor's hash is checked by loading it).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from u4d_aug.errors import InputError
+from u4d_aug.io import atomic_torch_save, file_sha256, load_checkpoint
+from u4d_aug.metrics.extractors import load_extractor
+from u4d_aug.weights import (
+    DIFFUSION_KIND,
+    EXTRACTOR_KINDS,
+    RECOMPUTED_BUFFERS,
+    WEIGHTS_FORMAT,
+    checkpoint_kind,
+    half_state,
+    inference_weights,
+    is_exported,
+    quantize_int8,
+    weights_digest,
+)
+
+
+def trained_info(state: dict, kind: str, source: Path) -> dict:
+    """Step (extractors: steps), wall-clock minutes when the checkpoint has them, sha256[:16] of the source file."""
+    info: dict = {"step": state.get("steps") if kind in EXTRACTOR_KINDS else state.get("step")}
+    if state.get("elapsed") is not None:
+        info["elapsed_minutes"] = round(float(state["elapsed"]) / 60.0, 3)
+    info["source_sha256"] = file_sha256(source)
+    return info
+
+
+def export_weights(checkpoint_path: str | Path, out_path: str | Path, int8: bool = False) -> dict:
+    """Write the float16 (`int8`: large tensors as int8 groups) inference weights of a training checkpoint to
+    `out_path` atomically; returns what it wrote."""
+    source, out = Path(checkpoint_path), Path(out_path)
+    state = load_checkpoint(source, "training checkpoint")
+    if is_exported(state):
+        raise InputError(f"{source}: already exported weights; export from the training checkpoint")
+    if out.exists() and out.resolve() == source.resolve():
+        raise InputError(f"{out}: --out would overwrite the training checkpoint itself")
+    kind = checkpoint_kind(state, str(source))
+    config = state.get("config")
+    if not isinstance(config, dict):
+        raise InputError(f"{source}: {kind} checkpoint without its resolved config")
+    model = half_state(inference_weights(state, kind, str(source)), str(source))
+    if kind == DIFFUSION_KIND:
+        model = {name: tensor for name, tensor in model.items() if name not in RECOMPUTED_BUFFERS}
+    shapes = None
+    if int8:
+        model, shapes = quantize_int8(model)
+    digest = weights_digest(model, config)
+    identity = digest
+    if kind in EXTRACTOR_KINDS:
+        identity = load_extractor(source).hash  # the stored hash, checked against the float32 weights
+    exported = {
+        "kind": kind,
+        "format": WEIGHTS_FORMAT,
+        "config": config,
+        "model": model,
+        "hash": identity,
+        "weights_hash": digest,
+        "trained": trained_info(state, kind, source),
+    }
+    if shapes is not None:
+        exported["int8"] = shapes
+    atomic_torch_save(out, exported)
+    return exported
+
+
+def add_export_weights_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of `u4d export-weights CKPT --out FILE`."""
+    parser.add_argument(
+        "checkpoint", type=Path, help="training checkpoint of train-diffusion, train-extractor or seg-train"
+    )
+    parser.add_argument("--out", type=Path, required=True, help="the float16 weights file to write (e.g. weights/*.pt)")
+    parser.add_argument(
+        "--int8",
+        action="store_true",
+        help="store tensors of >= 4096 values as int8 with a float16 scale per 64 (half the float16 size)",
+    )
+
+
+def run_export_weights(args: argparse.Namespace) -> int:
+    """`u4d export-weights`: float16 inference weights + config + hash of a training checkpoint."""
+    exported = export_weights(args.checkpoint, args.out, int8=args.int8)
+    size, before = args.out.stat().st_size, args.checkpoint.stat().st_size
+    print(
+        f"{exported['kind']} weights: {args.out} ({size / 1e6:.2f} MB; checkpoint {before / 1e6:.2f} MB), "
+        f"hash {exported['hash']}, step {exported['trained']['step']}"
+    )
+    return 0

@@ -1,0 +1,495 @@
+"""`u4d generate CONFIG --out BANK [--num N] [--mode u4d|baseline|complete] [--steps S] [--seed S]`.
+
+Writes a bank of generated scans (layout in `u4d_aug.bank`). Sample i is drawn with its own generator seeded
+seed + i, also inside a batch (`batch_size` samples per sampler call, fixed blocks of consecutive indices), so a
+bank does not depend on the number of torchrun ranks that share the work (rank r takes blocks r, r + world, ...);
+finished samples are skipped on a re-run, once their files match the digests the manifest records (a sample
+changed or truncated since is generated again). A generator trained on L > 1 frames writes each
+sample as an L-frame sequence (one bank sequence per sample); in completion mode sample i then completes the
+x0_u of window i of L real frames and keeps those frames' relative poses. A sequence generator conditioned on ego
+motion (net.pose_dim > 0) gets, for sample i, the motion of an L-frame window of its training sequences' poses.txt
+(window drawn with seed + i) or of `motion_file`; the bank sequence's poses.txt holds the poses of that motion
+(`u4d_aug.trajectory.poses_from_motion`), so TTCE/CTC (`u4d evaluate`) can score it. Completion mode conditions on
+the real frames' own motion.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from u4d_aug.bank import (
+    BankLayout,
+    check_compatible,
+    file_sha256,
+    read_manifest,
+    sample_digests,
+    sequence_name,
+    verify_samples,
+    write_manifest,
+    write_sample,
+    write_sequence_poses,
+)
+from u4d_aug.config import config_to_dict, load_config
+from u4d_aug.data.datasets import (
+    NuscenesScanDataset,
+    NuscenesSequenceDataset,
+    ScanDataset,
+    SequenceDataset,
+    open_scans,
+    open_sequences,
+)
+from u4d_aug.data.formats import read_calib, read_poses
+from u4d_aug.data.sensors import get_sensor
+from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
+from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.export_bank import export_bank
+from u4d_aug.io import remove_temp_files
+from u4d_aug.pipeline import Sampler, complete, generate_baseline, generate_u4d, load_generator, to_points
+from u4d_aug.progress import progress_bar
+from u4d_aug.runlock import run_lock
+from u4d_aug.sampling import Grid, check_grid
+from u4d_aug.stage import DiffusionTrainConfig
+from u4d_aug.trajectory import POSE_DIM, poses_from_motion, relative_motion
+from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
+
+logger = logging.getLogger(__name__)
+
+Scans = ScanDataset | NuscenesScanDataset  # single real scans (completion mode)
+Windows = SequenceDataset | NuscenesSequenceDataset  # L-frame windows with poses
+
+Mode = Literal["u4d", "baseline", "complete"]
+
+
+@dataclass
+class GenerateConfig:
+    """What to generate and with which checkpoints (checkpoint files or run folders: newest step_*.pt)."""
+
+    mode: Mode = "u4d"
+    stage1: str = ""  # u4d mode
+    stage2: str = ""  # u4d and complete modes
+    baseline: str = ""  # baseline mode
+    # ddpm: ancestral, as R2DM; ddim: DDIM at few steps keeps x_1 noise with briefly trained nets; dpmpp2m:
+    # DPM-Solver++(2M), deterministic 2nd order, the same t grid and one net call per step; dpmpp2m-sde: its
+    # stochastic (SDE, η = 1) form, which like ddpm adds fresh noise at every step
+    sampler: Sampler = "ddpm"
+    sampler_grid: Grid = "time"  # "logsnr": steps uniform in log-SNR (dpmpp2m and dpmpp2m-sde only)
+    steps: int = 32
+    stage1_steps: int | None = None  # None = steps; the uncertain region allows fewer
+    num: int = 64
+    seed: int = 0  # sample i uses seed + i
+    # samples per sampler call (fixed blocks of consecutive indices); each keeps its own seed, so a batch gives
+    # the scans of one-by-one calls up to float rounding, and the same batch_size gives the same bytes
+    batch_size: int = 8
+    frames: int | None = None  # L frames per sample; None = the L the generator was trained with (1: scans)
+    device: str = "auto"
+    # completion mode: x0_u, m_u from these real scans (sample i completes scan i mod count, or for sequence
+    # generators window i mod count of L frames, frame_stride apart as in training, with poses) and their probs;
+    # data_root is read in the layout the generator was trained on (its data_format: SemanticKITTI or nuScenes)
+    data_root: str = ""
+    sequences: list[str] | None = None
+    probs_root: str = ""
+    # sequence generators with an ego-motion input (net.pose_dim > 0), u4d and baseline modes: a .npy of (L, 4) or
+    # (N, L, 4) motions (x, y, z, yaw per frame; sample i takes motion i mod N) or a KITTI poses.txt of L lines
+    # (with calib.txt beside it if there is one); "" = windows of the training sequences' poses.txt
+    motion_file: str = ""
+    # for other codebases (`u4d export`, done once every sample is written): all-ignore .label files (value 0)
+    # beside the scans, and mmdetection3d's semantickitti_infos_train.pkl in the bank
+    labels: bool = False
+    mmdet3d_infos: bool = False
+
+    def __post_init__(self) -> None:
+        if self.num < 0 or self.steps < 1 or (self.stage1_steps is not None and self.stage1_steps < 1):
+            raise InputError(f"num must be >= 0 and steps >= 1, got num={self.num}, steps={self.steps}")
+        if self.batch_size < 1:
+            raise InputError(f"batch_size must be >= 1, got {self.batch_size}")
+        if self.frames is not None and self.frames < 1:
+            raise InputError(f"frames must be >= 1 or null (the generator's own), got {self.frames}")
+        try:
+            check_grid(self.sampler, self.sampler_grid)
+        except ValueError as exc:
+            raise InputError(f"sampler_grid: {exc}") from None
+
+
+def _checkpoint_paths(cfg: GenerateConfig) -> dict[str, Path]:
+    needed = {"u4d": ("stage1", "stage2"), "baseline": ("baseline",), "complete": ("stage2",)}[cfg.mode]
+    paths = {}
+    for name in needed:
+        value = getattr(cfg, name)
+        if not value:
+            raise InputError(f"{name}: mode {cfg.mode} needs the {name} checkpoint path")
+        path = Path(value)
+        if path.is_dir():
+            found = sorted((path / "checkpoints").glob("step_*.pt"))
+            if not found:
+                raise InputError(f"{path}: no checkpoints/step_*.pt in this run folder")
+            path = found[-1]
+        if not path.is_file():
+            raise InputError(f"{path}: {name} checkpoint not found")
+        paths[name] = path
+    return paths
+
+
+def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -> dict:
+    """Generate samples 0..num-1 not yet in the bank (this rank's share); rank 0 writes the manifest.
+
+    Rank 0 holds the bank's run lock (`u4d_aug.runlock`), removes temp files of killed writes and checks the finished
+    samples against the digests of the manifest (a changed one is generated again) before any rank writes.
+    """
+    info = init_distributed(cfg.device)
+    with run_lock(out, enabled=info.is_main):
+        manifest = generate_locked(cfg, Path(out), info, progress)
+    if info.is_main and (cfg.labels or cfg.mmdet3d_infos):
+        manifest = {**manifest, "export": export_bank(out, cfg.labels, cfg.mmdet3d_infos)}
+    return manifest
+
+
+def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bool) -> dict:
+    """The work of `generate_bank` once the bank is locked."""
+    paths = _checkpoint_paths(cfg)
+    hashes = {name: file_sha256(path) for name, path in paths.items()}
+    config = config_to_dict(cfg)
+    identity = {"mode": cfg.mode, "checkpoints": hashes, "seed": cfg.seed,
+                "sampling": {k: config[k] for k in ("sampler", "steps", "stage1_steps")}}  # fmt: skip
+    if cfg.sampler_grid != "time":  # banks written before the grid option (all "time") stay compatible
+        identity["sampling"]["sampler_grid"] = cfg.sampler_grid
+    if cfg.mode == "complete":
+        identity["source"] = {k: config[k] for k in ("data_root", "sequences", "probs_root")}
+    nets = {name: load_generator(path, info.device) for name, path in paths.items()}
+    main = nets["stage2"] if "stage2" in nets else nets["baseline"]
+    sensor = get_sensor(main[1].sensor)
+    frames = cfg.frames or main[1].frames  # L: 1 = single scans in sequence 00, > 1 = one sequence per sample
+    # configs of the nets with an ego-motion input, the final stage's first (its training sequences give the motion)
+    posed = [loaded[1] for loaded in (main, *nets.values()) if loaded[1].net.pose_dim > 0] if frames > 1 else []
+    motions: np.ndarray | None = None  # (num, L, 4) ego motion of each sample (u4d and baseline modes)
+    motion_sources: list[dict] = []
+    if posed and cfg.mode == "complete":
+        if cfg.motion_file:
+            raise InputError("motion_file: completion mode conditions on the motion of the real frames it completes")
+    elif posed:
+        motions, motion_sources = sample_motions(cfg, posed[0], frames)
+        identity["motion"] = {"file": file_sha256(cfg.motion_file)} if cfg.motion_file else "training sequences"
+    elif cfg.motion_file:
+        raise InputError("motion_file: these generators have no ego-motion input (net.pose_dim = 0 or one frame)")
+    check_compatible(Path(out), identity)
+    layout = BankLayout(Path(out), frames)
+    old = read_manifest(layout.root)
+    if old is not None and old.get("frames", 1) != frames:
+        raise InputError(
+            f"{layout.manifest_path}: bank holds {old.get('frames', 1)}-frame samples, asked for {frames}; "
+            "choose another --out or delete the bank"
+        )
+
+    scans: Scans | Windows | None = None
+    if cfg.mode == "complete":
+        if not cfg.data_root:
+            raise InputError("data_root: completion mode needs real scans to take x0_u from")
+        real = (main[1].data_format, main[1].nuscenes_version)  # real scans laid out as the generator's were
+        if frames == 1:
+            scans = open_scans(cfg.data_root, cfg.sequences, False, *real)
+        else:
+            try:
+                scans = open_sequences(cfg.data_root, frames, cfg.sequences, main[1].frame_stride, True, *real)
+            except InputError as exc:
+                raise InputError(f"completion mode writes the real frames' poses with each sequence: {exc}") from None
+        if len(scans) == 0:
+            raise InputError(f"{cfg.data_root}: no scans found")
+
+    manifest = {
+        **identity,
+        "config": config,
+        "checkpoint_paths": {name: str(path) for name, path in paths.items()},
+        "sensor": main[1].sensor,
+        "height": main[1].height,
+        "width": main[1].width,
+        "row_mode": main[1].row_mode,
+        "frames": frames,
+        "samples": [_sample_entry(cfg, i, scans, frames, motion_sources) for i in range(cfg.num)],
+        "complete": False,
+    }
+    if old is not None and len(old.get("samples", [])) > cfg.num:
+        manifest["samples"] = old["samples"]  # a re-run asking for fewer samples keeps the larger listing
+    if old is not None and "export" in old:
+        manifest["export"] = old["export"]  # what `u4d export` wrote beside the samples stays recorded
+    if info.is_main:
+        removed = remove_temp_files(layout.root)
+        if removed:
+            logger.info("%s: removed %d temp file(s) of a killed run", layout.root, removed)
+        verified = verify_samples(layout, old)  # samples changed since they were written are removed
+        for entry in manifest["samples"]:
+            entry.pop("sha256", None)
+            if entry["index"] in verified:
+                entry["sha256"] = verified[entry["index"]]
+        write_manifest(layout.root, manifest)
+    barrier()  # the other ranks look at the samples once rank 0 has checked them
+
+    # fixed blocks of batch_size consecutive samples, sharded across ranks: a block's scans do not depend on the
+    # rank count, and a block with a missing sample is generated again whole (finished samples are not rewritten)
+    blocks = [list(range(start, min(start + cfg.batch_size, cfg.num))) for start in range(0, cfg.num, cfg.batch_size)]
+    todo = [block for block in shard(blocks, info.rank, info.world_size) if not all(map(layout.is_done, block))]
+    bar = progress_bar(total=sum(map(len, todo)), enabled=(progress and info.is_main), desc=f"generate {cfg.mode}")
+    for block in todo:
+        n = len(block)
+        generators = [torch.Generator().manual_seed(cfg.seed + i) for i in block]  # sample i: seed + i
+        masks = uncertainty = x0_u = None  # per sample and frame: (n, L, H, W), (n, L, H, W), (n, L, 2, H, W)
+        motion = None if motions is None else torch.from_numpy(motions[block])  # (n, L, 4)
+        if motions is not None:
+            for i in block:
+                if not layout.is_done(i):  # poses first, frames last (a sample is done once all its frames are)
+                    write_sequence_poses(layout, i, poses_from_motion(motions[i]))
+        if cfg.mode == "u4d":
+            result = generate_u4d(
+                nets["stage1"],
+                nets["stage2"],
+                n,
+                cfg.steps,
+                generators,
+                cfg.sampler,
+                cfg.stage1_steps,
+                frames,
+                grid=cfg.sampler_grid,
+                motion=motion,
+            )
+            masks, x0_u = _per_sample(result["m_u_pred"], n)[:, :, 0], _per_sample(result["x0_u"], n)
+        elif cfg.mode == "baseline":
+            result = generate_baseline(
+                nets["baseline"], n, cfg.steps, generators, cfg.sampler, frames, grid=cfg.sampler_grid, motion=motion
+            )
+        else:
+            parts = [
+                _real_sample_condition(scans, i, generator, frames, main[1], cfg)
+                for i, generator in zip(block, generators)
+            ]
+            for i, (_, _, _, poses) in zip(block, parts):
+                if poses is not None and not layout.is_done(i):  # finished samples of the block stay untouched
+                    write_sequence_poses(layout, i, poses)
+            x0_u, m_u, entropy_image = (torch.stack([part[k] for part in parts]) for k in range(3))  # (n, L, ...)
+            if frames == 1:
+                x0_u, m_u = x0_u[:, 0], m_u[:, 0]  # single scans: (n, C, H, W)
+            if posed:  # the real frames' own motion, (n, L, 4)
+                motion = torch.from_numpy(np.stack([relative_motion(part[3]) for part in parts]))
+            result = complete(
+                nets["stage2"], x0_u, m_u, cfg.steps, generators, cfg.sampler, grid=cfg.sampler_grid, motion=motion
+            )
+            masks, uncertainty, x0_u = _per_sample(m_u, n)[:, :, 0], entropy_image.numpy(), _per_sample(x0_u, n)
+        clouds = to_points(result["x0"], sensor, main[1].row_mode)  # n·L point clouds, samples then frames
+        for j, i in enumerate(block):
+            if layout.is_done(i):
+                continue
+            for frame in range(frames):
+                side = [None if part is None else part[j, frame] for part in (masks, uncertainty, x0_u)]
+                write_sample(layout, i, clouds[j * frames + frame], *side, frame=frame)
+        bar.update(n)
+    bar.close()
+
+    barrier()
+    if info.is_main:
+        for entry in manifest["samples"]:
+            if "sha256" not in entry and layout.is_done(entry["index"]):
+                entry["sha256"] = sample_digests(layout, entry["index"])
+        manifest["complete"] = all(layout.is_done(i) for i in range(cfg.num))
+        if frames == 1:
+            manifest["empty"] = [i for i in range(cfg.num) if layout.is_empty(i)]
+        else:  # [sample, frame] pairs
+            manifest["empty"] = [[i, f] for i in range(cfg.num) for f in range(frames) if layout.is_empty(i, f)]
+        write_manifest(layout.root, manifest)
+    return manifest
+
+
+def _per_sample(images: torch.Tensor, n: int) -> np.ndarray:
+    """Images of n samples, (n, [L,] C, H, W) -> (n, L, C, H, W) numpy."""
+    return images.detach().cpu().reshape(n, -1, *images.shape[-3:]).numpy()
+
+
+def _real_sample_condition(
+    scans: Scans | Windows,
+    index: int,
+    generator: torch.Generator,
+    frames: int,
+    train_cfg: DiffusionTrainConfig,
+    cfg: GenerateConfig,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, np.ndarray | None]:
+    """Completion mode: x0_u (L, 2, H, W), m_u (L, 1, H, W), entropy (L, H, W) and poses (or None) of sample index."""
+    item = scans[index % len(scans)]
+    if frames == 1:
+        item = {"points": [item["points"]], "seq": item["seq"], "frames": [item["frame"]], "poses": None}
+    conditions = [
+        _real_condition(points, item["seq"], frame, train_cfg, cfg.probs_root, generator)
+        for points, frame in zip(item["points"], item["frames"])
+    ]
+    x0_u, m_u, entropy_image = (torch.stack(parts) for parts in zip(*conditions))
+    return x0_u, m_u, entropy_image, (item["poses"] if frames > 1 else None)
+
+
+def load_motion_file(path: str | Path, frames: int) -> np.ndarray:
+    """(N, L, 4) float32 ego motions from a .npy of (L, 4) or (N, L, 4), or from a KITTI poses.txt of L lines."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: motion_file not found")
+    if path.suffix == ".npy":
+        try:
+            motion = np.load(path, allow_pickle=False)
+        except ValueError as exc:
+            raise InputError(f"{path}: not a numeric .npy ({exc})") from None
+        if not np.issubdtype(motion.dtype, np.number):
+            raise InputError(f"{path}: expected numbers, got a {motion.dtype} array")
+        if motion.ndim == 2:
+            motion = motion[None]
+    elif path.suffix == ".txt":
+        calib_path = path.parent / "calib.txt"
+        poses = read_poses(path, read_calib(calib_path) if calib_path.is_file() else None)  # (T, 4, 4) LiDAR poses
+        if len(poses) != frames:
+            raise InputError(f"{path}: {len(poses)} poses, expected the {frames} of one sequence")
+        motion = relative_motion(poses)[None]
+    else:
+        raise InputError(f"{path}: motion_file must be a .npy of (L, 4) or (N, L, 4) motions or a poses .txt")
+    if motion.ndim != 3 or motion.shape[1:] != (frames, POSE_DIM) or len(motion) == 0:
+        raise InputError(
+            f"{path}: expected ({frames}, {POSE_DIM}) or (N, {frames}, {POSE_DIM}) motion, got {motion.shape}"
+        )
+    if not np.isfinite(motion).all():
+        raise InputError(f"{path}: motion holds non-finite values")
+    return motion.astype(np.float32)
+
+
+def training_windows(train_cfg: DiffusionTrainConfig, frames: int) -> Windows:
+    """L-frame windows (and poses, no scans) of the sequences a pose-conditioned generator was trained on."""
+    if not train_cfg.data_root:
+        raise InputError("the generator's config names no data_root to draw trajectories from")
+    return open_sequences(
+        train_cfg.data_root, frames, train_cfg.sequences, train_cfg.frame_stride, True,
+        train_cfg.data_format, train_cfg.nuscenes_version,
+    )  # fmt: skip
+
+
+def window_motion(windows: Windows, index: int) -> tuple[np.ndarray, list[str]]:
+    """(L, 4) ego motion of window `index` of `windows` and its frames as 'seq/frame' names."""
+    seq, start = windows.windows[index]
+    positions = list(range(start, start + windows.num_frames * windows.stride, windows.stride))
+    assert windows.poses is not None  # built with_poses=True
+    return relative_motion(windows.poses[seq][positions]), [f"{seq}/{windows.frames[seq][p]}" for p in positions]
+
+
+def sample_motions(cfg: GenerateConfig, train_cfg: DiffusionTrainConfig, frames: int) -> tuple[np.ndarray, list[dict]]:
+    """(num, L, 4) ego motion of every sample and where it came from; sample i's depends only on seed + i."""
+    if cfg.motion_file:
+        motions = load_motion_file(cfg.motion_file, frames)
+        rows = [i % len(motions) for i in range(cfg.num)]
+        return motions[rows].reshape(cfg.num, frames, POSE_DIM), [{"file": cfg.motion_file, "row": r} for r in rows]
+    try:
+        windows = training_windows(train_cfg, frames)
+    except InputError as exc:
+        raise InputError(
+            f"motion_file: the generator is conditioned on ego motion and no trajectory source was found ({exc}); "
+            "set motion_file=PATH (.npy of (L, 4) or (N, L, 4) x, y, z, yaw, or a poses.txt of L lines)"
+        ) from None
+    motions, sources = [np.zeros((0, frames, POSE_DIM), dtype=np.float32)], []
+    for i in range(cfg.num):
+        index = int(np.random.default_rng(cfg.seed + i).integers(len(windows)))  # sample i: seed + i
+        motion, names = window_motion(windows, index)
+        motions.append(motion[None])
+        sources.append({"window": names})
+    return np.concatenate(motions), sources
+
+
+def _sample_entry(
+    cfg: GenerateConfig,
+    index: int,
+    scans: Scans | Windows | None,
+    frames: int,
+    motion_sources: list[dict],
+) -> dict:
+    entry: dict = {"index": index, "seed": cfg.seed + index}
+    if motion_sources:  # the trajectory this sample was generated for (its poses.txt)
+        entry["motion"] = motion_sources[index]
+    if frames == 1:
+        entry["file"] = f"sequences/00/velodyne/{index:06d}.bin"
+    else:
+        entry["sequence"] = sequence_name(index)
+        entry["files"] = [f"sequences/{sequence_name(index)}/velodyne/{f:06d}.bin" for f in range(frames)]
+    if isinstance(scans, Scans):
+        seq, frame = scans.entries[index % len(scans)]
+        entry["source"] = f"{seq}/{frame}"
+    elif isinstance(scans, Windows):
+        seq, start = scans.windows[index % len(scans)]
+        names = scans.frames[seq][start : start + frames * scans.stride : scans.stride]
+        entry["source"] = [f"{seq}/{name}" for name in names]
+    return entry
+
+
+def _real_condition(
+    points: np.ndarray, seq: str, frame: str, train_cfg: DiffusionTrainConfig, probs_root: str, generator
+):
+    """x0_u (2, H, W), m_u (1, H, W), entropy image (H, W) of one real scan, as stage 2 was trained."""
+    points = torch.from_numpy(points)
+    strategy = train_cfg.uncertainty.strategy
+    if strategy == "none":
+        probs = np.zeros((points.shape[0], 1), dtype=np.float32)
+    else:
+        root = probs_root or train_cfg.probs_root
+        if not root:
+            raise InputError("probs_root: completion mode needs the probability files of the real scans")
+        probs = load_probs(probs_path(root, seq, frame), points.shape[0])
+    sensor = get_sensor(train_cfg.sensor)
+    return uncertain_range_view(
+        points, probs, sensor, train_cfg.height, train_cfg.width, train_cfg.row_mode,
+        train_cfg.uncertainty.k, strategy, generator,
+    )  # fmt: skip
+
+
+def add_generate_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of `u4d generate CONFIG --out BANK [--num N] [--mode ...] [--steps S] [--seed S] [key=value ..]`."""
+    parser.add_argument("config", type=Path, help="yaml naming the checkpoints, sampler and steps")
+    parser.add_argument(
+        "overrides",
+        nargs="*",
+        help="key=value overrides, e.g. stage1=runs/s1 sampler=dpmpp2m (ddpm|ddim|dpmpp2m|dpmpp2m-sde) "
+        "sampler_grid=logsnr (time|logsnr) motion_file=trajectory.npy (ego-motion-conditioned sequence nets)",
+    )
+    parser.add_argument("--out", type=Path, required=True, help="bank folder (SemanticKITTI layout)")
+    parser.add_argument("--num", type=int, default=None, help="number of scans (default: the config's num)")
+    parser.add_argument("--mode", choices=["u4d", "baseline", "complete"], default=None)
+    parser.add_argument("--steps", type=int, default=None, help="sampling steps")
+    parser.add_argument("--seed", type=int, default=None, help="base seed: sample i uses seed + i")
+    parser.add_argument(
+        "--labels", action="store_true", help="also write all-ignore labels/NNNNNN.label (as `u4d export --labels`)"
+    )
+    parser.add_argument(
+        "--mmdet3d-infos", action="store_true", help="also write mmdetection3d's semantickitti_infos_train.pkl"
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run_generate(args: argparse.Namespace) -> int:
+    """`u4d generate`: write a bank of generated scans (torchrun shards the samples across ranks)."""
+    overrides = list(args.overrides)
+    for key in ("num", "mode", "steps", "seed"):
+        if getattr(args, key) is not None:
+            overrides.append(f"{key}={getattr(args, key)}")
+    for key in ("labels", "mmdet3d_infos"):
+        if getattr(args, key):
+            overrides.append(f"{key}=true")
+    cfg = load_config(GenerateConfig, args.config, overrides)
+    try:
+        generate_bank(cfg, args.out, progress=not args.no_progress)
+    finally:
+        cleanup()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m u4d_aug.generate CONFIG ...`: the same as `u4d generate`, handy under torchrun."""
+    parser = argparse.ArgumentParser(prog="python -m u4d_aug.generate", description=run_generate.__doc__)
+    add_generate_arguments(parser)
+    return exit_code_of(lambda args: run_generate(parser.parse_args(args)), argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

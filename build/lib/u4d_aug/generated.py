@@ -1,0 +1,103 @@
+"""Scans generated on the fly for a training loop: an iterable of `ScanDataset`-like items, no bank on disk.
+
+Sample i is drawn with its own generator seeded `seed + i` in fixed blocks of `batch_size` consecutive samples,
+as `u4d generate` does, so the stream yields the scans a bank of the same settings holds, in the same order
+(`seq`/`frame` name the files that bank would have). Samples with no return at all are skipped, as a bank skips
+them. Under a `DataLoader` with several workers, worker w takes blocks w, w + W, ... (no duplicates).
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Iterator, Sequence
+from typing import Literal
+
+import torch
+from torch.utils.data import IterableDataset, get_worker_info
+
+from u4d_aug.bank import BANK_SEQUENCE, sequence_name
+from u4d_aug.errors import InputError
+from u4d_aug.pipeline import Loaded, Sampler, generate_baseline, generate_u4d, to_points
+
+__all__ = ["GeneratedScans"]
+
+Mode = Literal["u4d", "baseline"]
+
+
+class GeneratedScans(IterableDataset):
+    """U4D (nets = [stage 1, stage 2]) or baseline (nets = [net]) scans: {points, labels None, seq, frame}.
+
+    `num` samples (None: endless); a generator trained on L > 1 frames gives L scans per sample.
+    """
+
+    def __init__(
+        self,
+        mode: Mode,
+        nets: Sequence[Loaded],
+        num: int | None = None,
+        steps: int = 32,
+        seed: int = 0,
+        batch_size: int = 1,
+        sampler: Sampler = "ddpm",
+        stage1_steps: int | None = None,
+        frames: int | None = None,
+    ) -> None:
+        if mode == "u4d":
+            needed = 2
+        elif mode == "baseline":
+            needed = 1
+        else:
+            raise InputError(f"GeneratedScans: mode {mode!r} is not one of 'u4d', 'baseline'")
+        if len(nets) != needed:
+            raise InputError(f"GeneratedScans: mode {mode} takes {needed} loaded net(s), got {len(nets)}")
+        if (num is not None and num < 0) or steps < 1 or batch_size < 1:
+            raise InputError(
+                f"GeneratedScans: need num >= 0, steps >= 1, batch_size >= 1; got {num}, {steps}, {batch_size}"
+            )
+        self.mode = mode
+        self.nets = list(nets)
+        self.num = num
+        self.steps = steps
+        self.seed = seed
+        self.batch_size = batch_size
+        self.sampler = sampler
+        self.stage1_steps = stage1_steps
+        self.frames = frames or self.nets[-1][1].frames
+
+    def __iter__(self) -> Iterator[dict]:
+        worker = get_worker_info()
+        worker_id, workers = (worker.id, worker.num_workers) if worker is not None else (0, 1)
+        starts = itertools.count(0, self.batch_size) if self.num is None else range(0, self.num, self.batch_size)
+        for k, start in enumerate(starts):
+            if k % workers != worker_id:
+                continue
+            stop = start + self.batch_size if self.num is None else min(start + self.batch_size, self.num)
+            yield from self._block(list(range(start, stop)))
+
+    def _block(self, block: list[int]) -> Iterator[dict]:
+        """The scans of samples `block`, each drawn with the generator seeded seed + i."""
+        generators = [torch.Generator().manual_seed(self.seed + i) for i in block]
+        with torch.no_grad():
+            x0 = self._sample(len(block), generators)  # (n, [L,] 2, H, W)
+        cfg = self.nets[-1][1]
+        clouds = to_points(x0, cfg.sensor, cfg.row_mode)  # n·L clouds, samples then frames
+        for j, i in enumerate(block):
+            for frame in range(self.frames):
+                points = clouds[j * self.frames + frame]
+                if len(points) == 0:
+                    continue
+                if self.frames == 1:
+                    seq, name = BANK_SEQUENCE, f"{i:06d}"
+                else:
+                    seq, name = sequence_name(i), f"{frame:06d}"
+                yield {"points": points, "labels": None, "seq": seq, "frame": name}
+
+    def _sample(self, n: int, generators: list[torch.Generator]) -> torch.Tensor:
+        if self.mode == "u4d":
+            stage1, stage2 = self.nets
+            result = generate_u4d(
+                stage1, stage2, n, self.steps, generators, self.sampler, self.stage1_steps, self.frames
+            )
+        else:
+            result = generate_baseline(self.nets[0], n, self.steps, generators, self.sampler, self.frames)
+        return result["x0"]

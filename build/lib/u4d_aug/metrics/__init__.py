@@ -1,0 +1,1 @@
+"""Generation metrics: FRD, FPD, BEV JSD/MMD, TTCE, CTC."""

@@ -1,0 +1,1 @@
+"""Network building blocks for range-image diffusion (ring convolutions, UNet, MoST)."""

@@ -1,0 +1,145 @@
+"""The contract of a diffusion stage: its training config, how its net is built, and how a checkpoint names both.
+
+Imported by training (`u4d_aug.train`), inference (`u4d_aug.pipeline`) and generation (`u4d_aug.generate`), so none
+of them imports another for it. Stage 1 learns x0_u (the projected uncertain region P_u) with a mask head (L_u),
+stage 2 learns the full scan given concat(x0_u, m_u) (L_c), the baseline learns x0 unconditionally (R2DM).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import torch
+
+from u4d_aug.config import config_from_dict
+from u4d_aug.data.datasets import DATASET_FORMATS
+from u4d_aug.data.nuscenes import NUSCENES_VERSION
+from u4d_aug.data.sensors import get_sensor
+from u4d_aug.diffusion import DiffusionConfig
+from u4d_aug.errors import InputError
+from u4d_aug.nn.unet import RangeUNet, UNetConfig
+from u4d_aug.range_view import RowMode, ray_angles
+from u4d_aug.uncertainty import Strategy
+from u4d_aug.validate import check_finite_config, check_positive
+
+CHECKPOINT_KIND = "u4d-diffusion"
+
+
+@dataclass
+class UncertaintyConfig:
+    """P_u selection (paper §2.1): k as a point count (int) or a fraction of the scan (float)."""
+
+    k: int | float = 0.1
+    strategy: Strategy = "entropy"
+
+
+@dataclass
+class OptimConfig:
+    """AdamW with linear warm-up (R2DM: lr 1e-4, batch 8, no weight decay, grad-norm clip 1)."""
+
+    lr: float = 1e-4
+    betas: tuple[float, float] = (0.9, 0.99)
+    weight_decay: float = 0.0
+    warmup_steps: int = 100
+    grad_clip: float = 1.0  # max grad norm; 0 = off
+
+    def __post_init__(self) -> None:
+        check_finite_config(self, "optim.")
+        check_positive(self, "lr", prefix="optim.")
+        check_positive(self, "weight_decay", "warmup_steps", "grad_clip", allow_zero=True, prefix="optim.")
+        if not all(0.0 <= beta < 1.0 for beta in self.betas):
+            raise InputError(f"optim.betas must be in [0, 1), got {list(self.betas)}")
+
+
+@dataclass
+class DiffusionTrainConfig:
+    """One stage's training run; `net.mask_head` and `net.cond_channels` follow `diffusion.stage`."""
+
+    data_root: str = ""  # SemanticKITTI layout: ROOT/sequences/XX/velodyne/NNNNNN.bin, or a nuScenes root
+    # layout of data_root: "semantickitti", or "nuscenes" (the keyframes of the v1.0 tables under ROOT/<version>/)
+    data_format: Literal["semantickitti", "nuscenes"] = "semantickitti"
+    nuscenes_version: str = NUSCENES_VERSION  # data_format nuscenes: the table folder under data_root
+    sequences: list[str] | None = None  # None = all under data_root (nuScenes: scene names, numbers or ranges)
+    probs_root: str = ""  # PROBS/sequences/XX/probs/NNNNNN.npy from `u4d seg-predict` (stage1/stage2)
+    sensor: str = "hdl64"  # hdl64 | hdl32 | sensor yaml
+    height: int = 64
+    width: int = 1024
+    row_mode: RowMode = "beam"
+    crop_width: int = 0  # > 0: train on random azimuth crops of this many columns (sampling stays full width); 0 = off
+    frames: int = 1  # L: scans per item; > 1 trains on L-frame windows of one sequence, (B, L, C, H, W)
+    frame_stride: int = 1  # frames between the scans of a window
+    uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
+    net: UNetConfig = field(default_factory=UNetConfig)
+    diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    ema_decay: float = 0.995
+    ema_warmup_steps: int = 0
+    steps: int = 1000
+    max_minutes: float = 0.0  # wall-clock budget (0 = none): stop with a checkpoint once used, even before `steps`
+    batch_size: int = 8  # per rank
+    log_every: int = 50
+    checkpoint_every: int = 500
+    keep_checkpoints: int = 2  # 0 = keep all
+    sample_every: int = 0  # 0 = no sample PNGs; else a DDPM sample of the EMA net every that many steps
+    sample_steps: int = 32
+    cache_images: bool = True  # keep the projected range images of the training scans in memory
+    seed: int = 0
+    device: str = "auto"
+    out: str = "runs/u4d"
+    # a trained net of the same stage (checkpoint, run folder or exported weights) whose EMA weights start this run
+    # at step 0 (fine-tuning); what this net adds to it (MoST blocks, the pose embedding) starts as the identity
+    init_from: str = ""
+
+    def __post_init__(self) -> None:
+        self.net.mask_head = self.diffusion.stage == "stage1"
+        self.net.cond_channels = 3 if self.diffusion.stage == "stage2" else 0
+        if self.data_format not in DATASET_FORMATS:
+            raise InputError(f"data_format must be one of {', '.join(DATASET_FORMATS)}, got {self.data_format!r}")
+        if self.steps < 1 or self.batch_size < 1:
+            raise InputError(f"steps and batch_size must be >= 1, got {self.steps}, {self.batch_size}")
+        if self.height < 1 or self.width < 1:
+            raise InputError(f"height/width must be >= 1, got {self.height}x{self.width}")
+        factor = self.net.downsampling_factor
+        if self.crop_width and not (0 < self.crop_width <= self.width and self.crop_width % factor == 0):
+            raise InputError(
+                f"crop_width must be 0 (off) or a multiple of {factor} (the net's downsampling) up to width "
+                f"{self.width}, got {self.crop_width}"
+            )
+        if self.frames < 1 or self.frame_stride < 1:
+            raise InputError(f"frames and frame_stride must be >= 1, got {self.frames}, {self.frame_stride}")
+        check_finite_config(self)
+        check_positive(self, "log_every", "checkpoint_every", "sample_steps")
+        check_positive(self, "keep_checkpoints", "sample_every", "max_minutes", "ema_warmup_steps", allow_zero=True)
+        if not 0.0 <= self.ema_decay <= 1.0:
+            raise InputError(f"key 'ema_decay' must be in [0, 1], got {self.ema_decay}")
+
+
+def build_net(cfg: DiffusionTrainConfig, device: torch.device | str = "cpu") -> RangeUNet:
+    """RangeUNet of the config (initialised from cfg.seed), with the ray angles of its sensor for Fourier features."""
+    elevation, azimuth = ray_angles(get_sensor(cfg.sensor), cfg.height, cfg.width, cfg.row_mode)
+    with torch.random.fork_rng(devices=[]):  # seeded init without touching the caller's global RNG
+        torch.manual_seed(cfg.seed)
+        net = RangeUNet(cfg.net, elevation.float(), azimuth.float())
+    return net.to(device)
+
+
+def find_checkpoint(out_dir: Path, resume: str | Path) -> Path:
+    """`--resume` without a path -> newest OUT/checkpoints/step_*.pt; with a path -> that file."""
+    if str(resume) != "last":
+        path = Path(resume)
+        if not path.is_file():
+            raise InputError(f"{path}: checkpoint to resume from not found")
+        return path
+    found = sorted((out_dir / "checkpoints").glob("step_*.pt"))
+    if not found:
+        raise InputError(f"{out_dir / 'checkpoints'}: no step_*.pt checkpoint to resume from")
+    return found[-1]
+
+
+def config_from_checkpoint(ckpt: dict, source: str) -> DiffusionTrainConfig:
+    """The resolved DiffusionTrainConfig stored in a checkpoint."""
+    if ckpt.get("kind") != CHECKPOINT_KIND:
+        raise InputError(f"{source}: not a u4d train-diffusion checkpoint")
+    return config_from_dict(DiffusionTrainConfig, ckpt["config"], source=source)
