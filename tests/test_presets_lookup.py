@@ -164,7 +164,8 @@ def test_non_editable_install_runs_from_an_empty_folder(tmp_path):
 
     run(*u4d, "simulate", "--out", "world", "--sequences", "2", "--frames", "2", "--seed", "0", "--config",
         "sim/tiny")  # fmt: skip
-    out = run(*u4d, "seg-train", "seg/tiny", "data.root=world", 'data.train_sequences=["00"]',
-              'data.val_sequences=["01"]', "optim.steps=2", "eval_every=2", "--out", "seg", "--no-progress")  # fmt: skip
+    split = ['data.train_sequences=["00"]', 'data.val_sequences=["01"]']
+    out = run(*u4d, "seg-train", "seg/tiny", "data.root=world", *split, "optim.steps=2", "eval_every=2",
+              "--out", "seg", "--no-progress")  # fmt: skip
     assert "step 2: val mIoU" in out and (empty / "seg" / "model.pt").is_file()
     assert "batch (" in run(str(python), "-c", BANK_IN_A_LOADER)
