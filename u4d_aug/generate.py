@@ -38,6 +38,7 @@ from u4d_aug.bank import (
     write_sequence_poses,
 )
 from u4d_aug.config import config_to_dict, load_config
+from u4d_aug.data.beams import check_beams
 from u4d_aug.data.datasets import (
     NuscenesScanDataset,
     NuscenesSequenceDataset,
@@ -201,6 +202,9 @@ def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bo
                 raise InputError(f"completion mode writes the real frames' poses with each sequence: {exc}") from None
         if len(scans) == 0:
             raise InputError(f"{cfg.data_root}: no scans found")
+        first = scans[0]
+        points = first["points"] if frames == 1 else first["points"][0]
+        check_beams(points, get_sensor(main[1].sensor), f"{cfg.data_root}: scan of sequence {first['seq']}")
 
     manifest = {
         **identity,

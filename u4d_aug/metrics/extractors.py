@@ -36,6 +36,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from u4d_aug.config import config_to_dict, load_config, save_config
+from u4d_aug.data.beams import check_beams
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
 from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.errors import InputError
@@ -481,6 +482,7 @@ def train_extractor_locked(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
         raise InputError(f"{cfg.data.root}: no labelled scans in sequences {cfg.data.sequences}")
     val_dataset = _heldout_dataset(cfg)  # opened before training so that a wrong split fails at once
     sensor = get_sensor(cfg.data.sensor)
+    check_beams(dataset[0]["points"], sensor, f"{cfg.data.root}: first training scan")  # a warning
     rng = np.random.default_rng(cfg.train.seed)
     with torch.random.fork_rng():
         torch.manual_seed(cfg.train.seed)  # initial weights from the config seed, global state restored after
