@@ -125,7 +125,7 @@ def test_varied_preset_mixes_every_type() -> None:
 def test_place_config_is_recorded_on_the_sequence() -> None:
     seq = build_sequence(2, 1, 2, hdl64(), _only("park"))
     assert seq.street_type == "park"
-    assert seq.cfg.street.grass_strip_prob == 0.9 and seq.cfg.lots.park_block_prob == 0.5
+    assert seq.cfg.street.grass_strip_prob == 0.9 and seq.cfg.lots.park_block_prob == 0.3
 
 
 # ------------------------------------------------------------------------------------------------------------

@@ -80,10 +80,10 @@ def park(mb: MeshBuilder, rng: np.random.Generator, cfg: SimConfig, inner, h: fl
         mb.add(path, label, material, sample_reflectivity(rng, material, len(path[1])))
     clear = width / 2 + 1.5
     area = (x1 - x0) * (y1 - y0)
-    for _ in range(int(area / rng.uniform(70.0, 140.0))):
+    for _ in range(int(area / rng.uniform(40.0, 90.0))):
         x, y = rng.uniform(x0 + 1.5, x1 - 1.5), rng.uniform(y0 + 1.5, y1 - 1.5)
         if abs(x - px) > clear and abs(y - py) > clear:
-            objects.tree(mb, rng, (x, y), h + 0.05, rng.uniform(0.8, 1.3))
+            objects.tree(mb, rng, (x, y), h + 0.05, rng.uniform(0.7, 1.2), clearance=2.0)
     for _ in range(int(area / 90.0)):
         x, y = rng.uniform(x0 + 1.0, x1 - 1.0), rng.uniform(y0 + 1.0, y1 - 1.0)
         if abs(x - px) > clear and abs(y - py) > clear:
@@ -96,25 +96,32 @@ def park(mb: MeshBuilder, rng: np.random.Generator, cfg: SimConfig, inner, h: fl
             if rng.random() < 0.6:
                 bench = (t + 3.0, py - width / 2 - 0.5) if along_x else (px - width / 2 - 0.5, t + 3.0)
                 objects.other_object(mb, rng, bench, h + 0.09, 0.0 if along_x else np.pi / 2)
-    if rng.random() < 0.3:  # a low fence round the lawn, open where the paths leave the park
-        for a, b in (((x0, y0), (x1, y0)), ((x1, y0), (x1, y1)), ((x1, y1), (x0, y1)), ((x0, y1), (x0, y0))):
-            a, b = np.array(a), np.array(b)
-            along = b - a
-            cut = px if along[0] != 0 else py
-            s = (cut - a[0]) / along[0] if along[0] != 0 else (cut - a[1]) / along[1]
-            gap = (width / 2 + 0.5) / np.linalg.norm(along)
-            for s0, s1 in ((0.0, s - gap), (s + gap, 1.0)):
-                if s1 - s0 > 0.05:
-                    objects.fence(
-                        mb, rng, a + along * s0 + 0.3 * _inward(along), a + along * s1 + 0.3 * _inward(along), h
-                    )
+    edge = rng.random()  # a shrub belt or a low fence round the lawn, open where the paths leave the park
+    if edge < 0.75:
+        _perimeter(mb, rng, inner, (px, py, px, py), width / 2 + 0.5, h, "hedge" if edge < 0.5 else "fence")
     return [np.array([(x0, py), (x1, py)]), np.array([(px, y0), (px, y1)])]
 
 
-def _inward(along: np.ndarray) -> np.ndarray:
-    """Unit normal to the left of a counter-clockwise rectangle side (towards its inside)."""
-    n = np.array([-along[1], along[0]])
-    return n / np.linalg.norm(n)
+def _perimeter(mb: MeshBuilder, rng: np.random.Generator, rect, cuts, half_gap: float, h: float, kind: str) -> None:
+    """Hedge or fence 0.6 m inside the rectangle's four sides (bottom, right, top, left), each open `half_gap` m
+    either side of its cut (x for bottom/top, y for right/left)."""
+    x0, y0, x1, y1 = rect
+    corners = [np.array(c, dtype=np.float64) for c in ((x0, y0), (x1, y0), (x1, y1), (x0, y1))]
+    for side in range(4):
+        a, b = corners[side], corners[(side + 1) % 4]
+        along = b - a
+        length = float(np.linalg.norm(along))
+        inward = np.array([-along[1], along[0]]) / length
+        axis = 0 if side % 2 == 0 else 1
+        cut = (cuts[side] - a[axis]) / along[axis]
+        gap = half_gap / length
+        for s0, s1 in ((0.0, cut - gap), (cut + gap, 1.0)):
+            if (s1 - s0) * length > 1.0:
+                p0, p1 = a + along * s0 + 0.6 * inward, a + along * s1 + 0.6 * inward
+                if kind == "hedge":
+                    objects.hedge(mb, rng, p0, p1, h, (1.2, 2.2))
+                else:
+                    objects.fence(mb, rng, p0, p1, h)
 
 
 def plaza(mb: MeshBuilder, rng: np.random.Generator, cfg: SimConfig, inner, h: float, ids) -> list[np.ndarray]:
@@ -125,6 +132,24 @@ def plaza(mb: MeshBuilder, rng: np.random.Generator, cfg: SimConfig, inner, h: f
     material = cfg.street.sidewalk_material
     paving = flat_grid(x0, x1, y0, y1, h + 0.005, 4.0)
     mb.add(paving, "sidewalk", material, sample_reflectivity(rng, material, len(paving[1])))
+    # houses frame the square on some sides (facades towards it), the rest stays open to the streets
+    frame = [rng.random() < 0.6 for _ in range(4)]
+    depth = rng.uniform(9.0, 13.0)
+    floors = int(rng.integers(3, 6))
+    low, high = y0 + (depth if frame[0] else 0.0), y1 - (depth if frame[2] else 0.0)
+    rects = (
+        (x0, y0, x1, y0 + depth),
+        (x1 - depth, low, x1, high),
+        (x0, y1 - depth, x1, y1),
+        (x0, low, x0 + depth, high),
+    )
+    for side, (built, rect) in enumerate(zip(frame, rects)):
+        if built and rect[2] - rect[0] > 4.0 and rect[3] - rect[1] > 4.0:
+            objects.building(mb, rng, rect, floors, rng.uniform(2.9, 3.4), (side + 2) % 4, h - 0.2)
+    x0, x1 = x0 + (depth if frame[3] else 0.0), x1 - (depth if frame[1] else 0.0)
+    y0, y1 = y0 + (depth if frame[0] else 0.0), y1 - (depth if frame[2] else 0.0)
+    if x1 - x0 < 12.0 or y1 - y0 < 12.0:
+        return []
     inset = rng.uniform(3.0, 5.0)
     ring = _loop(x0 + inset, y0 + inset, x1 - inset, y1 - inset)
     spacing = rng.uniform(8.0, 12.0)
@@ -151,6 +176,8 @@ def plaza(mb: MeshBuilder, rng: np.random.Generator, cfg: SimConfig, inner, h: f
         mb.add(basin, "other-structure", "curb", sample_reflectivity(rng, "curb", len(basin[1])))
     for _ in range(int(rng.integers(1, 3))):  # kiosks / cafe pavilions (building)
         sx, sy = rng.uniform(3.0, 6.0), rng.uniform(3.0, 5.0)
+        if x1 - x0 < 2 * (inset + sx) + 1.0 or y1 - y0 < 2 * (inset + sy) + 1.0:
+            continue
         kx = rng.uniform(x0 + inset + sx, x1 - inset - sx)
         ky = rng.uniform(y0 + inset + sy, y1 - inset - sy)
         if abs(kx - cx) < 4.0 + sx and abs(ky - cy) < 4.0 + sy:
@@ -175,6 +202,14 @@ def parking_lot(mb: MeshBuilder, rng: np.random.Generator, cfg: SimConfig, inner
         return []
     surface = flat_grid(x0, x1, y0, y1, h + 0.005, 4.0)
     mb.add(surface, "parking", "parking", sample_reflectivity(rng, "parking", len(surface[1])))
+    if rng.random() < 0.6:  # a hedge round the lot, an entrance on each side
+        cuts = (
+            rng.uniform(x0 + 8, x1 - 8),
+            rng.uniform(y0 + 7, y1 - 7),
+            rng.uniform(x0 + 8, x1 - 8),
+            rng.uniform(y0 + 7, y1 - 7),
+        )
+        _perimeter(mb, rng, inner, cuts, 3.5, h, "hedge")
     occupancy = rng.uniform(0.4, 0.9)
     stall_w, stall_d, aisle = rng.uniform(2.4, 2.7), 5.0, 6.5
     island = 2.5  # lawn islands with a tree at both ends of each double row

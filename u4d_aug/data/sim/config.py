@@ -180,6 +180,16 @@ class LidarConfig:
     # returns farther than this read raw 0 (unlabeled): the real seq-00 labels stop at ~50 m (every return beyond
     # 50 m is unlabeled, 1.7 % of a scan); None labels everything
     label_range: float | None = 50.0
+    # --- measured sensor and surface model (raycast.py, surfaces.py), fitted to the real seq-00 frames with
+    # `u4d sim-report` (per-class remission histograms, range roughness, mixed pixels); off in the default world
+    surface_model: Literal["basic", "measured"] = "basic"  # measured: per-material remission gain and range scatter
+    ring_gain_spread: float = 0.0  # std of the log remission gain of each laser (HDL-64E lasers differ by ~10 %)
+    speckle: float = 0.0  # std of the log remission of each return (mean-preserving)
+    range_noise_per_m: float = 0.0  # m of range noise std added per metre of range
+    dark_drop: float = 0.0  # returns with a signal below dark_level are lost with up to this probability
+    dark_level: float = 0.03  # signal (remission before noise) below which dark returns start to be lost
+    mixed_pixel_prob: float = 0.0  # a return at a depth edge (> mixed_pixel_jump) reads a range between both sides
+    mixed_pixel_jump: float = 0.5  # m
 
 
 @dataclass
@@ -219,6 +229,13 @@ class SimConfig:
         check_positive(self, "view_radius", "frame_rate")
         check_positive(
             self,
+            "lidar.ring_gain_spread",
+            "lidar.speckle",
+            "lidar.range_noise_per_m",
+            "lidar.dark_drop",
+            "lidar.dark_level",
+            "lidar.mixed_pixel_prob",
+            "lidar.mixed_pixel_jump",
             "street.median_terrain_prob",
             "street.signal_prob",
             "lots.park_block_prob",

@@ -94,6 +94,7 @@ def street_type_config(cfg: SimConfig, kind: str) -> SimConfig:
             signal_prob=0.8,
             sidewalk_width=(3.0, 5.0),
         )
+        cfg = _replace(cfg, "lots", kind_weights=(0.25, 0.45, 0.05, 0.05, 0.20))  # town centre: row houses
         cfg = _replace(cfg, "objects", sign_prob=1.0)
         return _replace(
             cfg, "agents", ego_turn_prob=0.7, cars_per_100m=3.5, pedestrians_per_100m=5.0, bicyclists_per_100m=1.5
@@ -109,20 +110,20 @@ def street_type_config(cfg: SimConfig, kind: str) -> SimConfig:
             curb_height=(0.08, 0.14),
             parking_prob=0.5,
         )
-        cfg = _replace(cfg, "lots", park_block_prob=0.5, kind_weights=(0.50, 0.10, 0.30, 0.03, 0.07))
+        cfg = _replace(cfg, "lots", park_block_prob=0.3, kind_weights=(0.50, 0.10, 0.30, 0.03, 0.07))
         cfg = _replace(cfg, "objects", street_tree_prob=0.95, tree_spacing=(6.0, 10.0), sidewalk_bicycle_prob=0.1)
         return _replace(cfg, "agents", pedestrians_per_100m=5.0, bicyclists_per_100m=2.0, standing_person_prob=0.3)
     elif kind == "parking":
         # parking lots, driveways, dropped kerbs (4-10 cm), parking strips on most street sides
-        cfg = _replace(cfg, "street", curb_height=(0.04, 0.10), parking_prob=0.7, parking_label_prob=0.9)
+        cfg = _replace(cfg, "street", curb_height=(0.04, 0.10), parking_prob=0.5, parking_label_prob=0.9)
         cfg = _replace(
             cfg,
             "lots",
-            parking_block_prob=0.4,
+            parking_block_prob=0.3,
             driveway_prob=0.7,
             kind_weights=(0.30, 0.05, 0.05, 0.30, 0.30),
         )
-        cfg = _replace(cfg, "objects", parked_occupancy=(0.4, 0.8), bicycle_prob=0.6)
+        cfg = _replace(cfg, "objects", parked_occupancy=(0.3, 0.7), bicycle_prob=0.6)
         return _replace(cfg, "agents", cars_per_100m=3.0, pedestrians_per_100m=3.0, standing_person_prob=0.3)
     elif kind == "green":
         # dense vegetation: tall hedges, gardens, close street trees, shrub-covered yards, big courtyard trees
@@ -142,7 +143,7 @@ def street_type_config(cfg: SimConfig, kind: str) -> SimConfig:
     elif kind == "plaza":
         # small squares: cobbled blocks with planters, benches and kiosks; low kerbs, people standing and walking
         cfg = _replace(cfg, "street", sidewalk_width=(4.0, 8.0), curb_height=(0.03, 0.08), sidewalk_material="cobble")
-        cfg = _replace(cfg, "lots", plaza_block_prob=0.5, kind_weights=(0.10, 0.45, 0.05, 0.05, 0.35))
+        cfg = _replace(cfg, "lots", plaza_block_prob=0.3, kind_weights=(0.10, 0.45, 0.05, 0.05, 0.35))
         cfg = _replace(cfg, "objects", object_prob=0.9, sidewalk_bicycle_prob=0.3, bicycle_prob=0.7)
         return _replace(cfg, "agents", pedestrians_per_100m=10.0, standing_person_prob=0.4, bicyclists_per_100m=2.0)
     raise InputError(f"street type {kind!r}: expected one of {', '.join(STREET_TYPES)}")
