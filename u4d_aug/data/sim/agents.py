@@ -205,7 +205,7 @@ def make_agents(rng: np.random.Generator, world: World, ego: EgoMotion, cfg: Sim
             start = near_nodes[int(rng.integers(len(near_nodes)))]
             heading = int(rng.integers(4))
             speed = speeds[kind]
-            nodes = plan_route(rng, net, start, heading, frames * speed[1] * dt + 100.0, 0.4)
+            nodes = plan_route(rng, net, start, heading, frames * speed[1] * dt + ac.agent_route_extra, 0.4)
             if len(nodes) < 3:
                 continue
             offset = _bike_lane if kind == "bicyclist" else _rightmost_lane
@@ -225,7 +225,11 @@ def make_agents(rng: np.random.Generator, world: World, ego: EgoMotion, cfg: Sim
     n_people = int(rng.poisson(ac.pedestrians_per_100m * route_len / 100.0)) if blocks else 0
     for _ in range(n_people):
         block = blocks[int(rng.integers(len(blocks)))]
-        loop = block.walk_loop if rng.random() < 0.5 else block.walk_loop[::-1]
+        walk, lift = block.walk_loop, 0.0
+        if block.paths:  # parks, squares, parking lots: their own walks too (lot blocks draw nothing here)
+            k = int(rng.integers(len(block.paths) + 1))
+            walk, lift = (block.walk_loop, 0.0) if k == 0 else (block.paths[k - 1], 0.05)
+        loop = walk if rng.random() < 0.5 else walk[::-1]
         standing = rng.random() < ac.standing_person_prob
         speed = 0.0 if standing else float(rng.uniform(*ac.pedestrian_speed))
         closed = np.concatenate([loop, loop[:1]])
@@ -237,7 +241,7 @@ def make_agents(rng: np.random.Generator, world: World, ego: EgoMotion, cfg: Sim
         xy, yaw = sample_path(path, s, at)
         xy = xy + rng.normal(0.0, 0.25, 2)  # people do not all walk on one line
         mesh, parts = objects.person(rng, "person" if standing else "moving-person", instance)
-        agents.append(Agent("person", mesh, parts, xy, yaw, world.network.curb_height, at, (0.3, 0.3)))
+        agents.append(Agent("person", mesh, parts, xy, yaw, world.network.curb_height + lift, at, (0.3, 0.3)))
         instance += 1
     return agents
 

@@ -6,8 +6,10 @@ range histogram, per-class remission. Override with a yaml file (configs/sim/*.y
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from typing import Literal
 
+from u4d_aug.errors import InputError
 from u4d_aug.validate import check_finite_config, check_positive
 
 
@@ -45,6 +47,12 @@ class StreetConfig:
     hill_max_grade: float = 0.05  # max |grad h|
     hill_min_radius: float = 500.0  # m, smallest vertical curve radius
     flat_prob: float = 0.1  # the world is flat
+    # --- street types (scenes.py); the defaults keep the seq-00 layout bit for bit
+    main_lanes: tuple[int, int] = (2, 2)  # lanes per direction of a main street (arterials: 2-3)
+    grass_width: tuple[float, float] = (1.0, 2.0)  # m, terrain strip between curb and sidewalk paving
+    median_terrain_prob: float = 0.0  # a traffic island is a lawn (terrain) with trees, not paved other-ground
+    sidewalk_material: Literal["paving", "concrete", "cobble"] = "paving"
+    signal_prob: float = 0.0  # traffic lights (pole + traffic-sign heads) at the corners of main-street crossings
 
 
 @dataclass
@@ -73,6 +81,11 @@ class LotConfig:
     other_ground_prob: float = 0.05  # gravel/paved yard (raw 49) instead of grass (real seq 00: none)
     # yard under low shrubs (vegetation) instead of lawn (terrain); real seq 00: 22 % vegetation, 2 % terrain
     ground_cover_prob: float = 0.75
+    # --- street types (scenes.py): whole blocks of another use, and driveways; 0 = never (the default world)
+    park_block_prob: float = 0.0  # the block is a park: lawn, trees, paths, benches, lamps
+    plaza_block_prob: float = 0.0  # the block is a paved square with planters, benches, kiosks
+    parking_block_prob: float = 0.0  # the block is one parking lot with rows of cars and lawn islands
+    driveway_prob: float = 0.0  # a house lot has a paved driveway (raw 44 parking) from the sidewalk
 
 
 @dataclass
@@ -95,6 +108,7 @@ class StreetObjectConfig:
     # a group of 1-4 bicycles across the sidewalk (rack), per 20 m of sidewalk; 0 = none (the default world,
     # tuned to real seq 00, which holds no bicycle); configs/sim/seg_rich.yaml raises it for segmentor training
     sidewalk_bicycle_prob: float = 0.0
+    sign_back_metal: bool = False  # the back of a sign plate is bare metal (real seq-00 signs: median 0.31, q90 0.75)
 
 
 @dataclass
@@ -126,6 +140,9 @@ class AgentConfig:
     # passed at ~3 m put 0.86 % of the simulated returns at 3-4 m (real seq 00: 0.09 %, its parked cars are
     # across the street at 7-9 m); proxy range JS over 8 seeds x 8 places x 5 frames 0.1067 -> 0.1005
     ego_parked_clearance: float = 0.8
+    # m of route an agent plans beyond its drive in the sequence; a route needs 3 crossings, so long blocks
+    # (arterials) need more to keep their traffic
+    agent_route_extra: float = 100.0
 
 
 @dataclass
@@ -163,6 +180,35 @@ class LidarConfig:
     # returns farther than this read raw 0 (unlabeled): the real seq-00 labels stop at ~50 m (every return beyond
     # 50 m is unlabeled, 1.7 % of a scan); None labels everything
     label_range: float | None = 50.0
+    # --- measured sensor and surface model (raycast.py, surfaces.py), fitted to the real seq-00 frames with
+    # `u4d sim-report` (per-class remission histograms, range roughness, mixed pixels); off in the default world
+    surface_model: Literal["basic", "measured"] = "basic"  # measured: per-material remission gain and range scatter
+    ring_gain_spread: float = 0.0  # std of the log remission gain of each laser (HDL-64E lasers differ by ~10 %)
+    speckle: float = 0.0  # std of the log remission of each return (mean-preserving)
+    range_noise_per_m: float = 0.0  # m of range noise std added per metre of range
+    dark_drop: float = 0.0  # returns with a signal below dark_level are lost with up to this probability
+    dark_level: float = 0.03  # signal (remission before noise) below which dark returns start to be lost
+    mixed_pixel_prob: float = 0.0  # a return at a depth edge (> mixed_pixel_jump) reads a range between both sides
+    mixed_pixel_jump: float = 0.5  # m
+
+
+@dataclass
+class StreetTypeWeights:
+    """Weight of each street type (u4d_aug.data.sim.scenes); every place (sequence) draws one by its seed."""
+
+    residential: float = 1.0  # the SemanticKITTI seq-00 layout the defaults are tuned to
+    arterial: float = 0.0  # wide multi-lane roads, medians, taller buildings, more traffic
+    intersection: float = 0.0  # short blocks: many crossings with crosswalks, traffic lights and turns
+    park: float = 0.0  # park-side roads: lawn strips between road and sidewalk, park blocks
+    parking: float = 0.0  # parking lots, driveways and low kerbs
+    green: float = 0.0  # dense vegetation: hedges, gardens, many trees
+    plaza: float = 0.0  # small paved squares with people, benches, planters
+
+    def __post_init__(self) -> None:
+        names = [f.name for f in fields(self)]
+        check_positive(self, *names, allow_zero=True, prefix="street_types.")
+        if sum(getattr(self, name) for name in names) <= 0:
+            raise InputError(f"key 'street_types': the weights sum to 0; give one of {', '.join(names)} a weight > 0")
 
 
 @dataclass
@@ -174,9 +220,34 @@ class SimConfig:
     objects: StreetObjectConfig = field(default_factory=StreetObjectConfig)
     agents: AgentConfig = field(default_factory=AgentConfig)
     lidar: LidarConfig = field(default_factory=LidarConfig)
+    street_types: StreetTypeWeights = field(default_factory=StreetTypeWeights)
     view_radius: float = 95.0  # m, world is built within this distance of the ego route
     frame_rate: float = 10.0  # Hz
 
     def __post_init__(self) -> None:
         check_finite_config(self)
         check_positive(self, "view_radius", "frame_rate")
+        check_positive(
+            self,
+            "lidar.ring_gain_spread",
+            "lidar.speckle",
+            "lidar.range_noise_per_m",
+            "lidar.dark_drop",
+            "lidar.dark_level",
+            "lidar.mixed_pixel_prob",
+            "lidar.mixed_pixel_jump",
+            "street.median_terrain_prob",
+            "street.signal_prob",
+            "lots.park_block_prob",
+            "lots.plaza_block_prob",
+            "lots.parking_block_prob",
+            "lots.driveway_prob",
+            allow_zero=True,
+        )
+        blocks = self.lots.park_block_prob + self.lots.plaza_block_prob + self.lots.parking_block_prob
+        if blocks > 1.0:
+            raise InputError(f"keys 'lots.park/plaza/parking_block_prob' must sum to <= 1, got {blocks:g}")
+        if not 1 <= self.street.main_lanes[0] <= self.street.main_lanes[1]:
+            raise InputError(
+                f"key 'street.main_lanes' must be (low, high) with 1 <= low <= high, got {self.street.main_lanes}"
+            )

@@ -86,6 +86,9 @@ MATERIALS = (
     Material("skin", 0.30, 0.05),
     Material("plastic", 0.30, 0.10, zero_prob=0.1),
     Material("spokes", 0.20, 0.05, zero_prob=0.3, drop_prob=0.7),
+    # street types (scenes.py); appended so the indices above (and the default world) stay as they were
+    Material("concrete", 0.36, 0.05, zero_prob=0.01),  # arterial sidewalks: plain slabs, a little brighter
+    Material("cobble", 0.28, 0.06, zero_prob=0.02),  # squares: setts with dark joints
 )
 MAT = {m.name: i for i, m in enumerate(MATERIALS)}
 
@@ -209,6 +212,22 @@ class MeshBuilder:
             material=np.repeat([p[2] for p in self._per_triangle], sizes).astype(np.uint8),
             reflectivity=np.concatenate([p[3] for p in self._per_triangle]).astype(np.float32),
         )
+
+
+def add_mesh(mb: MeshBuilder, mesh: TriangleMesh) -> None:
+    """Add a ready TriangleMesh (one object, moved rigidly by a warp) part by part, keeping its attributes."""
+    low, high = mesh.vertices[:, :2].min(axis=0), mesh.vertices[:, :2].max(axis=0)
+    with mb.rigid((low + high) / 2):
+        for key in np.unique(np.stack([mesh.semantic, mesh.instance, mesh.material]), axis=1).T:
+            sel = (mesh.semantic == key[0]) & (mesh.instance == key[1]) & (mesh.material == key[2])
+            used, inverse = np.unique(mesh.triangles[sel], return_inverse=True)
+            mb.add(
+                (mesh.vertices[used], inverse.reshape(-1, 3)),
+                int(key[0]),
+                MATERIALS[int(key[2])].name,
+                mesh.reflectivity[sel],
+                int(key[1]),
+            )
 
 
 def empty_mesh() -> TriangleMesh:

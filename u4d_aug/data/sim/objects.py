@@ -326,13 +326,31 @@ def street_light(mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float,
     mb.add(part, "pole", "metal", sample_reflectivity(rng, "metal", len(part[1])))
 
 
-def traffic_sign(mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float, face_yaw: float) -> None:
-    """Traffic sign: thin pole (pole) and one or two retro-reflective plates (traffic-sign)."""
+def traffic_sign(
+    mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float, face_yaw: float, back: str | None = None
+) -> None:
+    """Traffic sign: thin pole (pole) and one or two retro-reflective plates (traffic-sign); `back` names the
+    material of the plates' backs (None: retro-reflective both sides, as the default world has them)."""
     with mb.rigid(xy):
-        _traffic_sign(mb, rng, xy, ground_z, face_yaw)
+        _traffic_sign(mb, rng, xy, ground_z, face_yaw, back)
 
 
-def _traffic_sign(mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float, face_yaw: float) -> None:
+def traffic_light(mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float, face_yaw: float) -> None:
+    """Traffic light: a pole (pole) carrying one or two signal heads (SemanticKITTI labels them traffic-sign)."""
+    with mb.rigid(xy):
+        height = rng.uniform(2.8, 3.6)
+        p = cylinder(0.07, ground_z, ground_z + height + 0.2, 8, center=xy)
+        mb.add(p, "pole", "metal", sample_reflectivity(rng, "metal", len(p[1])))
+        heads = [box([0.3, 0.35, 1.0], [0.2, 0.0, height - 0.3])]
+        if rng.random() < 0.5:  # a second head lower down for pedestrians
+            heads.append(box([0.25, 0.3, 0.6], [0.18, 0.0, 2.1]))
+        part = transform(merge(*heads), face_yaw, (xy[0], xy[1], ground_z))
+        mb.add(part, "traffic-sign", "plastic", sample_reflectivity(rng, "plastic", len(part[1])))
+
+
+def _traffic_sign(
+    mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float, face_yaw: float, back: str | None = None
+) -> None:
     height = rng.uniform(2.2, 3.0)
     p = cylinder(0.04, ground_z, ground_z + height, 6, center=xy)
     mb.add(p, "pole", "metal", sample_reflectivity(rng, "metal", len(p[1])))
@@ -345,9 +363,15 @@ def _traffic_sign(mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float
         outline = np.column_stack([np.cos(angles), np.sin(angles)]) * size / 2
         plate = polygon_fan(outline, 0.0)  # in x-y, then stood up facing +x
         v = plate[0][:, [2, 0, 1]] + [0.05, 0, 0]
-        back = (v - [0.02, 0, 0], plate[1][:, ::-1])
-        part = transform(merge((v, plate[1]), back), face_yaw, (xy[0], xy[1], z))
-        mb.add(part, "traffic-sign", "sign", sample_reflectivity(rng, "sign", len(part[1])))
+        rear = (v - [0.02, 0, 0], plate[1][:, ::-1])
+        if back is None:
+            part = transform(merge((v, plate[1]), rear), face_yaw, (xy[0], xy[1], z))
+            mb.add(part, "traffic-sign", "sign", sample_reflectivity(rng, "sign", len(part[1])))
+        else:
+            front = transform((v, plate[1]), face_yaw, (xy[0], xy[1], z))
+            mb.add(front, "traffic-sign", "sign", sample_reflectivity(rng, "sign", len(front[1])))
+            rear = transform(rear, face_yaw, (xy[0], xy[1], z))
+            mb.add(rear, "traffic-sign", back, sample_reflectivity(rng, back, len(rear[1])))
 
 
 def other_object(mb: MeshBuilder, rng: np.random.Generator, xy, ground_z: float, yaw: float) -> None:

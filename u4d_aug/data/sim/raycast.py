@@ -6,6 +6,12 @@ stored ring-major in azimuth order like a KITTI velodyne file. The static world 
 hit wins. Intensity = reflectivity x g(|cos incidence|) x range falloff + noise, clipped to [0, 1], with weak
 returns read as 0 and quantised to 0.01 as in KITTI remission. Returns beyond `label_range` keep raw id 0
 (unlabeled), as the real SemanticKITTI seq-00 labels do past ~50 m.
+
+The measured model (LidarConfig keys after `label_range`, all off in the default world, which then draws no extra
+random numbers) adds per-material remission gains and range scatter (surfaces.py), a remission gain per laser,
+speckle (log-normal remission per return), range noise growing with range, loss of dark returns (the signal before
+noise below `dark_level`) and mixed pixels: at a depth edge between azimuth neighbours one return reads a range
+between both surfaces, as a beam footprint straddling the edge does.
 """
 
 from __future__ import annotations
@@ -18,10 +24,9 @@ import open3d as o3d
 from u4d_aug.data.sensors import Sensor
 from u4d_aug.data.sim.config import LidarConfig
 from u4d_aug.data.sim.geometry import MATERIALS, TriangleMesh
+from u4d_aug.data.sim.surfaces import material_terms
 
 _DROP = np.array([m.drop_prob for m in MATERIALS], dtype=np.float32)
-_ZERO = np.array([m.zero_prob for m in MATERIALS], dtype=np.float32)
-_PENETRATION = np.array([m.penetration for m in MATERIALS], dtype=np.float32)
 
 # Rays blocked by the ego car (roof edge, hood, antenna mounts), measured on the lowest rings of the real
 # KITTI seq-00 scans: (azimuth centre deg, half width deg at the top elevation, top elevation deg, widening
@@ -45,6 +50,7 @@ class RayPattern:
     origins: np.ndarray  # (R, 3) float32 laser origin in the sensor frame (per-ring vertical offset)
     ring: np.ndarray  # (R,) int16 ring index (0 = top)
     keep: np.ndarray  # (R,) bool, False where the ego car blocks the ray
+    gain: np.ndarray | None = None  # (R,) float32 remission gain of the ray's laser (None: 1, the basic model)
 
 
 @dataclass
@@ -91,12 +97,28 @@ def ray_pattern(sensor: Sensor, cfg: LidarConfig, rng: np.random.Generator) -> R
             keep &= ~((el_deg < top) & (delta < half + widen * (top - el_deg)))
     origins = np.zeros((rings, steps, 3))
     origins[..., 2] = offset_z[:, None]
+    gain = None
+    if cfg.ring_gain_spread > 0:  # drawn last: the basic pattern keeps its random numbers
+        sigma = cfg.ring_gain_spread
+        gain = np.repeat(np.exp(sigma * rng.standard_normal(rings) - sigma**2 / 2), steps).astype(np.float32)
     return RayPattern(
         directions=directions.reshape(-1, 3).astype(np.float32),
         origins=origins.reshape(-1, 3).astype(np.float32),
         ring=np.repeat(np.arange(rings, dtype=np.int16), steps),
         keep=keep.reshape(-1),
+        gain=gain,
     )
+
+
+def azimuth_neighbours(ring: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """(K,) index among the kept rays of each kept ray's next azimuth step on its ring, -1 where that ray is masked."""
+    rings = int(ring.max()) + 1
+    steps = len(ring) // rings
+    position = np.full(len(ring), -1, dtype=np.int64)
+    kept = np.flatnonzero(keep)
+    position[kept] = np.arange(len(kept))
+    following = (kept // steps) * steps + (kept % steps + 1) % steps
+    return position[following]
 
 
 def make_scene(mesh: TriangleMesh) -> o3d.t.geometry.RaycastingScene | None:
@@ -134,6 +156,9 @@ class LidarSimulator:
             np.ascontiguousarray(pattern.origins[keep, 2]),
             pattern.ring[keep],
         )
+        self._terms = material_terms(cfg.surface_model, cfg.speckle)
+        self._ring_gain = None if pattern.gain is None else pattern.gain[keep]
+        self._next = azimuth_neighbours(pattern.ring, keep) if cfg.mixed_pixel_prob > 0 else None
 
     def scan(self, pose: np.ndarray, dynamic: TriangleMesh | None, rng: np.random.Generator) -> Scan:
         """Cast the sweep from LiDAR pose (4, 4) world<-sensor; the nearest hit of static/dynamic wins."""
@@ -168,7 +193,11 @@ class LidarSimulator:
         cos_inc = np.abs(normal[:, 0] * rays[:, 3] + normal[:, 1] * rays[:, 4] + normal[:, 2] * rays[:, 5])
         # range: Gaussian noise plus penetration into porous material (leaves)
         distance = t_hit + np.float32(cfg.range_noise) * rng.standard_normal(n, dtype=np.float32)
-        distance += _PENETRATION[material] * rng.standard_exponential(n, dtype=np.float32)
+        distance += self._terms.penetration[material] * rng.standard_exponential(n, dtype=np.float32)
+        if cfg.range_noise_per_m > 0:
+            distance += np.float32(cfg.range_noise_per_m) * t_hit * rng.standard_normal(n, dtype=np.float32)
+        if self._next is not None:
+            distance = mixed_pixels(distance, t_hit, hit, self._next, cfg, rng)
         # drop: random, material (glass, spokes), grazing incidence; then the range limits
         u = rng.random((3, n), dtype=np.float32)
         keep = hit & (u[0] >= cfg.random_drop) & (u[1] >= _DROP[material])
@@ -181,10 +210,21 @@ class LidarSimulator:
         )
         falloff = np.exp(-np.maximum(distance - np.float32(cfg.falloff_start), 0) / np.float32(cfg.falloff_scale))
         intensity = reflectivity * incidence * falloff
+        measured = cfg.surface_model != "basic"
+        if measured:
+            intensity = intensity * self._terms.gain[material]
+        if self._ring_gain is not None:
+            intensity = intensity * self._ring_gain
+        if cfg.dark_drop > 0:  # too little light comes back: the return is lost
+            lost = np.float32(cfg.dark_drop) * np.clip(1.0 - intensity / np.float32(cfg.dark_level), 0.0, 1.0)
+            keep &= rng.random(n, dtype=np.float32) >= lost
+        if measured or cfg.speckle > 0:
+            sigma = self._terms.speckle[material]
+            intensity = intensity * np.exp(sigma * rng.standard_normal(n, dtype=np.float32) - sigma * sigma / 2)
         intensity += np.float32(cfg.intensity_noise) * rng.standard_normal(n, dtype=np.float32)
         low, high = cfg.zero_threshold
         threshold = np.float32(low) + np.float32(high - low) * rng.random(n, dtype=np.float32)
-        zero = (intensity < threshold) | (rng.random(n, dtype=np.float32) < _ZERO[material])
+        zero = (intensity < threshold) | (rng.random(n, dtype=np.float32) < self._terms.zero_prob[material])
         intensity = np.where(zero, np.float32(0.0), intensity)
         intensity = np.clip(
             np.floor(intensity / np.float32(cfg.intensity_step)) * np.float32(cfg.intensity_step), 0.0, 0.99
@@ -201,3 +241,21 @@ class LidarSimulator:
             far = d > np.float32(cfg.label_range)
             semantic[far], instance[far] = 0, 0
         return Scan(points, semantic, instance, ring[sel])
+
+
+def mixed_pixels(
+    distance: np.ndarray, t_hit: np.ndarray, hit: np.ndarray, following: np.ndarray, cfg: LidarConfig, rng
+) -> np.ndarray:
+    """Ranges with mixed pixels: where azimuth neighbours (`following`) hit surfaces more than `mixed_pixel_jump`
+    apart, with `mixed_pixel_prob` one of the two (either, at random) reads a range 15-85 % of the way across."""
+    n = len(distance)
+    other = np.maximum(following, 0)
+    edge = (following >= 0) & hit & hit[other] & (np.abs(t_hit[other] - t_hit) > np.float32(cfg.mixed_pixel_jump))
+    u = rng.random((3, n), dtype=np.float32)
+    pick = np.flatnonzero(edge & (u[0] < np.float32(cfg.mixed_pixel_prob)))
+    near = np.minimum(t_hit[pick], t_hit[other[pick]])
+    far = np.maximum(t_hit[pick], t_hit[other[pick]])
+    target = np.where(u[1, pick] < 0.5, pick, other[pick])
+    out = distance.copy()
+    out[target] = near + (np.float32(0.15) + np.float32(0.7) * u[2, pick]) * (far - near) + (distance - t_hit)[target]
+    return out

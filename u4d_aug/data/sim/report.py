@@ -7,6 +7,12 @@ the same JS between the first n consecutive frames of each simulated sequence, n
 the pooled simulated histogram); a sim-vs-real JS inside that spread is as close as one place can get.
 Rings are recovered from the storage order (KITTI stores one ring after the other in azimuth order; a new ring
 starts where the azimuth wraps around), as in data/sensors.py.
+
+Surfaces (labelled scans, returns within `LABEL_RANGE`): per-class remission histograms (a bin of its own for 0, then
+0.05 steps) and their JS distance sim vs real, class by class, as a macro mean over the classes both hold
+(`MIN_CLASS_POINTS`) and weighted by the real class shares. Edges and noise (`edge_stats`, neighbours along a ring):
+the range roughness (median |second difference| of range over smooth triples within 20 m: range noise), and the
+share of depth edges with a return floating between the two sides (mixed pixels).
 """
 
 from __future__ import annotations
@@ -25,6 +31,12 @@ from u4d_aug.io import check_output_file, dumps_json
 RANGE_BINS = np.arange(0.0, 81.0, 1.0)  # 1 m bins, 0-80 m
 ELEVATION_BINS = np.arange(-26.0, 4.01, 0.5)  # degrees
 MAX_RINGS = 128
+INTENSITY_BINS = np.concatenate([[0.0, 0.005], np.arange(0.05, 1.001, 0.05)])  # exact 0, then 0.05 steps
+LABEL_RANGE = 50.0  # m: the real seq-00 labels stop here
+MIN_CLASS_POINTS = 200  # a class enters the intensity JS means when sim and real both hold this many returns
+EDGE_JUMP, MIXED_GAP, SMOOTH_JUMP, SMOOTH_RANGE = 1.0, 0.3, 0.3, 20.0  # m, see edge_stats
+SIDE_FLAT = 0.03  # relative range change between neighbours on one side of a depth step
+ROUGHNESS_BINS = np.concatenate([np.arange(0.0, 0.1, 0.002), [0.1, np.inf]])  # m, |second difference| of range
 
 
 def rings_from_storage(points: np.ndarray, debounce: int = 500) -> np.ndarray:
@@ -38,6 +50,86 @@ def rings_from_storage(points: np.ndarray, debounce: int = 500) -> np.ndarray:
     ring = np.zeros(len(xyz), dtype=np.int64)
     ring[starts[1:]] = 1
     return np.cumsum(ring)
+
+
+def edge_stats(points: np.ndarray, ring: np.ndarray) -> dict:
+    """Counts over runs of neighbours along a ring (storage order, each < 1 deg from the next).
+
+    Five in a row r0..r4: a depth step has flat sides (|r1 - r0| and |r4 - r3| < SIDE_FLAT of their range) and
+    |r3 - r1| > EDGE_JUMP; it counts once in `edges` (the window whose middle return r2 is in between, or else on
+    the side of r1), and in `mixed` when r2 lies > MIXED_GAP m from both sides (a return from both surfaces at
+    once). Three in a row within SMOOTH_RANGE m whose outer two lie within SMOOTH_JUMP m give the range roughness
+    |r0 - 2 r1 + r2| (`roughness_hist` over ROUGHNESS_BINS).
+    """
+    xyz = np.asarray(points, dtype=np.float64)[:, :3]
+    r = np.linalg.norm(xyz, axis=1)
+    azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
+    near = (ring[1:] == ring[:-1]) & (np.abs(np.angle(np.exp(1j * np.diff(azimuth)))) < np.radians(1.0))
+    ok3 = near[:-1] & near[1:]
+    r0, r1, r2 = r[:-2][ok3], r[1:-1][ok3], r[2:][ok3]
+    smooth = (np.abs(r2 - r0) < SMOOTH_JUMP) & (np.maximum(np.maximum(r0, r1), r2) < SMOOTH_RANGE)
+    smooth &= np.abs(r1 - r0) < SMOOTH_JUMP
+    second = np.abs(r0 - 2.0 * r1 + r2)[smooth]
+    ok5 = near[:-3] & near[1:-2] & near[2:-1] & near[3:]
+    a, b, c, d, e = (r[k : len(r) - 4 + k][ok5] for k in range(5))
+    flat = (np.abs(b - a) < SIDE_FLAT * b) & (np.abs(e - d) < SIDE_FLAT * d)
+    between = (c - np.minimum(b, d) > MIXED_GAP) & (np.maximum(b, d) - c > MIXED_GAP)
+    # one window per step: the middle return in between, or the last one before the step (not the first after it)
+    edges = flat & (np.abs(d - b) > EDGE_JUMP) & (between | (np.abs(c - b) < SIDE_FLAT * b))
+    return {
+        "edges": int(edges.sum()),
+        "mixed": int((edges & between).sum()),
+        "smooth": int(smooth.sum()),
+        "roughness_hist": np.histogram(second, ROUGHNESS_BINS)[0],
+    }
+
+
+def intensity_hist(points: np.ndarray, semantic: np.ndarray) -> np.ndarray:
+    """(SEMANTICKITTI_IGNORE + 1, bins) remission histogram per train id of the returns within LABEL_RANGE."""
+    train = map_semantickitti(semantic)
+    near = np.linalg.norm(points[:, :3].astype(np.float64), axis=1) <= LABEL_RANGE
+    bins = np.clip(np.searchsorted(INTENSITY_BINS, points[:, 3], side="right") - 1, 0, len(INTENSITY_BINS) - 2)
+    num = len(INTENSITY_BINS) - 1
+    flat = np.bincount(train[near] * num + bins[near], minlength=(SEMANTICKITTI_IGNORE + 1) * num)
+    return flat.reshape(SEMANTICKITTI_IGNORE + 1, num)
+
+
+def intensity_distances(sim_hist: np.ndarray, real_hist: np.ndarray) -> dict:
+    """Per-class remission JS distance (base 2) sim vs real, its macro mean and its mean weighted by real shares,
+    over the classes both hold MIN_CLASS_POINTS returns of."""
+    per_class = {}
+    weights = {}
+    for k, name in enumerate(SEMANTICKITTI_CLASSES):
+        if sim_hist[k].sum() >= MIN_CLASS_POINTS and real_hist[k].sum() >= MIN_CLASS_POINTS:
+            per_class[name] = float(jensenshannon(sim_hist[k], real_hist[k], base=2))
+            weights[name] = float(real_hist[k].sum())
+    total = sum(weights.values())
+    return {
+        "per_class": per_class,
+        "mean": float(np.mean(list(per_class.values()))) if per_class else None,
+        "weighted": sum(per_class[n] * weights[n] for n in per_class) / total if total else None,
+        "zero_share": {
+            name: {
+                "sim": float(sim_hist[k, 0] / max(sim_hist[k].sum(), 1)),
+                "real": float(real_hist[k, 0] / max(real_hist[k].sum(), 1)),
+            }
+            for k, name in enumerate(SEMANTICKITTI_CLASSES)
+            if name in per_class
+        },
+    }
+
+
+def _edge_summary(stats: dict) -> dict:
+    """Mixed-pixel share of depth edges and the median range roughness (mm) of a dataset's summed edge counts."""
+    hist = stats["roughness_hist"]
+    cdf = np.cumsum(hist) / max(hist.sum(), 1)
+    k = int(np.searchsorted(cdf, 0.5))
+    median = 1000.0 * (ROUGHNESS_BINS[k] + ROUGHNESS_BINS[min(k + 1, len(ROUGHNESS_BINS) - 2)]) / 2
+    return {
+        "mixed_share_of_edges": stats["mixed"] / max(stats["edges"], 1),
+        "edges_per_scan": stats["edges"] / stats["frames"],
+        "roughness_median_mm": float(median),
+    }
 
 
 def scan_stats(points: np.ndarray, semantic: np.ndarray | None = None) -> dict:
@@ -57,8 +149,11 @@ def scan_stats(points: np.ndarray, semantic: np.ndarray | None = None) -> dict:
         "intensity_mean": float(points[:, 3].mean()),
         "intensity_zero": float(np.mean(points[:, 3] == 0)),
     }
+    edges = edge_stats(points, ring)
+    stats.update(edges)
     if semantic is not None:
         stats["class_counts"] = np.bincount(map_semantickitti(semantic), minlength=SEMANTICKITTI_IGNORE + 1)
+        stats["intensity_hist"] = intensity_hist(points, semantic)
     return stats
 
 
@@ -84,7 +179,17 @@ def dataset_stats(root: Path, max_frames: int = 30) -> dict:
         frame = load_kitti_frame(scan_path, label_path)
         stats = scan_stats(frame.points, frame.semantic)
         points.append(stats["points"])
-        for key in ("range_hist", "elevation_hist", "ring_counts", "class_counts"):
+        for key in (
+            "range_hist",
+            "elevation_hist",
+            "ring_counts",
+            "class_counts",
+            "intensity_hist",
+            "edges",
+            "mixed",
+            "smooth",
+            "roughness_hist",
+        ):
             if key in stats:
                 total[key] = total.get(key, 0) + stats[key]
         if example is None:
@@ -142,7 +247,10 @@ def compare(sim_root: Path, real_root: Path, max_frames: int = 30) -> tuple[dict
             "real": np.round(real["ring_counts"][: _rings(real)], 1).tolist(),
         },
         "class_share": {},
+        "edges": {"sim": _edge_summary(sim), "real": _edge_summary(real)},
     }
+    if "intensity_hist" in sim and "intensity_hist" in real:
+        report["intensity_js"] = intensity_distances(sim["intensity_hist"], real["intensity_hist"])
     for name, (lo, hi) in {"<5m": (0, 5), "5-20m": (5, 20), "20-50m": (20, 50), ">50m": (50, 80)}.items():
         report["range_share"][name] = {
             key: float(stats["range_hist"][lo:hi].sum() / stats["range_hist"].sum())
@@ -214,6 +322,36 @@ def plot_report(path: Path, report: dict, sim: dict, real: dict) -> Path:
     return save_figure(fig, path)
 
 
+def plot_intensity(path: Path, report: dict, sim: dict, real: dict) -> Path:
+    """PNG of the per-class remission histograms, sim against real, with each class's JS distance."""
+    from u4d_aug.viz import plt, save_figure
+
+    names = list(report["intensity_js"]["per_class"])
+    cols = 4
+    rows = max(1, int(np.ceil(len(names) / cols)))
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.6 * rows), squeeze=False)
+    centers = (INTENSITY_BINS[:-1] + INTENSITY_BINS[1:]) / 2
+    centers[0] = 0.0
+    for ax, name in zip(axes.ravel(), names):
+        k = SEMANTICKITTI_CLASSES.index(name)
+        for key, stats in (("sim", sim), ("real", real)):
+            hist = stats["intensity_hist"][k]
+            ax.step(centers, hist / hist.sum(), where="mid", label=key)
+        ax.set_title(f"{name}: JS {report['intensity_js']['per_class'][name]:.3f}", fontsize=9)
+        ax.set_xlim(-0.02, 1.0)
+        ax.tick_params(labelsize=7)
+    for ax in axes.ravel()[len(names) :]:
+        ax.axis("off")
+    axes[0, 0].legend(fontsize=8)
+    js = report["intensity_js"]
+    fig.suptitle(
+        f"remission per class within {LABEL_RANGE:.0f} m (first bin: exactly 0); JS mean {js['mean']:.3f}, "
+        f"weighted by real shares {js['weighted']:.3f}",
+        fontsize=10,
+    )
+    return save_figure(fig, path)
+
+
 def _range_image(points: np.ndarray, width: int = 1024) -> np.ndarray:
     ring = rings_from_storage(points)
     azimuth = np.mod(np.arctan2(points[:, 1], points[:, 0]), 2 * np.pi)
@@ -228,6 +366,9 @@ def add_sim_report_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("sim_root", type=Path, help="simulated SemanticKITTI-layout root")
     parser.add_argument("--real", type=Path, required=True, help="real SemanticKITTI-layout root")
     parser.add_argument("--png", type=Path, default=None, help="write the side-by-side figure here")
+    parser.add_argument(
+        "--intensity-png", type=Path, default=None, help="write the per-class remission histograms here"
+    )
     parser.add_argument("--json", action="store_true", help="print the report as json")
     parser.add_argument("--max-frames", type=int, default=30, help="scans read per root (evenly spaced)")
 
@@ -236,10 +377,16 @@ def run_sim_report(args: argparse.Namespace) -> int:
     """`u4d sim-report SIM_ROOT --real REAL_ROOT [--png OUT] [--json]`."""
     if args.max_frames < 1:
         raise InputError(f"--max-frames must be >= 1, got {args.max_frames}")
+    intensity_png = getattr(args, "intensity_png", None)
     check_output_file(args.png, "figure")
+    check_output_file(intensity_png, "figure")
     report, sim, real = compare(args.sim_root, args.real, args.max_frames)
     if args.png is not None:
         report["png"] = str(plot_report(args.png, report, sim, real))
+    if intensity_png is not None:
+        if "intensity_js" not in report or not report["intensity_js"]["per_class"]:
+            raise InputError("--intensity-png: the per-class remission needs labelled scans in both roots")
+        report["intensity_png"] = str(plot_intensity(intensity_png, report, sim, real))
     if args.json:
         print(dumps_json(report, indent=2))  # NaN as null
         return 0
@@ -259,6 +406,24 @@ def run_sim_report(args: argparse.Namespace) -> int:
     print("class share        sim      real")
     for name, share in report["class_share"].items():
         print(f"  {name:<14s} {share.get('sim', 0.0):7.2%}  {share.get('real', 0.0):7.2%}")
-    if "png" in report:
-        print(f"figure: {report['png']}")
+    edges = report["edges"]
+    print(
+        f"range roughness   sim {edges['sim']['roughness_median_mm']:5.1f} mm   real "
+        f"{edges['real']['roughness_median_mm']:5.1f} mm   (median |second difference| along a ring, < 20 m)"
+    )
+    print(
+        f"mixed pixels      sim {edges['sim']['mixed_share_of_edges']:6.2%}   real "
+        f"{edges['real']['mixed_share_of_edges']:6.2%}   (share of depth edges with a return between the sides)"
+    )
+    js = report.get("intensity_js")
+    if js and js["per_class"]:
+        print(
+            f"remission JS per class (within {LABEL_RANGE:.0f} m): mean {js['mean']:.3f}, weighted {js['weighted']:.3f}"
+        )
+        for name, value in js["per_class"].items():
+            zero = js["zero_share"][name]
+            print(f"  {name:<14s} JS {value:.3f}   zeros sim {zero['sim']:6.1%}  real {zero['real']:6.1%}")
+    for key in ("png", "intensity_png"):
+        if key in report:
+            print(f"figure: {report[key]}")
     return 0

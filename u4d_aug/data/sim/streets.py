@@ -201,16 +201,22 @@ def _make_line(rng: np.random.Generator, cfg: StreetConfig, position: float) -> 
     )
     sidewalk = tuple(float(rng.uniform(*cfg.sidewalk_width)) for _ in range(2))
     grass = tuple(
-        float(min(rng.uniform(1.0, 2.0), sw - 1.5)) if rng.random() < cfg.grass_strip_prob else 0.0 for sw in sidewalk
+        float(min(rng.uniform(*cfg.grass_width), sw - 1.5)) if rng.random() < cfg.grass_strip_prob else 0.0
+        for sw in sidewalk
     )
+    center_line = main or bool(rng.random() < cfg.center_line_prob)
+    lanes = 1
+    if main:  # a draw only when the range allows a choice: the default (2, 2) keeps the default world's streams
+        low, high = cfg.main_lanes
+        lanes = low if low == high else int(rng.integers(low, high + 1))
     return Line(
         position=position,
         lane_width=lane_width,
-        lanes_per_direction=2 if main else 1,
+        lanes_per_direction=lanes,
         parking=parking,  # type: ignore[arg-type]
         sidewalk=sidewalk,  # type: ignore[arg-type]
         grass=tuple(max(g, 0.0) for g in grass),  # type: ignore[arg-type]
-        center_line=main or bool(rng.random() < cfg.center_line_prob),
+        center_line=center_line,
         main=main,
     )
 

@@ -9,17 +9,17 @@ Blocks are laid out on the straight lattice and bent into the world by the netwo
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from u4d_aug.data.sim import objects
+from u4d_aug.data.sim import blocks, objects
 from u4d_aug.data.sim.config import SimConfig
 from u4d_aug.data.sim.geometry import (
-    MATERIALS,
     MeshBuilder,
     TriangleMesh,
+    add_mesh,
     box,
     concat_meshes,
     densify,
@@ -50,6 +50,7 @@ class Block:
     curb: tuple[float, float, float, float]  # x0, y0, x1, y1 at the curb line, lattice coordinates
     inner: tuple[float, float, float, float]  # lot rectangle, lattice coordinates
     walk_loop: np.ndarray  # (K, 2) closed polyline on the sidewalk, counter-clockwise, world coordinates
+    paths: list[np.ndarray] = field(default_factory=list)  # more closed walks (parks, squares), world coordinates
 
 
 @dataclass
@@ -203,18 +204,29 @@ def _block(mb, rng, cfg: SimConfig, net: Network, i: int, j: int, ids: _Ids, hei
         wall_strip(np.concatenate(outline), 0.0, h, closed=True), "sidewalk", "curb", sample_reflectivity(rng, "curb")
     )
     paving = merge(*ring)
-    mb.add(paving, "sidewalk", "paving", sample_reflectivity(rng, "paving", len(paving[1])))
+    material = cfg.street.sidewalk_material
+    mb.add(paving, "sidewalk", material, sample_reflectivity(rng, material, len(paving[1])))
     base = flat_grid(ix0, ix1, iy0, iy1, h - 0.01, 8.0)
     mb.add(base, "terrain", "grass", sample_reflectivity(rng, "grass", len(base[1])))
     for side, (line, line_side) in enumerate(block_sides(net, i, j)):
         mb.axis = side % 2
         _side_strip(mb, rng, cfg, net, curb, side, line, line_side, ids, height_fn)
-    _lots(mb, rng, cfg, inner, h, ids, height_fn)
+    use = blocks.block_use(rng, cfg.lots)
+    paths: list[np.ndarray] = []
+    if use == "lots":
+        _lots(mb, rng, cfg, inner, h, ids, height_fn)
+    elif use == "park":
+        paths = blocks.park(mb, rng, cfg, inner, h, height_fn)
+    elif use == "plaza":
+        paths = blocks.plaza(mb, rng, cfg, inner, h, ids)
+    elif use == "parking":
+        paths = blocks.parking_lot(mb, rng, cfg, inner, h, ids)
     mb.axis = None
     ins = [line.grass[s] + 0.6 * (line.sidewalk[s] - line.grass[s]) for line, s in block_sides(net, i, j)]
     walk_rect = (curb[0] + ins[3], curb[1] + ins[0], curb[2] - ins[1], curb[3] - ins[2])
     loop = np.concatenate(_rounded_corners(walk_rect, max(radius - float(np.mean(ins)), 0.5)))
-    return Block((i, j), curb, inner, net.warp.points(densify(loop, STEP, closed=True)))
+    walks = [net.warp.points(densify(path, STEP, closed=True)) for path in paths]
+    return Block((i, j), curb, inner, net.warp.points(densify(loop, STEP, closed=True)), walks)
 
 
 def _side_strip(mb, rng, cfg: SimConfig, net: Network, curb, side, line, line_side, ids, height_fn) -> None:
@@ -266,7 +278,7 @@ def _side_strip(mb, rng, cfg: SimConfig, net: Network, curb, side, line, line_si
     for end in (t0 + rng.uniform(1.5, 6.0), t1 - rng.uniform(1.5, 6.0)):
         if rng.random() < obj.sign_prob / 2 and free(end, 1.0):
             face = float(np.arctan2(u[1], u[0])) + (np.pi if rng.random() < 0.5 else 0.0)
-            objects.traffic_sign(mb, rng, at(end, 0.35), h, face)
+            objects.traffic_sign(mb, rng, at(end, 0.35), h, face, back="metal" if obj.sign_back_metal else None)
             occupied.append(end)
     for t in np.arange(t0 + 5.0, t1 - 5.0, 20.0):
         tt = t + rng.uniform(-5, 5)
@@ -296,6 +308,12 @@ def _side_strip(mb, rng, cfg: SimConfig, net: Network, curb, side, line, line_si
             box([0.05, 1.1, 2.0], [1.45, 0, 1.2]),
         )
         mb.add(transform(shelter, yaw, (c[0], c[1], h)), "other-structure", "metal", 0.3)
+    if cfg.street.signal_prob > 0 and line.main:  # traffic lights by the crossings (no draw when off)
+        for end, facing in ((t0 + 1.0, -1.0), (t1 - 1.0, 1.0)):
+            if rng.random() < cfg.street.signal_prob and free(end, 1.0):
+                face = float(np.arctan2(u[1], u[0])) + (np.pi if facing < 0 else 0.0)
+                objects.traffic_light(mb, rng, at(end, 0.4), h, face)
+                occupied.append(end)
     park = line.parking[line_side]
     if park > 0:
         if rng.random() < cfg.street.parking_label_prob:
@@ -331,25 +349,7 @@ def _parked_vehicles(mb, rng, cfg: SimConfig, at, u, t0, t1, park, ids: _Ids) ->
         t += length + rng.uniform(0.6, 2.5)
 
 
-def _add_mesh(mb: MeshBuilder, mesh: TriangleMesh) -> None:
-    """Add a ready TriangleMesh (one object, moved rigidly by a warp) part by part, keeping its attributes."""
-    low, high = mesh.vertices[:, :2].min(axis=0), mesh.vertices[:, :2].max(axis=0)
-    with mb.rigid((low + high) / 2):
-        _add_parts(mb, mesh)
-
-
-def _add_parts(mb: MeshBuilder, mesh: TriangleMesh) -> None:
-    for key in np.unique(np.stack([mesh.semantic, mesh.instance, mesh.material]), axis=1).T:
-        sel = (mesh.semantic == key[0]) & (mesh.instance == key[1]) & (mesh.material == key[2])
-        used, inverse = np.unique(mesh.triangles[sel], return_inverse=True)
-        tri = inverse.reshape(-1, 3)
-        mb.add(
-            (mesh.vertices[used], tri),
-            int(key[0]),
-            MATERIALS[int(key[2])].name,
-            mesh.reflectivity[sel],
-            int(key[1]),
-        )
+_add_mesh = add_mesh  # the name the tests and older code use
 
 
 def _segment_markings(mb, rng, cfg: SimConfig, net: Network, seg) -> None:
@@ -382,19 +382,29 @@ def _segment_markings(mb, rng, cfg: SimConfig, net: Network, seg) -> None:
         top = rect(m0, m1, -width / 2, width / 2, h)
         corners = [(m0, -width / 2), (m1, -width / 2), (m1, width / 2), (m0, width / 2)]
         ring = np.array([(s, c + o) if kind == "h" else (c + o, s) for s, o in corners])
-        island = merge(top, wall_strip(densify(ring, STEP, closed=True), 0.0, h, closed=True))
-        mb.add(island, "other-ground", "curb", sample_reflectivity(rng, "curb", len(island[1])))
-        for s in np.arange(m0 + 4.0, m1 - 2.0, rng.uniform(7.0, 12.0)):
-            xy = (s, c) if kind == "h" else (c, s)
-            objects.bush(mb, rng, xy, h, 0.6)
+        lawn = cfg.street.median_terrain_prob > 0 and rng.random() < cfg.street.median_terrain_prob
+        if lawn:  # a lawn island with trees: kerb stones (other-ground) round a grass top (terrain)
+            kerb = wall_strip(densify(ring, STEP, closed=True), 0.0, h, closed=True)
+            mb.add(kerb, "other-ground", "curb", sample_reflectivity(rng, "curb", len(kerb[1])))
+            mb.add(top, "terrain", "grass", sample_reflectivity(rng, "grass", len(top[1])))
+            for s in np.arange(m0 + 5.0, m1 - 3.0, rng.uniform(8.0, 14.0)):
+                xy = (s, c) if kind == "h" else (c, s)
+                objects.tree(mb, rng, xy, h, rng.uniform(0.7, 1.0), clearance=2.5)
+        else:
+            island = merge(top, wall_strip(densify(ring, STEP, closed=True), 0.0, h, closed=True))
+            mb.add(island, "other-ground", "curb", sample_reflectivity(rng, "curb", len(island[1])))
+            for s in np.arange(m0 + 4.0, m1 - 2.0, rng.uniform(7.0, 12.0)):
+                xy = (s, c) if kind == "h" else (c, s)
+                objects.bush(mb, rng, xy, h, 0.6)
     if line.center_line and not median:
         if line.main:
             stripes += [rect(a, b, o - 0.06, o + 0.06) for o in (-0.12, 0.12)]
         else:
             stripes += [rect(s, min(s + 3.0, b), -0.06, 0.06) for s in np.arange(a + 1.0, b, 9.0)]
-    if line.main:
-        for o in (-line.lane_width, line.lane_width):
-            stripes += [rect(s, min(s + 3.0, b), o - 0.06, o + 0.06) for s in np.arange(a + 2.0, b, 9.0)]
+    if line.main:  # dashed lines between the lanes of each direction
+        for k in range(1, line.lanes_per_direction):
+            for o in (-k * line.lane_width, k * line.lane_width):
+                stripes += [rect(s, min(s + 3.0, b), o - 0.06, o + 0.06) for s in np.arange(a + 2.0, b, 9.0)]
     for side, sign in ((0, -1.0), (1, 1.0)):
         if line.parking[side] > 0 or rng.random() < 0.5:
             edge = sign * (line.half_road - 0.1)
@@ -470,8 +480,8 @@ def _lot(mb, rng, cfg: SimConfig, frame: _LotFrame, u0, u1, depth, h, ids, heigh
     kind = ["house", "row", "garden", "parking", "commercial"][int(rng.choice(5, p=weights / weights.sum()))]
     width = u1 - u0
 
-    def ground(label, material, v0=0.0, v1=depth, tessellate=False):
-        x0, y0, x1, y1 = frame.rect(u0, v0, u1, v1)
+    def ground(label, material, v0=0.0, v1=depth, tessellate=False, ua=u0, ub=u1):
+        x0, y0, x1, y1 = frame.rect(ua, v0, ub, v1)
         if tessellate:
             v, t = grid_surface(x0, x1, y0, y1, 2.0, lambda x, y: h + 0.05 + height_fn(x, y))
         else:
@@ -481,7 +491,7 @@ def _lot(mb, rng, cfg: SimConfig, frame: _LotFrame, u0, u1, depth, h, ids, heigh
     if kind == "row":
         setback = rng.uniform(*lc.row_setback)
         if setback > 0.2:
-            ground("sidewalk", "paving", 0.0, setback)
+            ground("sidewalk", cfg.street.sidewalk_material, 0.0, setback)
         bdepth = min(rng.uniform(10.0, 16.0), depth - setback - 0.5)
         ground("terrain", "grass", setback + bdepth, depth, tessellate=True)
         floors = int(rng.integers(lc.row_floors[0], lc.row_floors[1] + 1))
@@ -503,16 +513,25 @@ def _lot(mb, rng, cfg: SimConfig, frame: _LotFrame, u0, u1, depth, h, ids, heigh
                     yaw = float(np.arctan2(frame.n[1], frame.n[0])) + (np.pi if rng.random() < 0.5 else 0)
                     _add_mesh(mb, objects.place(mesh, yaw, (c[0], c[1], h)))
         return
+    drive = _driveway(rng, lc, kind, u0, u1, depth)  # (d0, d1, length) or None, no draw when off
+    spans = _ground_spans(u0, u1, depth, drive)
     gravel = rng.random() < lc.other_ground_prob
     if kind in ("house", "commercial", "garden"):
         if gravel:
-            ground("other-ground", "gravel")
+            for ua, ub, v0, v1 in spans:
+                ground("other-ground", "gravel", v0, v1, ua=ua, ub=ub)
         elif rng.random() < lc.ground_cover_prob:  # low shrubs / ground cover over the yard (vegetation)
-            x0, y0, x1, y1 = frame.rect(u0, 0.0, u1, depth)
-            v, t = grid_surface(x0, x1, y0, y1, 1.0, _GroundCover(h, height_fn))
-            mb.add((v, t), "vegetation", "hedge", sample_reflectivity(rng, "hedge", len(t)))
+            for ua, ub, v0, v1 in spans:
+                x0, y0, x1, y1 = frame.rect(ua, v0, ub, v1)
+                v, t = grid_surface(x0, x1, y0, y1, 1.0, _GroundCover(h, height_fn))
+                mb.add((v, t), "vegetation", "hedge", sample_reflectivity(rng, "hedge", len(t)))
         else:
-            ground("terrain", "grass", tessellate=True)
+            for ua, ub, v0, v1 in spans:
+                ground("terrain", "grass", v0, v1, tessellate=True, ua=ua, ub=ub)
+    if drive is not None:  # paved driveway from the sidewalk along the house (SemanticKITTI: parking)
+        x0, y0, x1, y1 = frame.rect(drive[0], 0.0, drive[1], drive[2])
+        v, t = flat_grid(x0, x1, y0, y1, h + 0.01, 2.0)
+        mb.add((v, t), "parking", "parking", sample_reflectivity(rng, "parking", len(t)))
     if kind == "garden":
         for _ in range(int(width * depth / 40)):
             objects.tree(mb, rng, frame.xy(rng.uniform(u0 + 1, u1 - 1), rng.uniform(2, depth - 1)), h)
@@ -524,51 +543,93 @@ def _lot(mb, rng, cfg: SimConfig, frame: _LotFrame, u0, u1, depth, h, ids, heigh
     setback = rng.uniform(*lc.setback) * (1.5 if commercial else 1.0)
     gap = rng.uniform(1.0, 3.0) if not commercial else 0.5
     bdepth = min(rng.uniform(8.0, 14.0) * (1.4 if commercial else 1.0), depth - setback - 1.0)
-    if width - 2 * gap > 5.0 and bdepth > 5.0:
+    lo, hi, room = u0 + gap, u1 - gap, width - 2 * gap
+    if drive is not None:  # the house stands beside its driveway
+        if drive[0] - u0 < u1 - drive[1]:
+            lo = max(lo, drive[1] + 0.5)
+        else:
+            hi = min(hi, drive[0] - 0.5)
+        room = hi - lo
+    if room > 5.0 and bdepth > 5.0:
         floors = (
             1 if commercial and rng.random() < 0.6 else int(rng.integers(lc.house_floors[0], lc.house_floors[1] + 1))
         )
-        fp = frame.rect(u0 + gap, setback, u1 - gap, setback + bdepth)
+        fp = frame.rect(lo, setback, hi, setback + bdepth)
         objects.building(
             mb, rng, fp, floors, rng.uniform(*lc.floor_height) * (1.3 if commercial else 1.0), side, h - 0.2
         )
         if rng.random() < cfg.objects.bicycle_prob:
             for k in range(int(rng.integers(1, 4))):
-                c = frame.xy(u0 + gap + 1.0 + 0.8 * k, setback - 0.6)
+                c = frame.xy(lo + 1.0 + 0.8 * k, setback - 0.6)
                 mesh = objects.two_wheeler(rng, "bicycle", ids.take())
                 _add_mesh(mb, objects.place(mesh, float(np.arctan2(frame.n[1], frame.n[0])), (c[0], c[1], h)))
-        if not commercial and rng.random() < 0.3 and gap > 2.6 and setback > 5.5:
+        if drive is None and not commercial and rng.random() < 0.3 and gap > 2.6 and setback > 5.5:
             c = frame.xy(u0 + gap / 2, setback)
             mesh = objects.car(rng, "car", ids.take())
             _add_mesh(mb, objects.place(mesh, float(np.arctan2(frame.n[1], frame.n[0])), (c[0], c[1], h)))
+        if drive is not None and rng.random() < 0.6 and drive[2] > 6.0:  # a car on the driveway
+            c = frame.xy((drive[0] + drive[1]) / 2, rng.uniform(3.0, drive[2] - 2.5))
+            yaw = float(np.arctan2(frame.n[1], frame.n[0])) + (np.pi if rng.random() < 0.5 else 0.0)
+            _add_mesh(mb, objects.place(objects.car(rng, "car", ids.take()), yaw, (c[0], c[1], h)))
     if commercial and rng.random() < 0.5:
-        objects.traffic_sign(mb, rng, frame.xy(u0 + 1.0, 0.5), h, frame.yaw_out)
+        back = "metal" if cfg.objects.sign_back_metal else None
+        objects.traffic_sign(mb, rng, frame.xy(u0 + 1.0, 0.5), h, frame.yaw_out, back=back)
     yard = max(setback - 1.0, 0.0)
     for _ in range(int(rng.integers(lc.yard_trees[0], lc.yard_trees[1] + 1))):
         if yard > 2.5:
-            objects.tree(mb, rng, frame.xy(rng.uniform(u0 + 1.5, u1 - 1.5), rng.uniform(1.5, yard)), h, 0.8)
+            uu, vv, scale = rng.uniform(u0 + 1.5, u1 - 1.5), rng.uniform(1.5, yard), 0.8
         else:
-            objects.tree(mb, rng, frame.xy(rng.uniform(u0 + 1, u1 - 1), setback + bdepth + 2.0), h)
+            uu, vv, scale = rng.uniform(u0 + 1, u1 - 1), setback + bdepth + 2.0, 1.0
+        if not _on_drive(drive, uu, vv, 1.0):
+            objects.tree(mb, rng, frame.xy(uu, vv), h, scale)
     for _ in range(int(rng.integers(lc.yard_bushes[0], lc.yard_bushes[1] + 1))):
         if yard > 1.2:
-            objects.bush(
-                mb,
-                rng,
-                frame.xy(rng.uniform(u0 + 0.8, u1 - 0.8), rng.uniform(0.8, yard)),
-                h,
-                rng.uniform(0.8, 1.8),
-            )
+            uu, vv, size = rng.uniform(u0 + 0.8, u1 - 0.8), rng.uniform(0.8, yard), rng.uniform(0.8, 1.8)
+            if not _on_drive(drive, uu, vv, 0.8):
+                objects.bush(mb, rng, frame.xy(uu, vv), h, size)
     if rng.random() < lc.front_fence_prob:
-        _front_boundary(mb, rng, frame, u0, u1, h, 0.0, lc)
+        if drive is None:
+            _front_boundary(mb, rng, frame, u0, u1, h, 0.0, lc)
+        else:  # open at the driveway
+            for a, b in ((u0, drive[0]), (drive[1], u1)):
+                if b - a > 1.0:
+                    _front_boundary(mb, rng, frame, a, b, h, 0.0, lc)
     if yard > 2.0 and rng.random() < lc.shrub_bed_prob:  # planted bed behind the fence line
         depth_bed = rng.uniform(1.2, min(3.0, yard))
         for uu in np.arange(u0 + 0.8, u1 - 0.8, rng.uniform(1.0, 1.6)):
-            objects.bush(mb, rng, frame.xy(uu, rng.uniform(0.8, depth_bed)), h, rng.uniform(0.6, 1.2))
+            vv, size = rng.uniform(0.8, depth_bed), rng.uniform(0.6, 1.2)
+            if not _on_drive(drive, uu, vv, 0.6):
+                objects.bush(mb, rng, frame.xy(uu, vv), h, size)
     if lc.shed_prob > 0 and yard > 2.5 and width > 5.0 and rng.random() < lc.shed_prob:
         size = rng.uniform(1.2, [min(3.0, width - 2.0), min(2.5, yard - 1.0)])
         uu = rng.uniform(u0 + 0.6 + size[0] / 2, u1 - 0.6 - size[0] / 2)
+        if _on_drive(drive, uu, 1.0 + size[1] / 2, size[0] / 2 + 0.3):
+            return
         yaw = float(np.arctan2(frame.u[1], frame.u[0]))
         objects.shed(mb, rng, frame.xy(uu, 1.0 + size[1] / 2), h, yaw, size)
+
+
+def _driveway(rng, lc, kind: str, u0: float, u1: float, depth: float) -> tuple[float, float, float] | None:
+    """(d0, d1, length) in lot coordinates of a house's driveway at one side of the lot, or None (no draw when off)."""
+    if kind != "house" or lc.driveway_prob <= 0 or u1 - u0 < 10.0 or rng.random() >= lc.driveway_prob:
+        return None
+    width = rng.uniform(2.8, 3.6)
+    d0 = u0 + 0.4 if rng.random() < 0.5 else u1 - 0.4 - width
+    return d0, d0 + width, min(rng.uniform(8.0, 16.0), depth - 1.0)
+
+
+def _ground_spans(u0: float, u1: float, depth: float, drive) -> list[tuple[float, float, float, float]]:
+    """(u0, u1, v0, v1) pieces of a lot's ground: the whole lot, or all of it but the driveway."""
+    if drive is None:
+        return [(u0, u1, 0.0, depth)]
+    d0, d1, length = drive
+    spans = [(u0, d0, 0.0, depth), (d1, u1, 0.0, depth), (d0, d1, length, depth)]
+    return [s for s in spans if s[1] - s[0] > 0.05 and s[3] - s[2] > 0.05]
+
+
+def _on_drive(drive, u: float, v: float, margin: float) -> bool:
+    """Whether lot point (u, v) lies within `margin` of the driveway (never without one)."""
+    return drive is not None and drive[0] - margin < u < drive[1] + margin and v < drive[2] + margin
 
 
 def _front_boundary(mb, rng, frame: _LotFrame, u0, u1, h, hedge_bias, lc) -> None:

@@ -10,14 +10,16 @@ y forward); the ego poses of each scene in sim_ego_poses/scene-000k.npy and, onc
 tables (`u4d_aug.data.nuscenes.write_nuscenes_tables`). Both layouts get manifest.json (seed + resolved config).
 Sequence k draws its streets and ego route from np.random.default_rng([seed, k, 0, 0]),
 the static world from [seed, k, 0, 1], the agents from [seed, k, 0, 2] and the ray pattern from [seed, k, 0, 3]
-(so a change to, say, vegetation settings keeps the street layout), the ground hills from [seed, k, 0, 4] and
-frame f from [seed, k, 1, f]; files do not depend on --workers, and a re-run skips frames whose files exist
-(writes are atomic).
+(so a change to, say, vegetation settings keeps the street layout), the ground hills from [seed, k, 0, 4], its street
+type (scenes.py, when several have weight) from [seed, k, 0, 5] and frame f from [seed, k, 1, f]; files do not depend
+on --workers, and a re-run skips frames whose files exist (writes are atomic). manifest.json records the config
+source (`--config` preset or file, and the overrides) beside the resolved config, and each place's street type.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import multiprocessing
 import os
@@ -27,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from u4d_aug.config import config_to_dict, load_config
+from u4d_aug.config import config_from_dict, config_to_dict, load_config
 from u4d_aug.data.formats import (
     write_calib,
     write_kitti_label,
@@ -51,6 +53,7 @@ from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.data.sim.agents import Agent, EgoMotion, dynamic_mesh, ego_motion, make_agents
 from u4d_aug.data.sim.config import SimConfig
 from u4d_aug.data.sim.raycast import LidarSimulator, Scan, ray_pattern
+from u4d_aug.data.sim.scenes import place_street_type, street_type_config
 from u4d_aug.data.sim.streets import make_hills, make_network
 from u4d_aug.data.sim.world import World, build_world
 from u4d_aug.errors import InputError
@@ -119,11 +122,14 @@ class SequenceSim:
     ego: EgoMotion
     agents: list[Agent]
     lidar: LidarSimulator
-    cfg: SimConfig
+    cfg: SimConfig  # the place's config: the world's, changed by its street type
+    street_type: str = "residential"
 
 
 def build_sequence(seed: int, index: int, frames: int, sensor: Sensor, cfg: SimConfig, nthreads: int = 0):
     """World, ego motion, agents and the static ray-casting scene of sequence `index` (deterministic)."""
+    street_type = place_street_type(seed, index, cfg.street_types)
+    cfg = street_type_config(cfg, street_type)
     streets, statics, movers, sensing = (np.random.default_rng([seed, index, 0, k]) for k in range(4))
     extent = frames * cfg.agents.ego_speed[1] / cfg.frame_rate + cfg.view_radius + 250.0
     net = make_network(streets, cfg.street, extent)
@@ -133,7 +139,7 @@ def build_sequence(seed: int, index: int, frames: int, sensor: Sensor, cfg: SimC
     agents = make_agents(movers, world, ego, cfg)
     pattern = ray_pattern(sensor, cfg.lidar, sensing)
     lidar = LidarSimulator(world.mesh, sensor, cfg.lidar, pattern, nthreads=nthreads)
-    return SequenceSim(seed, index, frames, world, ego, agents, lidar, cfg)
+    return SequenceSim(seed, index, frames, world, ego, agents, lidar, cfg, street_type)
 
 
 def render_frame(seq: SequenceSim, frame: int) -> Scan:
@@ -257,7 +263,16 @@ def _simulate_scene(
     return index, len(todo), frames - len(todo), time.perf_counter() - start
 
 
-def _manifest(seed: int, sequences: int, frames: int, sensor: str, cfg: SimConfig, layout: str, keyframe_every: int):
+def _manifest(
+    seed: int,
+    sequences: int,
+    frames: int,
+    sensor: str,
+    cfg: SimConfig,
+    layout: str,
+    keyframe_every: int,
+    config_source: dict | None = None,
+):
     manifest = {
         "format": MANIFEST_FORMAT,
         "seed": seed,
@@ -265,7 +280,9 @@ def _manifest(seed: int, sequences: int, frames: int, sensor: str, cfg: SimConfi
         "frames": frames,
         "sensor": sensor,
         "layout": layout,
+        "config_source": config_source or {"config": None, "overrides": []},
         "config": config_to_dict(cfg),
+        "street_types": [place_street_type(seed, k, cfg.street_types) for k in range(sequences)],
     }
     if layout == "nuscenes":
         manifest["keyframe_every"] = keyframe_every
@@ -281,6 +298,10 @@ def _check_manifest(path: Path, new: dict) -> None:
     except (OSError, json.JSONDecodeError) as exc:
         raise InputError(f"{path}: unreadable manifest ({exc}); use a new --out folder") from None
     old.setdefault("layout", "semantickitti")  # written before the nuScenes layout existed
+    # written before some keys existed: they hold their defaults, which are the old behaviour; a config that no
+    # longer reads differs from this run's and is refused below
+    with contextlib.suppress(InputError):
+        old["config"] = config_to_dict(config_from_dict(SimConfig, old.get("config"), source=str(path)))
     for key in ("format", "seed", "frames", "sensor", "layout", "keyframe_every", "config"):
         if old.get(key) != new.get(key):
             raise InputError(
@@ -300,11 +321,13 @@ def simulate(
     progress: bool = True,
     layout: str = "semantickitti",
     keyframe_every: int | None = None,
+    config_source: dict | None = None,
 ) -> dict:
     """Write `sequences` x `frames` simulated scans under out_dir (resumes); returns a summary dict.
 
     layout 'semantickitti' or 'nuscenes'; sensor None = hdl64 / hdl32 by layout; keyframe_every (nuScenes) None =
-    the keyframes at 2 Hz, as nuScenes samples.
+    the keyframes at 2 Hz, as nuScenes samples; config_source {"config": preset or file, "overrides": [...]} is
+    recorded in manifest.json (which preset wrote the world).
     """
     if sequences < 1 or frames < 1:
         raise InputError(f"simulate: --sequences and --frames must be >= 1, got {sequences}, {frames}")
@@ -325,7 +348,8 @@ def simulate(
         if removed:
             logger.info("%s: removed %d temp file(s) of a killed run", out_dir, removed)
         manifest_path = out_dir / "manifest.json"
-        manifest = _manifest(seed, sequences, frames, sensor, cfg, layout, keyframe_every)
+        manifest = _manifest(seed, sequences, frames, sensor, cfg, layout, keyframe_every, config_source)
+        logger.info("%s: config %s", out_dir, manifest["config_source"])
         if manifest_path.is_file():
             _check_manifest(manifest_path, manifest)
         atomic_write_json(manifest_path, manifest)
@@ -411,6 +435,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         cfg,
         layout=getattr(args, "format", "semantickitti"),
         keyframe_every=getattr(args, "keyframe_every", None),
+        config_source={"config": None if args.config is None else str(args.config), "overrides": overrides},
     )
     print(
         f"wrote {summary['written']} frames ({summary['skipped']} already there) to {summary['out']} "

@@ -108,3 +108,22 @@ def test_cli_report_against_real_scans(tiny_world: Path, kitti_root: Path, tmp_p
 def test_root_without_scans_is_refused(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="no sequences"):
         compare(tmp_path, tmp_path)
+
+
+def test_per_class_remission_and_edges_against_real_scans(tiny_world: Path, kitti_root: Path, tmp_path: Path, capsys):
+    parser = argparse.ArgumentParser()
+    add_sim_report_arguments(parser)
+    png = tmp_path / "remission.png"
+    args = parser.parse_args([str(tiny_world), "--real", str(kitti_root), "--intensity-png", str(png), "--json"])
+    assert run_sim_report(args) == 0
+    report = json.loads(capsys.readouterr().out)
+    js = report["intensity_js"]
+    assert {"road", "sidewalk", "building", "vegetation"} <= set(js["per_class"])
+    assert all(0.0 < v < 1.0 for v in js["per_class"].values())
+    assert min(js["per_class"].values()) <= js["mean"] <= max(js["per_class"].values())
+    assert js["zero_share"]["road"]["real"] == pytest.approx(0.125, abs=0.01)  # real seq 00, frames 0-2, <= 50 m
+    real_edges = report["edges"]["real"]
+    assert 10.0 < real_edges["roughness_median_mm"] < 25.0 and 0.0 < real_edges["mixed_share_of_edges"] < 0.3
+    assert png.is_file() and png.stat().st_size > 10_000
+    same, _, _ = compare(tiny_world, tiny_world)
+    assert same["intensity_js"]["mean"] == 0.0

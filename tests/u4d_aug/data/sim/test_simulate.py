@@ -19,6 +19,7 @@ from u4d_aug.data.sim import objects
 from u4d_aug.data.sim.agents import _EgoLane
 from u4d_aug.data.sim.config import SimConfig
 from u4d_aug.data.sim.geometry import RAW, MeshBuilder, strip
+from u4d_aug.data.sim.scenes import STREET_TYPES
 from u4d_aug.data.sim.streets import Bend, Warp, lane_path, make_hills, make_network
 from u4d_aug.data.sim.world import _add_mesh
 from u4d_aug.data.sim.writer import (
@@ -362,3 +363,33 @@ def test_rich_preset_makes_rare_classes_frequent() -> None:
                 counts[name][agent.kind] = counts[name].get(agent.kind, 0) + 1
     for key in ("truck", "other-vehicle", "motorcycle", "bicycle", "person", "bicyclist", "motorcyclist"):
         assert counts["rich"].get(key, 0) > 1.5 * counts["default"].get(key, 0), (key, counts)
+
+
+def test_manifest_records_the_preset_and_the_street_types(tmp_path: Path) -> None:
+    import json
+
+    parser = argparse.ArgumentParser()
+    add_simulate_arguments(parser)
+    out = tmp_path / "varied"
+    args = parser.parse_args(["--out", str(out), "--frames", "1", "--sequences", "3", "--config", "sim/varied"])
+    args.overrides = ["view_radius=60", "lidar.azimuth_steps=360"]
+    assert run_simulate(args) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["config_source"] == {"config": "sim/varied", "overrides": args.overrides}
+    assert manifest["config"]["street_types"]["park"] > 0
+    assert len(manifest["street_types"]) == 3 and set(manifest["street_types"]) <= set(STREET_TYPES)
+
+
+def test_resume_of_a_world_written_before_the_street_types(tmp_path: Path) -> None:
+    import json
+
+    out = tmp_path / "old"
+    simulate(out, 1, 1, seed=2, config=_tiny(), progress=False)
+    manifest = json.loads((out / "manifest.json").read_text())
+    for section, key in (("street", "main_lanes"), ("lots", "driveway_prob"), ("agents", "agent_route_extra")):
+        del manifest["config"][section][key]  # as main wrote it
+    del manifest["config"]["street_types"]
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    assert simulate(out, 1, 1, seed=2, config=_tiny(), progress=False)["skipped"] == 1
+    with pytest.raises(InputError, match="'config' differs"):
+        simulate(out, 1, 1, seed=2, config=_tiny("lots.driveway_prob=0.5"), progress=False)
