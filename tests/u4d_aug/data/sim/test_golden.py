@@ -17,7 +17,7 @@ from u4d_aug.config import load_config
 from u4d_aug.data.sim.config import SimConfig
 from u4d_aug.data.sim.writer import simulate
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[4]
 
 GOLDEN = {
     "default": {

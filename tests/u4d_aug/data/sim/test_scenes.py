@@ -17,7 +17,7 @@ from u4d_aug.data.sim.world import block_sides
 from u4d_aug.data.sim.writer import build_sequence
 from u4d_aug.errors import InputError
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[4]
 TINY = REPO / "configs" / "sim" / "tiny.yaml"
 
 
