@@ -49,11 +49,8 @@ CPU = DistInfo(0, 1, 0, torch.device("cpu"))
 
 
 def loss_rows(cfg: SegTrainConfig, batch: dict) -> int:
-    """Rows the training losses read in this batch: points (those sampled with loss.point_fraction < 1), or occupied
-    voxels with loss.level=voxel."""
-    if "loss_rows" in batch:
-        return sum(int(r.shape[0]) for r in batch["loss_rows"])
-    elif cfg.loss.level == "point":
+    """Rows the training losses read in this batch: points, or occupied voxels with loss.level=voxel."""
+    if cfg.loss.level == "point":
         return sum(int(p.shape[0]) for p in batch["points"])
     return voxelize(list(batch["points"]), cfg.model.voxel_size)[0].num_voxels
 

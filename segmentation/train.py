@@ -52,7 +52,7 @@ from segmentation.semi import (
     update_teacher,
 )
 from u4d_aug.cmdline import parse_command_line
-from u4d_aug.config import add_run_arguments, config_to_dict, load_config, save_config
+from u4d_aug.config import add_run_arguments, config_to_dict, load_config, save_config, without_removed_keys
 from u4d_aug.data.datasets import NuscenesScanDataset, ScanDataset, open_scans
 from u4d_aug.distributed import (
     DistInfo,
@@ -102,24 +102,14 @@ def learning_rate(step: int, cfg: OptimConfig, time_fraction: float = 0.0) -> fl
     """Linear warm-up over warmup_steps, then cosine from lr down to min_lr_ratio * lr (nanoGPT get_lr).
 
     time_fraction (share of the wall-clock budget used, optim.anneal_to "budget") moves the cosine on when the
-    budget runs out before the steps do: progress = max(step progress, time_fraction). With optim.restart_step the
-    steps before it keep this schedule (cut there, so a burn-in is unchanged) and a new warm-up and cosine over the
-    remaining steps start there from optim.restart_lr (a warm restart, SGDR: Loshchilov & Hutter 2017).
+    budget runs out before the steps do: progress = max(step progress, time_fraction).
     """
-    if cfg.restart_step and step >= cfg.restart_step:
-        peak = cfg.lr if cfg.restart_lr is None else cfg.restart_lr
-        return _warmup_cosine(step - cfg.restart_step, cfg.steps - cfg.restart_step, peak, cfg, 0.0)
-    return _warmup_cosine(step, cfg.steps, cfg.lr, cfg, time_fraction)
-
-
-def _warmup_cosine(step: int, steps: int, peak: float, cfg: OptimConfig, time_fraction: float) -> float:
-    """One cycle of `steps` steps: linear warm-up to `peak`, cosine down to min_lr_ratio * peak."""
     if step < cfg.warmup_steps:
-        return peak * (step + 1) / cfg.warmup_steps
-    decay_steps = max(1, steps - cfg.warmup_steps)
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    decay_steps = max(1, cfg.steps - cfg.warmup_steps)
     progress = min(1.0, max((step - cfg.warmup_steps) / decay_steps, time_fraction))
-    min_lr = peak * cfg.min_lr_ratio
-    return min_lr + 0.5 * (1.0 + math.cos(math.pi * progress)) * (peak - min_lr)
+    min_lr = cfg.lr * cfg.min_lr_ratio
+    return min_lr + 0.5 * (1.0 + math.cos(math.pi * progress)) * (cfg.lr - min_lr)
 
 
 def make_optimizer(model: nn.Module, cfg: OptimConfig) -> torch.optim.AdamW:
@@ -160,7 +150,7 @@ class TrainBatches(Dataset):
         cfg = self.cfg
         indices = batch_indices(step, len(self.scans), cfg.optim.batch_size, cfg.seed)
         slots = range(self.rank, cfg.optim.batch_size, self.world_size)
-        points, labels, loss_rows = [], [], []
+        points, labels = [], []
         for slot in slots:
             item = self.scans[indices[slot]]
             generator = torch.Generator().manual_seed(derived_seed(cfg.seed, _SCAN, step, slot))
@@ -181,11 +171,7 @@ class TrainBatches(Dataset):
                 )
             points.append(augment(scan, generator, cfg.augment))
             labels.append(target)
-            if cfg.loss.point_fraction < 1.0:
-                loss_rows.append(sample_rows(len(target), cfg.loss.point_fraction, generator))
         batch = {"step": step, "slots": list(slots), "points": points, "labels": labels}
-        if loss_rows:
-            batch["loss_rows"] = loss_rows
         if self.unlabeled is not None and not in_burn_in(cfg.semi, step):
             batch["unlabeled"], unlabeled_labels = load_unlabeled(self.unlabeled, cfg, step, slots)
             if unlabeled_labels is not None:
@@ -203,19 +189,9 @@ def supervised_step(
     if cfg.loss.level == "voxel":
         out = model(points, voxel_output=True)  # logits (M, K) of the occupied voxels
         logits, target = out.logits, voxel_targets(target, out.inverse, out.logits.shape[0], ignore)
-    elif "loss_rows" in batch:  # loss.point_fraction < 1: the sampled points only
-        starts = torch.tensor([0] + [len(p) for p in batch["points"][:-1]]).cumsum(0).tolist()
-        rows = torch.cat([r + s for r, s in zip(batch["loss_rows"], starts)]).to(device)  # (R,) into the batch
-        logits, target = model(points, rows=rows), target[rows]  # (R, K), (R,)
     else:
         logits = model(points)  # (sum N_b, K)
     return segmentation_loss(logits, target, cfg.loss, ignore, class_weight)
-
-
-def sample_rows(num: int, fraction: float, generator: torch.Generator) -> torch.Tensor:
-    """Sorted rows of max(1, round(fraction * num)) points drawn without replacement from num (loss.point_fraction)."""
-    count = max(1, round(fraction * num))
-    return torch.randperm(num, generator=generator)[:count].sort().values
 
 
 def train_class_counts(scans: ScanDataset | NuscenesScanDataset) -> torch.Tensor:
@@ -525,13 +501,15 @@ def _pct(value: float | None) -> str:
 
 def _warn_config_changes(old: dict, new: dict, path: Path) -> None:
     """Resuming with another config is allowed (e.g. more steps) but not exact: warn which keys differ (a key the
-    checkpoint predates, at its default value, is no change)."""
+    checkpoint predates, at its default value, is no change; nor is a since-removed key at its "off" value)."""
+    old, acted = without_removed_keys(SegTrainConfig, old)
     defaults = {key: value for key, _, value in _differences({}, config_to_dict(SegTrainConfig()))}
     changed = [
         f"{key}: {a!r} -> {b!r}"
         for key, a, b in _differences(old, new)
         if key != "out_dir" and not (a is _ABSENT and defaults.get(key, _ABSENT) == b)
     ]
+    changed += [f"{key}: {value!r} -> (removed)" for key, value in acted.items()]
     if changed:
         warnings.warn(f"{path}: resuming with a changed config ({'; '.join(changed)})", stacklevel=2)
 

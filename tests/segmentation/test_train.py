@@ -170,21 +170,6 @@ def test_learning_rate_warmup_then_cosine():
     assert all(a >= b for a, b in itertools.pairwise(lrs))
 
 
-def test_learning_rate_warm_restart_keeps_the_steps_before_it():
-    one = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1)
-    cfg = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1, restart_step=60, restart_lr=0.5)
-    assert [learning_rate(s, cfg) for s in range(60)] == [learning_rate(s, one) for s in range(60)]
-    assert learning_rate(60, cfg) == pytest.approx(0.05)  # warm-up again, to restart_lr
-    assert learning_rate(69, cfg) == pytest.approx(0.5)
-    assert learning_rate(90, cfg) == pytest.approx(0.05 + 0.5 * 0.45)  # half-way down the second cosine
-    assert learning_rate(110, cfg) == pytest.approx(0.05)  # min_lr_ratio of restart_lr
-    assert learning_rate(69, OptimConfig(lr=1.0, warmup_steps=10, steps=110, restart_step=60)) == pytest.approx(1.0)
-    with pytest.raises(InputError, match="optim.restart_step must be 0 or in"):
-        load_config(SegTrainConfig, TINY, ["optim.restart_step=100000"])
-    with pytest.raises(InputError, match="optim.restart_lr must be positive and needs optim.restart_step"):
-        load_config(SegTrainConfig, TINY, ["optim.restart_lr=0.5"])  # would be ignored without a restart step
-
-
 def test_learning_rate_annealed_to_the_budget_follows_the_larger_progress():
     cfg = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1, anneal_to="budget")
     assert learning_rate(60, cfg, 0.0) == learning_rate(60, cfg) == pytest.approx(0.55)  # steps ahead of time
@@ -284,35 +269,6 @@ def test_voxel_level_loss_reads_majority_labels_and_learns(toy_root, tmp_path):
     train(tiny_config(toy_root, out_dir, "loss.level=voxel", "optim.steps=12", "eval_every=12"), progress=False)
     records = [r for r in read_jsonl(out_dir / "log.jsonl") if "loss" in r]
     assert records[-1]["loss"] < records[0]["loss"]
-
-
-def test_point_fraction_loss_reads_the_sampled_points(toy_root, tmp_path):
-    """loss.point_fraction=0.25: each scan's batch item holds a quarter of its rows (sorted, distinct, the same
-    for the same step), and the losses are those of the full point logits at those rows."""
-    cfg = tiny_config(toy_root, tmp_path / "frac", "loss.point_fraction=0.25", "loss.lovasz_weight=1.0")
-    batches = TrainBatches(train_scans(cfg, CPU), cfg, 0, 1)
-    batch = batches[0]
-    for rows, labels in zip(batch["loss_rows"], batch["labels"]):
-        assert len(rows) == round(0.25 * len(labels)) and bool((rows.diff() > 0).all()) and int(rows[-1]) < len(labels)
-    torch.testing.assert_close(batches[0]["loss_rows"], batch["loss_rows"])
-    assert not torch.equal(batches[1]["loss_rows"][0][:50], batch["loss_rows"][0][:50])
-    torch.manual_seed(0)
-    model = build_model(cfg.model).eval()  # eval: batch norm does not see which points were computed
-    losses = supervised_step(model, batch, cfg, torch.device("cpu"))
-    start = len(batch["points"][0])
-    rows = torch.cat([batch["loss_rows"][0], batch["loss_rows"][1] + start])
-    want = segmentation_loss(
-        model(batch["points"])[rows], torch.cat(batch["labels"])[rows], cfg.loss, SEMANTICKITTI_IGNORE
-    )
-    for key in ("loss", "loss_ce", "loss_lovasz"):
-        assert float(losses[key].detach()) == pytest.approx(float(want[key].detach()), rel=1e-5), key
-    assert "loss_rows" not in TrainBatches(train_scans(cfg, CPU), tiny_config(toy_root, tmp_path), 0, 1)[0]
-    with pytest.raises(ValueError, match="loss.level=point"):
-        tiny_config(toy_root, tmp_path, "loss.level=voxel", "loss.point_fraction=0.5")
-    with pytest.raises(ValueError, match="point_fraction must be in"):
-        tiny_config(toy_root, tmp_path, "loss.point_fraction=0")
-    with pytest.raises(ValueError, match="mode=supervised"):
-        tiny_config(toy_root, tmp_path, "mode=semi", "loss.point_fraction=0.5")
 
 
 def test_class_weighted_run_logs_its_weights(toy_root, tmp_path):
