@@ -74,7 +74,7 @@ class SegDataConfig:
 
 
 @dataclass
-class OptimConfig:
+class SegOptimConfig:
     """AdamW with linear warm-up then cosine decay to min_lr_ratio * lr (per step), gradient clipping."""
 
     lr: float = 2e-3
@@ -198,7 +198,7 @@ class SegTrainConfig:
     mode: Literal["supervised", "semi"] = "supervised"  # "semi": LaserMix mean teacher (segmentation/semi.py)
     data: SegDataConfig = field(default_factory=SegDataConfig)
     model: SegModelConfig = field(default_factory=SegModelConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
+    optim: SegOptimConfig = field(default_factory=SegOptimConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     semi: SemiConfig = field(default_factory=SemiConfig)  # used in mode "semi" only

@@ -35,7 +35,7 @@ from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, Dataset
 
-from segmentation.config import OptimConfig, SegTrainConfig
+from segmentation.config import SegOptimConfig, SegTrainConfig
 from segmentation.data import augment, load_or_make_split, paste_instances, training_subset
 from segmentation.evaluate import accumulate, evenly_spaced, summary_of
 from segmentation.losses import class_weights, segmentation_loss, voxel_targets
@@ -98,7 +98,7 @@ def batch_indices(step: int, num_scans: int, batch_size: int, seed: int) -> list
     return out
 
 
-def learning_rate(step: int, cfg: OptimConfig, time_fraction: float = 0.0) -> float:
+def learning_rate(step: int, cfg: SegOptimConfig, time_fraction: float = 0.0) -> float:
     """Linear warm-up over warmup_steps, then cosine from lr down to min_lr_ratio * lr (nanoGPT get_lr).
 
     time_fraction (share of the wall-clock budget used, optim.anneal_to "budget") moves the cosine on when the
@@ -112,7 +112,7 @@ def learning_rate(step: int, cfg: OptimConfig, time_fraction: float = 0.0) -> fl
     return min_lr + 0.5 * (1.0 + math.cos(math.pi * progress)) * (cfg.lr - min_lr)
 
 
-def make_optimizer(model: nn.Module, cfg: OptimConfig) -> torch.optim.AdamW:
+def make_optimizer(model: nn.Module, cfg: SegOptimConfig) -> torch.optim.AdamW:
     """AdamW with weight decay on >= 2-d weights only (convs, linears), not on biases and norms (nanoGPT)."""
     params = [p for p in model.parameters() if p.requires_grad]
     groups = [

@@ -36,7 +36,7 @@ class UncertaintyConfig:
 
 
 @dataclass
-class OptimConfig:
+class DiffusionOptimConfig:
     """AdamW with linear warm-up (R2DM: lr 1e-4, batch 8, no weight decay, grad-norm clip 1)."""
 
     lr: float = 1e-4
@@ -73,7 +73,7 @@ class DiffusionTrainConfig:
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
     net: UNetConfig = field(default_factory=UNetConfig)
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
+    optim: DiffusionOptimConfig = field(default_factory=DiffusionOptimConfig)
     ema_decay: float = 0.995
     ema_warmup_steps: int = 0
     steps: int = 1000

@@ -48,8 +48,8 @@ from u4d_aug.runlock import run_lock
 from u4d_aug.seeding import derived_seed
 from u4d_aug.stage import (  # the stage contract (u4d_aug/stage.py)
     CHECKPOINT_KIND,
+    DiffusionOptimConfig,
     DiffusionTrainConfig,
-    OptimConfig,
     build_net,
     config_from_checkpoint,
 )
@@ -187,7 +187,7 @@ def stage_inputs(stage: str, batch: dict) -> tuple[Tensor, Tensor | None, Tensor
     return batch["x0"], None, None
 
 
-def learning_rate(step: int, cfg: OptimConfig) -> float:
+def learning_rate(step: int, cfg: DiffusionOptimConfig) -> float:
     """Linear warm-up over warmup_steps, then constant (R2DM)."""
     return cfg.lr * min(1.0, (step + 1) / max(1, cfg.warmup_steps))
 

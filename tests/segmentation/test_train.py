@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from segmentation.config import LossConfig, OptimConfig, SegTrainConfig
+from segmentation.config import LossConfig, SegOptimConfig, SegTrainConfig
 from segmentation.losses import class_weights, lovasz_softmax, segmentation_loss, voxel_targets
 from segmentation.models import build_model
 from segmentation.train import (
@@ -160,7 +160,7 @@ def test_class_counts_of_the_training_scans(toy_root):
 
 
 def test_learning_rate_warmup_then_cosine():
-    cfg = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1)
+    cfg = SegOptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1)
     assert learning_rate(0, cfg) == pytest.approx(0.1)
     assert learning_rate(9, cfg) == pytest.approx(1.0)
     assert learning_rate(10, cfg) == pytest.approx(1.0)
@@ -171,7 +171,7 @@ def test_learning_rate_warmup_then_cosine():
 
 
 def test_learning_rate_annealed_to_the_budget_follows_the_larger_progress():
-    cfg = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1, anneal_to="budget")
+    cfg = SegOptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1, anneal_to="budget")
     assert learning_rate(60, cfg, 0.0) == learning_rate(60, cfg) == pytest.approx(0.55)  # steps ahead of time
     assert learning_rate(60, cfg, 0.25) == pytest.approx(0.55)
     assert learning_rate(20, cfg, 0.5) == pytest.approx(0.55)  # time ahead of steps: half-way down anyway
