@@ -20,11 +20,11 @@ from pathlib import Path
 
 import torch
 
-from segmentation.config import SegTrainConfig
+from segmentation.batches import train_scans
+from segmentation.config import SegTrainConfig, class_names
 from segmentation.evaluate import accumulate, evenly_spaced, summary_of
 from segmentation.predict import load_checkpoint, model_from_checkpoint
 from segmentation.semi import unlabeled_stream
-from segmentation.train import class_names, train_scans
 from u4d_aug.config import saved_config
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.distributed import DistInfo

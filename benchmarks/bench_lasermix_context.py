@@ -21,13 +21,13 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from segmentation.batches import train_scans
 from segmentation.config import SegTrainConfig
 from segmentation.data import training_subset
 from segmentation.lasermix import lasermix
 from segmentation.metrics import confusion_matrix, iou_per_class, mean_iou
 from segmentation.predict import load_checkpoint, model_from_checkpoint
 from segmentation.semi import pitch_range
-from segmentation.train import train_scans
 from u4d_aug.config import saved_config
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
 from u4d_aug.distributed import DistInfo

@@ -232,3 +232,9 @@ class SegTrainConfig:
             raise ValueError(
                 f"loss.level=voxel needs model.name=minkunet (the {self.model.name} head reads points); use point"
             )
+
+
+def class_names(cfg: SegTrainConfig) -> list[str]:
+    """Train-id names of the net's classes (the data's label set)."""
+    names = list(cfg.data.label_set.classes[: cfg.model.num_classes])
+    return names + [f"class_{k}" for k in range(len(names), cfg.model.num_classes)]

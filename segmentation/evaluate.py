@@ -2,7 +2,8 @@
 
 One pass gives the confusion matrix (mmdet3d `seg_eval`) and the Calib3D ECE both per scan and pooled
 (segmentation.metrics), as Calib3D's `[SegMetric, ECEMetric]` evaluator does on uncalibrated logits.
-Under torchrun each rank evaluates every world_size-th scan and the counts are gathered.
+Under torchrun each rank evaluates every world_size-th scan and the counts are gathered. `evaluate_val` is the
+periodic evaluation of a `u4d seg-train` run on its val scans, all ranks sharing one model.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
+from segmentation.config import SegTrainConfig, class_names
 from segmentation.metrics import (
     CalibrationAccumulator,
     ConfusionMatrix,
@@ -206,6 +208,27 @@ def format_summary(summary: dict) -> str:
         where = f"{low:g}-{high:g} m" if high is not None else f">= {low:g} m"
         lines.append(f"mIoU at {where:<12}                {pct(band['miou'])} %  ({band['points']} points)")
     return "\n".join(lines)
+
+
+def evaluate_val(
+    model: nn.Module, cfg: SegTrainConfig, val_scans: ScanDataset | NuscenesScanDataset | None, info: DistInfo
+):
+    """Periodic evaluation on the val scans, shared by all ranks: (summary, pooled bins) or (None, None)."""
+    if val_scans is None:
+        return None, None
+    indices = evenly_spaced(len(val_scans), cfg.data.val_max_scans)
+    cm, calibration = accumulate(
+        model, val_scans, indices, info.device, cfg.model.num_classes, cfg.data.label_set.ignore_index,
+        info.rank, info.world_size,
+    )  # fmt: skip
+    return summary_of(cm, calibration, class_names(cfg)), calibration.pooled
+
+
+def sync_buffers(model: nn.Module) -> None:
+    """Copy rank 0's buffers (BatchNorm statistics) to every rank, so that all ranks evaluate one model."""
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        for buffer in model.buffers():
+            torch.distributed.broadcast(buffer, src=0)
 
 
 def add_seg_eval_arguments(parser: argparse.ArgumentParser) -> None:

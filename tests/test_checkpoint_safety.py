@@ -26,7 +26,7 @@ from u4d_aug.export_weights import export_weights
 from u4d_aug.io import atomic_torch_save
 from u4d_aug.metrics.extractors import load_extractor, train_extractor
 from u4d_aug.pipeline import load_generator
-from u4d_aug.train import build_net, checkpoint_state
+from u4d_aug.stage import build_net, checkpoint_state
 from u4d_aug.train import train as train_diffusion
 
 

@@ -18,9 +18,11 @@ from u4d_aug.data.datasets import DATASET_FORMATS
 from u4d_aug.data.nuscenes import NUSCENES_VERSION
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.diffusion import DiffusionConfig
+from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.nn.unet import RangeUNet, UNetConfig
 from u4d_aug.range_view import RowMode, ray_angles
+from u4d_aug.run import checkpoint_state as run_checkpoint_state
 from u4d_aug.uncertainty import Strategy
 from u4d_aug.validate import check_finite_config, check_positive
 
@@ -123,6 +125,19 @@ def build_net(cfg: DiffusionTrainConfig, device: torch.device | str = "cpu") -> 
         torch.manual_seed(cfg.seed)
         net = RangeUNet(cfg.net, elevation.float(), azimuth.float())
     return net.to(device)
+
+
+def checkpoint_state(
+    cfg: DiffusionTrainConfig,
+    step: int,
+    net: RangeUNet,
+    ema: EMA,
+    optimizer: torch.optim.Optimizer | None = None,
+    elapsed: float = 0.0,
+) -> dict:
+    """A train-diffusion checkpoint (`u4d_aug.run.checkpoint_state` of kind CHECKPOINT_KIND): resolved config, step,
+    wall-clock seconds, model, EMA, optimizer (None: an untrained or test checkpoint), RNG."""
+    return run_checkpoint_state(CHECKPOINT_KIND, cfg, step, elapsed, net, optimizer, ema)
 
 
 def find_checkpoint(out_dir: Path, resume: str | Path) -> Path:

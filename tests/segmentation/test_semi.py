@@ -13,11 +13,13 @@ import torch
 from torch import nn
 
 import segmentation.semi as semi
+from segmentation.batches import TrainBatches, train_scans
 from segmentation.config import SegTrainConfig
 from segmentation.mean_teacher import make_teacher, teacher_mode
 from segmentation.models import build_model
+from segmentation.optimizer import make_optimizer
 from segmentation.semi import UnlabeledStream, semi_step, unlabeled_stream, update_teacher
-from segmentation.train import TrainBatches, make_optimizer, train, train_scans
+from segmentation.train import train
 from tests.tiny_nets import CPU, REPO
 from tests.tiny_worlds import toy_scan
 from u4d_aug.config import load_config

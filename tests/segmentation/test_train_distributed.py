@@ -9,21 +9,15 @@ import numpy as np
 import pytest
 import torch
 
+from segmentation.batches import TrainBatches, train_class_counts, train_scans
 from segmentation.config import SegTrainConfig
 from segmentation.losses import class_weights
 from segmentation.mean_teacher import make_teacher, teacher_mode
 from segmentation.models import build_model
+from segmentation.optimizer import learning_rate, make_optimizer
 from segmentation.predict import predict_root, probs_path
 from segmentation.semi import in_burn_in, semi_step, unlabeled_stream, update_teacher
-from segmentation.train import (
-    _STEP,
-    TrainBatches,
-    learning_rate,
-    make_optimizer,
-    supervised_step,
-    train_class_counts,
-    train_scans,
-)
+from segmentation.train import _STEP, supervised_step
 from tests.tiny_nets import CPU, SEG_TINY_SEMI, torchrun
 from tests.tiny_nets import SEG_TINY as TINY
 from u4d_aug.config import load_config

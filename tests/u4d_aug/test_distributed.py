@@ -12,6 +12,7 @@ import torch
 from tests.tiny_nets import TINY, torchrun
 from tests.tiny_worlds import write_tiny_world
 from u4d_aug.bank import read_manifest
+from u4d_aug.batches import _NOISE, RangeImages, batch_indices, make_batch, stage_inputs
 from u4d_aug.config import load_config
 from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.diffusion import GaussianDiffusion
@@ -20,15 +21,7 @@ from u4d_aug.generate import GenerateConfig, generate_bank
 from u4d_aug.io import read_jsonl
 from u4d_aug.seeding import derived_seed
 from u4d_aug.stage import DiffusionTrainConfig, build_net
-from u4d_aug.train import (
-    _NOISE,
-    RangeImages,
-    batch_indices,
-    learning_rate,
-    make_batch,
-    split_stage_override,
-    stage_inputs,
-)
+from u4d_aug.train import learning_rate, split_stage_override
 
 CPU = torch.device("cpu")
 
