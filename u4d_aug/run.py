@@ -31,7 +31,7 @@ from u4d_aug.distributed import DistInfo, budget_fraction, budget_used
 from u4d_aug.errors import InputError
 from u4d_aug.host import host_info
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_text, load_checkpoint, read_jsonl
-from u4d_aug.runfolder import CHECKPOINT_GLOB, prepare, resume_point
+from u4d_aug.runfolder import CHECKPOINT_GLOB, checkpoints, prepare, resume_point
 
 logger = logging.getLogger(__name__)
 
@@ -156,6 +156,14 @@ def begin_run(out: Path, cfg: Any, start: Start, info: DistInfo) -> None:
             atomic_write_text(log, "".join(json.dumps(record) + "\n" for record in kept))
     save_config(cfg, out / CONFIG_NAME)
     append_jsonl(out / HOSTS_NAME, {"step": start.step, "world_size": info.world_size, **host_info()})
+
+
+def newest_checkpoint(out: Path) -> Path:
+    """OUT/checkpoints/step_*.pt of the highest step (a run folder given where a checkpoint is read)."""
+    found = checkpoints(out)
+    if not found:
+        raise InputError(f"{Path(out) / 'checkpoints'}: no {CHECKPOINT_GLOB} checkpoint in this run folder")
+    return found[-1]
 
 
 def save_checkpoint(out: Path, state: dict, keep: int) -> Path:

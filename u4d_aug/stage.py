@@ -8,7 +8,6 @@ stage 2 learns the full scan given concat(x0_u, m_u) (L_c), the baseline learns 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Literal
 
 import torch
@@ -138,19 +137,6 @@ def checkpoint_state(
     """A train-diffusion checkpoint (`u4d_aug.run.checkpoint_state` of kind CHECKPOINT_KIND): resolved config, step,
     wall-clock seconds, model, EMA, optimizer (None: an untrained or test checkpoint), RNG."""
     return run_checkpoint_state(CHECKPOINT_KIND, cfg, step, elapsed, net, optimizer, ema)
-
-
-def find_checkpoint(out_dir: Path, resume: str | Path) -> Path:
-    """`--resume` without a path -> newest OUT/checkpoints/step_*.pt; with a path -> that file."""
-    if str(resume) != "last":
-        path = Path(resume)
-        if not path.is_file():
-            raise InputError(f"{path}: checkpoint to resume from not found")
-        return path
-    found = sorted((out_dir / "checkpoints").glob("step_*.pt"))
-    if not found:
-        raise InputError(f"{out_dir / 'checkpoints'}: no step_*.pt checkpoint to resume from")
-    return found[-1]
 
 
 def config_from_checkpoint(ckpt: dict, source: str) -> DiffusionTrainConfig:

@@ -20,6 +20,7 @@ from u4d_aug.run import (
     begin_run,
     checkpoint_kind,
     checkpoint_state,
+    newest_checkpoint,
     open_run,
     restore,
     save_checkpoint,
@@ -61,6 +62,9 @@ def test_checkpoints_rotate_and_a_run_resumes_from_the_newest(tmp_path):
         state, model = tiny_state(step, elapsed=10.0 * step)
         save_checkpoint(out, state, keep=2)
     assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["step_0000002.pt", "step_0000003.pt"]
+    assert newest_checkpoint(out) == out / "checkpoints" / "step_0000003.pt"
+    with pytest.raises(InputError, match="no step_\\*.pt checkpoint in this run folder"):
+        newest_checkpoint(tmp_path / "empty")
     start = open_run(out, "last", True, "tiny", "u4d tiny")
     assert start.path == out / "checkpoints" / "step_0000003.pt" and (start.step, start.elapsed) == (3, 30.0)
     assert set(start.checkpoint) >= {"kind", "config", "step", "elapsed", "model", "optimizer", "ema", "rng"}
