@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -45,7 +44,7 @@ from segmentation.predict import (
 from u4d_aug.data.datasets import NuscenesScanDataset, ScanDataset, open_scans
 from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
 from u4d_aug.distributed import DistInfo, cleanup, init_distributed, shard
-from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.errors import InputError
 from u4d_aug.io import check_output_file, dumps_json
 from u4d_aug.progress import progress_bar
 
@@ -278,14 +277,3 @@ def run_seg_eval(args: argparse.Namespace) -> int:
     if info.is_main:
         print(dumps_json(summary, indent=2) if args.json else format_summary(summary))  # NaN as null
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m segmentation.evaluate CKPT DATA ...`: as `u4d seg-eval`."""
-    parser = argparse.ArgumentParser(prog="python -m segmentation.evaluate", description=run_seg_eval.__doc__)
-    add_seg_eval_arguments(parser)
-    return exit_code_of(lambda args: run_seg_eval(parser.parse_args(args)), argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

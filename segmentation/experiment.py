@@ -21,7 +21,6 @@ import argparse
 import json
 import logging
 import math
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -36,7 +35,6 @@ from segmentation.evaluate import evaluate
 from segmentation.metrics import ReliabilityBins
 from segmentation.plots import plot_arm_curves, plot_paired, plot_reliability
 from segmentation.train import train
-from u4d_aug.cmdline import parse_command_line
 from u4d_aug.config import (
     config_from_dict,
     config_to_dict,
@@ -46,7 +44,7 @@ from u4d_aug.config import (
     without_removed_keys,
 )
 from u4d_aug.data.datasets import ScanDataset
-from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.errors import InputError
 from u4d_aug.io import (
     atomic_torch_save,
     atomic_write_json,
@@ -655,15 +653,3 @@ def run_experiment(args: argparse.Namespace) -> int:
     )
     print((Path(cfg.out_dir) / "results.md").read_text())
     return 0 if results["arms"] else 1
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m segmentation.experiment CONFIG ...`: the same as `u4d experiment`."""
-    parser = argparse.ArgumentParser(prog="python -m segmentation.experiment", description=run_experiment.__doc__)
-    add_experiment_arguments(parser)
-    argv = sys.argv[1:] if argv is None else argv
-    return exit_code_of(lambda args: run_experiment(parse_command_line(parser, args)), argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

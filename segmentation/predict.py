@@ -28,7 +28,7 @@ from u4d_aug.config import config_from_dict
 from u4d_aug.data.datasets import DATASET_FORMATS, SEMANTICKITTI_SPLITS, open_scans
 from u4d_aug.data.nuscenes import NUSCENES_VERSION
 from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
-from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_save_npy, atomic_write_json, file_sha256, remove_temp_files
 from u4d_aug.io import load_checkpoint as load_torch_checkpoint
 from u4d_aug.progress import progress_bar
@@ -336,14 +336,3 @@ def run_seg_predict(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m segmentation.predict CKPT DATA --out DIR`: as `u4d seg-predict`, handy under torchrun."""
-    parser = argparse.ArgumentParser(prog="python -m segmentation.predict", description=run_seg_predict.__doc__)
-    add_seg_predict_arguments(parser)
-    return exit_code_of(lambda args: run_seg_predict(parser.parse_args(args)), argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 from pathlib import Path
 
 import torch
@@ -43,11 +42,10 @@ from segmentation.models import build_model
 from segmentation.optimizer import learning_rate, make_optimizer
 from segmentation.plots import plot_learning_curve, plot_reliability
 from segmentation.semi import in_burn_in, semi_step, unlabeled_stream, update_teacher
-from u4d_aug.cmdline import parse_command_line
 from u4d_aug.config import add_run_arguments, config_to_dict, load_config
 from u4d_aug.data.datasets import NuscenesScanDataset, ScanDataset
 from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, cleanup, init_distributed
-from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.errors import InputError
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_json, read_jsonl
 from u4d_aug.progress import progress_bar
 from u4d_aug.run import (
@@ -318,15 +316,3 @@ def run_seg_train(args: argparse.Namespace) -> int:
     finally:
         cleanup()
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m segmentation.train CONFIG ...`: the same as `u4d seg-train`, handy under torchrun."""
-    parser = argparse.ArgumentParser(prog="python -m segmentation.train", description=run_seg_train.__doc__)
-    add_seg_train_arguments(parser)
-    argv = sys.argv[1:] if argv is None else argv
-    return exit_code_of(lambda args: run_seg_train(parse_command_line(parser, args)), argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

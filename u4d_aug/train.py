@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import sys
 import time
 from pathlib import Path
 
@@ -29,7 +28,7 @@ from u4d_aug.config import add_run_arguments, load_config, parse_override
 from u4d_aug.diffusion import GaussianDiffusion
 from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, cleanup, init_distributed
 from u4d_aug.ema import EMA
-from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.errors import InputError
 from u4d_aug.io import append_jsonl
 from u4d_aug.nn.unet import RangeUNet
 from u4d_aug.progress import progress_bar
@@ -274,14 +273,3 @@ def run_train_diffusion(args: argparse.Namespace) -> int:
     finally:
         cleanup()
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m u4d_aug.train CONFIG ...`: the same as `u4d train-diffusion`, handy under torchrun."""
-    parser = argparse.ArgumentParser(prog="python -m u4d_aug.train", description=run_train_diffusion.__doc__)
-    add_train_diffusion_arguments(parser)
-    return exit_code_of(lambda args: run_train_diffusion(parser.parse_args(args)), argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -70,7 +70,7 @@ def two_ranks_in_one_process(cfg: SegTrainConfig) -> tuple[list[float], dict[str
 def test_two_process_training_and_sharded_prediction(toy_root, tmp_path):
     out = tmp_path / "run"
     overrides = [f"data.root={toy_root}", "optim.steps=4", "eval_every=2"]
-    torchrun("-m", "segmentation.train", str(TINY), *overrides, "--out", str(out), "--no-progress")
+    torchrun("-m", "u4d_aug.cli", "seg-train", str(TINY), *overrides, "--out", str(out), "--no-progress")
     records = read_jsonl(out / "log.jsonl")  # written by rank 0 only: one record per step, not two
     assert [r["step"] for r in records if "loss" in r] == [1, 2, 3, 4]
     evals = [r for r in records if "val_miou" in r]
@@ -87,8 +87,9 @@ def test_two_process_training_and_sharded_prediction(toy_root, tmp_path):
 
     probs_dir = tmp_path / "probs"
     torchrun(
-        "-m", "segmentation.predict", str(out / "model.pt"), str(toy_root), "--out", str(probs_dir), "--no-progress"
-    )
+        "-m", "u4d_aug.cli", "seg-predict", str(out / "model.pt"), str(toy_root), "--out", str(probs_dir),
+        "--no-progress",
+    )  # fmt: skip
     files = sorted(probs_dir.glob("sequences/*/probs/*.npy"))
     assert len(files) == 6  # rank 0 took scans 0, 2, 4 and rank 1 took 1, 3, 5
     probs = np.load(probs_path(probs_dir, "00", "000001"))
@@ -107,7 +108,7 @@ def test_two_process_semi_training(toy_root, tmp_path, level):
     one process running both ranks' shares of the same global batches (LaserMix, teacher, EMA)."""
     out = tmp_path / "ddp"
     overrides = [f"data.root={toy_root}", "optim.steps=2", "eval_every=2", f"loss.level={level}"]
-    torchrun("-m", "segmentation.train", str(SEG_TINY_SEMI), *overrides, "--out", str(out), "--no-progress")
+    torchrun("-m", "u4d_aug.cli", "seg-train", str(SEG_TINY_SEMI), *overrides, "--out", str(out), "--no-progress")
     records = [r for r in read_jsonl(out / "log.jsonl") if "loss" in r]
     assert [r["step"] for r in records] == [1, 2]
     ckpt = torch.load(out / "checkpoints" / "step_0000002.pt", weights_only=True)

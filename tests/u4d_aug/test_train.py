@@ -62,8 +62,8 @@ def test_resume_continues_to_the_same_weights(tiny_world, tmp_path):
         train(diffusion_config(tiny_world, tmp_path / "part", "stage2"), progress=False)
     # a new process resumes from the checkpoint of step 2 (nothing of the first run's memory reaches it)
     subprocess.run(
-        [sys.executable, "-m", "u4d_aug.train", str(TINY), f"data_root={tiny_world[0]}", f"probs_root={tiny_world[1]}",
-         "stage=stage2", "--out", str(tmp_path / "part"), "--resume", "--no-progress"],
+        [sys.executable, "-m", "u4d_aug.cli", "train-diffusion", str(TINY), f"data_root={tiny_world[0]}",
+         f"probs_root={tiny_world[1]}", "stage=stage2", "--out", str(tmp_path / "part"), "--resume", "--no-progress"],
         check=True, cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, timeout=300,
     )  # fmt: skip
     assert [r["step"] for r in read_jsonl(tmp_path / "part" / "log.jsonl")] == [2, 4]
@@ -96,9 +96,9 @@ def test_a_run_killed_before_its_first_checkpoint_starts_again_from_step_0(tiny_
     files; the next run, with or without --resume, takes over the stale lock and trains from step 0."""
     out = tmp_path / "killed"
     code = (
-        "import sys; from u4d_aug.train import main; "
-        f"sys.exit(main([{str(TINY)!r}, 'stage=baseline', 'data_root={tiny_world[0]}', 'steps=100000', "
-        f"'log_every=1', 'checkpoint_every=100000', '--out', {str(out)!r}, '--no-progress']))"
+        "import sys; from u4d_aug.cli import main; "
+        f"sys.exit(main(['train-diffusion', {str(TINY)!r}, 'stage=baseline', 'data_root={tiny_world[0]}', "
+        f"'steps=100000', 'log_every=1', 'checkpoint_every=100000', '--out', {str(out)!r}, '--no-progress']))"
     )
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     process = subprocess.Popen([sys.executable, "-c", code], env=env, stderr=subprocess.PIPE, text=True)
