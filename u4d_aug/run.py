@@ -4,8 +4,9 @@ A loop (`u4d_aug.train`, `segmentation.train`) stands on it as nanoGPT's train.p
 run lock of OUT (`u4d_aug.runlock`): `open_run` finds where the run starts (`u4d_aug.runfolder`: step 0, or the
 checkpoint it resumes from, loaded weights-only and checked to be a training checkpoint of the loop's kind);
 `begin_run` (rank 0) saves the resolved config as OUT/config.yaml, rewinds OUT/log.jsonl to the resumed step and
-appends the machine to OUT/hosts.jsonl; `restore` loads a checkpoint's states; `save_checkpoint` writes one
-atomically and keeps the newest; the `Clock` counts wall-clock seconds across resumes. Seeds of what a step draws
+appends the machine to OUT/hosts.jsonl; `restore` loads a checkpoint's states (warning when the config changed);
+`save_checkpoint` writes one atomically and keeps the newest, `newest_checkpoint` finds it in a run folder; the
+`Clock` counts wall-clock seconds across resumes against the budget. Seeds of what a step draws
 come from `u4d_aug.seeding.derived_seed(seed, stream, step, rank)`, so a resumed run draws what an uninterrupted one
 would.
 
