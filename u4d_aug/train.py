@@ -53,7 +53,7 @@ def learning_rate(step: int, cfg: DiffusionOptimConfig) -> float:
 
 
 def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress: bool = True) -> dict:
-    """Train one stage; returns the last logged record. Writes OUT/{config.yaml, log.jsonl, checkpoints/}.
+    """Train one stage; returns the last logged record. Writes OUT/{config.yaml, log.jsonl, hosts.jsonl, checkpoints/}.
 
     Rank 0 holds the run lock of OUT (`u4d_aug.runlock`) for the whole run: a second run on OUT is refused.
     """
