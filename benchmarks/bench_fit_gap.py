@@ -20,12 +20,12 @@ from pathlib import Path
 
 import torch
 
-from segmentation.config import SegTrainConfig
+from segmentation.batches import train_scans
+from segmentation.config import SegTrainConfig, class_names
 from segmentation.evaluate import accumulate, evenly_spaced, summary_of
 from segmentation.predict import load_checkpoint, model_from_checkpoint
 from segmentation.semi import unlabeled_stream
-from segmentation.train import class_names, train_scans
-from u4d_aug.config import config_from_dict
+from u4d_aug.config import saved_config
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.distributed import DistInfo
 from u4d_aug.errors import InputError
@@ -40,7 +40,7 @@ def load_run(path: Path, weights: str) -> tuple[SegTrainConfig, int, torch.nn.Mo
     ckpt = load_checkpoint(path)
     if ckpt.get(weights) is None:
         raise InputError(f"{path}: no '{weights}' weights (ema exists only in checkpoints of mode 'semi' runs)")
-    cfg = config_from_dict(SegTrainConfig, ckpt["config"], source=str(path))
+    cfg = saved_config(SegTrainConfig, ckpt["config"], str(path))
     net = model_from_checkpoint({**ckpt, "model": ckpt[weights]}, CPU, source=str(path))
     return cfg, int(ckpt.get("step", -1)), net
 

@@ -37,6 +37,8 @@ from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json, atomic_write_text, load_checkpoint
 from u4d_aug.metrics.evaluate import evaluate, parse_metrics
 from u4d_aug.pipeline import load_generator
+from u4d_aug.run import newest_checkpoint
+from u4d_aug.weights import is_exported
 
 REPO = Path(__file__).resolve().parents[1]
 METHODS = ("u4d", "baseline")
@@ -44,21 +46,21 @@ SEED_STRIDE = 100_000
 
 
 def training_budget(run: Path) -> dict:
-    """Steps, batch, wall-clock minutes and net size of the newest checkpoint of a train-diffusion run."""
-    path = run
-    if run.is_dir():
-        found = sorted((run / "checkpoints").glob("step_*.pt"))
-        if not found:
-            raise InputError(f"{run}: no checkpoints/step_*.pt (train it with `u4d train-diffusion`)")
-        path = found[-1]
+    """Steps, batch, wall-clock minutes and net size of a train-diffusion run (its newest checkpoint), checkpoint or
+    exported weights (their `trained` record)."""
+    path = newest_checkpoint(run) if run.is_dir() else run
     ckpt = load_checkpoint(path, "diffusion checkpoint")
     cfg = ckpt["config"]
+    if is_exported(ckpt):
+        steps, minutes = ckpt["trained"]["step"], ckpt["trained"].get("elapsed_minutes", 0.0)
+    else:
+        steps, minutes = ckpt["step"], float(ckpt.get("elapsed", 0.0)) / 60.0
     return {
         "checkpoint": str(path),
         "stage": cfg["diffusion"]["stage"],
-        "steps": int(ckpt["step"]),
+        "steps": int(steps),
         "batch_size": cfg["batch_size"],
-        "minutes": round(float(ckpt.get("elapsed", 0.0)) / 60.0, 2),
+        "minutes": round(minutes, 2),
         "params": sum(p.numel() for p in load_generator(path)[0].parameters()),  # not buffers (ray features)
         "size": [cfg["height"], cfg["width"]],
     }

@@ -48,6 +48,7 @@ import torch
 from torch import Tensor, nn
 from torch.utils.flop_counter import FlopCounterMode
 
+from u4d_aug.batches import crop_batch, crop_offsets, stage_inputs
 from u4d_aug.config import load_config
 from u4d_aug.diffusion import GaussianDiffusion
 from u4d_aug.ema import EMA
@@ -55,7 +56,7 @@ from u4d_aug.errors import InputError
 from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json, atomic_write_text
 from u4d_aug.pipeline import Loaded, generate_baseline, generate_stage1, generate_u4d, load_generator
-from u4d_aug.train import DiffusionTrainConfig, build_net, crop_batch, crop_offsets, stage_inputs
+from u4d_aug.stage import DiffusionTrainConfig, build_net
 
 REPO = Path(__file__).resolve().parents[1]
 STAGES = ("stage1", "stage2", "baseline")

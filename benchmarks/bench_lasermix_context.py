@@ -21,14 +21,14 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from segmentation.batches import train_scans
 from segmentation.config import SegTrainConfig
 from segmentation.data import training_subset
 from segmentation.lasermix import lasermix
 from segmentation.metrics import confusion_matrix, iou_per_class, mean_iou
 from segmentation.predict import load_checkpoint, model_from_checkpoint
 from segmentation.semi import pitch_range
-from segmentation.train import train_scans
-from u4d_aug.config import config_from_dict
+from u4d_aug.config import saved_config
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
 from u4d_aug.distributed import DistInfo
 from u4d_aug.errors import InputError
@@ -84,7 +84,7 @@ def main() -> int:
         torch.set_num_threads(args.threads)
     try:
         ckpt = load_checkpoint(args.checkpoint)
-        cfg = config_from_dict(SegTrainConfig, ckpt["config"], source=str(args.checkpoint))
+        cfg = saved_config(SegTrainConfig, ckpt["config"], str(args.checkpoint))
         scans = train_scans(cfg, DistInfo(rank=0, world_size=1, local_rank=0, device=torch.device("cpu")))
         if len(scans) < 2 * args.pairs:
             raise InputError(

@@ -27,7 +27,7 @@ from segmentation.config import SegTrainConfig
 from segmentation.mean_teacher import pseudo_labels, teacher_mode
 from segmentation.models import build_model
 from segmentation.semi import unlabeled_stream
-from u4d_aug.config import config_from_dict
+from u4d_aug.config import saved_config
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
 from u4d_aug.errors import InputError
@@ -44,7 +44,7 @@ def teacher_outputs(ckpt_path: Path, num_scans: int, seed: int) -> tuple[SegTrai
     ckpt = load_checkpoint(ckpt_path, "seg-train checkpoint")
     if ckpt.get("ema") is None:
         raise InputError(f"{ckpt_path}: no teacher (ema) weights; pass a checkpoint of a mode 'semi' run")
-    cfg = config_from_dict(SegTrainConfig, ckpt["config"], source=str(ckpt_path))
+    cfg = saved_config(SegTrainConfig, ckpt["config"], str(ckpt_path))
     teacher = build_model(cfg.model)
     teacher.load_state_dict(ckpt["ema"])
     teacher_mode(teacher, cfg.semi.bn_mode)

@@ -118,12 +118,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         from u4d_aug.io import load_checkpoint
         from u4d_aug.pipeline import load_generator
-        from u4d_aug.stage import find_checkpoint
+        from u4d_aug.run import newest_checkpoint
 
         if args.num < 1:
             raise InputError(f"--num must be >= 1, got {args.num}")
         loaded = load_generator(args.checkpoint)
-        path = find_checkpoint(args.checkpoint, "last") if args.checkpoint.is_dir() else args.checkpoint
+        path = newest_checkpoint(args.checkpoint) if args.checkpoint.is_dir() else args.checkpoint
         state = load_checkpoint(path, "diffusion checkpoint")
         step = state.get("step", state.get("trained", {}).get("step"))
         rough, returns = roughness_and_returns(real_images(args.real, loaded[1], args.num))

@@ -21,9 +21,9 @@ from pathlib import Path
 import torch
 
 import segmentation.sparse as sparse
+from segmentation.batches import TrainBatches, train_scans
 from segmentation.config import SegTrainConfig
 from segmentation.models import build_model
-from segmentation.train import TrainBatches, train_scans
 from u4d_aug.config import load_config
 from u4d_aug.distributed import DistInfo
 from u4d_aug.errors import InputError

@@ -6,7 +6,7 @@
     python benchmarks/bench_seg_step.py --steps 2 --threads 1 --variant "" --profile   # where a step's time goes
 
 Every variant gets its own net (same seed, so the same initial weights), its own AdamW and the batches the
-training loop would draw (`segmentation.train.TrainBatches`: the preset's scans, point subsets and
+training loop would draw (`segmentation.batches.TrainBatches`: the preset's scans, point subsets and
 augmentation, step for step). The steps interleave - variant A step s, variant B step s, ... - so that load
 changes on the machine hit every variant alike; one warm-up step each, then the median over --steps timed
 steps of the whole `supervised_step` + backward + optimiser step. Also reports how many rows the losses read
@@ -33,11 +33,13 @@ from pathlib import Path
 import torch
 from torch.profiler import ProfilerActivity, profile
 
+from segmentation.batches import TrainBatches, train_class_counts, train_scans
 from segmentation.config import SegTrainConfig
 from segmentation.losses import class_weights
 from segmentation.models import build_model
+from segmentation.optimizer import make_optimizer
 from segmentation.sparse import voxelize
-from segmentation.train import TrainBatches, make_optimizer, supervised_step, train_class_counts, train_scans
+from segmentation.train import supervised_step
 from u4d_aug.config import load_config
 from u4d_aug.distributed import DistInfo
 from u4d_aug.errors import InputError
@@ -49,11 +51,8 @@ CPU = DistInfo(0, 1, 0, torch.device("cpu"))
 
 
 def loss_rows(cfg: SegTrainConfig, batch: dict) -> int:
-    """Rows the training losses read in this batch: points (those sampled with loss.point_fraction < 1), or occupied
-    voxels with loss.level=voxel."""
-    if "loss_rows" in batch:
-        return sum(int(r.shape[0]) for r in batch["loss_rows"])
-    elif cfg.loss.level == "point":
+    """Rows the training losses read in this batch: points, or occupied voxels with loss.level=voxel."""
+    if cfg.loss.level == "point":
         return sum(int(p.shape[0]) for p in batch["points"])
     return voxelize(list(batch["points"]), cfg.model.voxel_size)[0].num_voxels
 

@@ -35,11 +35,13 @@ PRESET = REPO / "configs" / "seg" / "cpu_semi.yaml"
 
 def child(args: argparse.Namespace) -> dict:
     """One case in this process: `args.mode` steps on the preset, timed, with the memory they add."""
+    from segmentation.batches import TrainBatches, train_scans
     from segmentation.config import SegTrainConfig
     from segmentation.mean_teacher import make_teacher, teacher_mode
     from segmentation.models import build_model
+    from segmentation.optimizer import make_optimizer
     from segmentation.semi import semi_step, unlabeled_stream, update_teacher
-    from segmentation.train import TrainBatches, make_optimizer, supervised_step, train_scans
+    from segmentation.train import supervised_step
     from u4d_aug.config import load_config
     from u4d_aug.distributed import DistInfo
 

@@ -28,11 +28,11 @@ from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import atomic_write_json, read_jsonl
 
 EVAL_COMMAND = (
-    "OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m segmentation.evaluate RUN/model.pt data/sim_seg "
+    "OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m u4d_aug.cli seg-eval RUN/model.pt data/sim_seg "
     "--sequences 88-99 --json [--readout trilinear] [--views N] > RUN/eval_96[_trilinear][_viewsN].json"
 )
 REAL_EVAL_COMMAND = (
-    "OMP_NUM_THREADS=2 python3 -m segmentation.evaluate RUN/model.pt ../shared/data/real/semantickitti --json "
+    "OMP_NUM_THREADS=2 u4d seg-eval RUN/model.pt ../shared/data/real/semantickitti --json "
     "--device cpu > RUN/eval_real.json"
 )
 REAL_KEYS = ("num_scans", "classes_present", "miou_present", "miou", "ece_per_scan", "ece_pooled", "iou")

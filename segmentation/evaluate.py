@@ -2,14 +2,14 @@
 
 One pass gives the confusion matrix (mmdet3d `seg_eval`) and the Calib3D ECE both per scan and pooled
 (segmentation.metrics), as Calib3D's `[SegMetric, ECEMetric]` evaluator does on uncalibrated logits.
-Under torchrun each rank evaluates every world_size-th scan and the counts are gathered.
+Under torchrun each rank evaluates every world_size-th scan and the counts are gathered. `evaluate_val` is the
+periodic evaluation of a `u4d seg-train` run on its val scans, all ranks sharing one model.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -18,6 +18,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
+from segmentation.config import SegTrainConfig, class_names
 from segmentation.metrics import (
     CalibrationAccumulator,
     ConfusionMatrix,
@@ -43,7 +44,7 @@ from segmentation.predict import (
 from u4d_aug.data.datasets import NuscenesScanDataset, ScanDataset, open_scans
 from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
 from u4d_aug.distributed import DistInfo, cleanup, init_distributed, shard
-from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.errors import InputError
 from u4d_aug.io import check_output_file, dumps_json
 from u4d_aug.progress import progress_bar
 
@@ -208,6 +209,27 @@ def format_summary(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def evaluate_val(
+    model: nn.Module, cfg: SegTrainConfig, val_scans: ScanDataset | NuscenesScanDataset | None, info: DistInfo
+):
+    """Periodic evaluation on the val scans, shared by all ranks: (summary, pooled bins) or (None, None)."""
+    if val_scans is None:
+        return None, None
+    indices = evenly_spaced(len(val_scans), cfg.data.val_max_scans)
+    cm, calibration = accumulate(
+        model, val_scans, indices, info.device, cfg.model.num_classes, cfg.data.label_set.ignore_index,
+        info.rank, info.world_size,
+    )  # fmt: skip
+    return summary_of(cm, calibration, class_names(cfg)), calibration.pooled
+
+
+def sync_buffers(model: nn.Module) -> None:
+    """Copy rank 0's buffers (BatchNorm statistics) to every rank, so that all ranks evaluate one model."""
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        for buffer in model.buffers():
+            torch.distributed.broadcast(buffer, src=0)
+
+
 def add_seg_eval_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `u4d seg-eval CKPT DATA [--sequences ..] [--json] [--png OUT] [--confusion-png OUT]`."""
     parser.add_argument("checkpoint", type=Path, help="segmentation checkpoint (.pt from u4d seg-train)")
@@ -255,14 +277,3 @@ def run_seg_eval(args: argparse.Namespace) -> int:
     if info.is_main:
         print(dumps_json(summary, indent=2) if args.json else format_summary(summary))  # NaN as null
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m segmentation.evaluate CKPT DATA ...`: as `u4d seg-eval`."""
-    parser = argparse.ArgumentParser(prog="python -m segmentation.evaluate", description=run_seg_eval.__doc__)
-    add_seg_eval_arguments(parser)
-    return exit_code_of(lambda args: run_seg_eval(parser.parse_args(args)), argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -21,7 +21,6 @@ import argparse
 import json
 import logging
 import math
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -36,10 +35,16 @@ from segmentation.evaluate import evaluate
 from segmentation.metrics import ReliabilityBins
 from segmentation.plots import plot_arm_curves, plot_paired, plot_reliability
 from segmentation.train import train
-from u4d_aug.cmdline import parse_command_line
-from u4d_aug.config import config_to_dict, load_config, save_config
+from u4d_aug.config import (
+    config_from_dict,
+    config_to_dict,
+    load_config,
+    read_yaml,
+    save_config,
+    without_removed_keys,
+)
 from u4d_aug.data.datasets import ScanDataset
-from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.errors import InputError
 from u4d_aug.io import (
     atomic_torch_save,
     atomic_write_json,
@@ -147,25 +152,23 @@ def burn_in_signature(run: SegTrainConfig) -> str | None:
     """What fixes a run's first semi.burn_in_steps steps, as text; None when it has none to share.
 
     The config without mode, out_dir and the semi keys that act only after burn-in: a supervised run and a
-    mean-teacher run with the same signature take the same first steps bit for bit (tests/segmentation/test_semi.py). A
-    mean teacher whose burn-in teacher is an EMA (burn_in_teacher "ema") has its own teacher state: not shared.
+    mean-teacher run with the same signature take the same first steps bit for bit (tests/segmentation/test_semi.py),
+    the teacher of the mean-teacher run being a copy of the student until then.
     """
-    if run.semi.burn_in_steps <= 0 or (run.mode == "semi" and run.semi.burn_in_teacher != "copy"):
+    if run.semi.burn_in_steps <= 0:
         return None
     fixed = config_to_dict(run)
     for key in ("mode", "out_dir"):
         fixed.pop(key)
     fixed["semi"] = {"burn_in_steps": run.semi.burn_in_steps}
-    if run.optim.restart_step >= run.semi.burn_in_steps:  # a restart at or after the burn-in does not act in it
-        fixed["optim"].update(restart_step=0, restart_lr=None)
     return json.dumps(fixed, sort_keys=True, default=str)
 
 
 def start_from_burn_in(run: SegTrainConfig, donors: list[SegTrainConfig]) -> Path | None:
     """Seed a run that has not started with a donor's OUT/burn_in.pt (same signature); returns the donor file.
 
-    The donor's checkpoint becomes the run's step-B checkpoint (its teacher = the student, as burn_in_teacher
-    "copy" makes it) and the donor's log records up to step B its log, so the run resumes at step B.
+    The donor's checkpoint becomes the run's step-B checkpoint (its teacher = the student, as the burn-in makes
+    it) and the donor's log records up to step B its log, so the run resumes at step B.
     """
     out = Path(run.out_dir)
     signature = burn_in_signature(run)
@@ -191,11 +194,19 @@ def start_from_burn_in(run: SegTrainConfig, donors: list[SegTrainConfig]) -> Pat
 
 def donors_on_disk(out_dir: Path) -> list[SegTrainConfig]:
     """Runs under OUT/runs/ that hold a burn_in.pt, read from their config.yaml: burn-in donors, whether this
-    `u4d experiment` process trained them or another one did (e.g. one restricted to other arms, on another core)."""
+    `u4d experiment` process trained them or another one did (e.g. one restricted to other arms, on another core).
+
+    A run saved before a key was removed still donates when that key held its "off" value; one whose burn-in used a
+    since-removed setting does not (its first steps are no run's of today)."""
     donors = []
     for path in sorted(Path(out_dir).glob("runs/*/*/*/config.yaml")):
-        if (path.parent / "burn_in.pt").is_file():
-            donors.append(load_config(SegTrainConfig, path))
+        if not (path.parent / "burn_in.pt").is_file():
+            continue
+        data, acted = without_removed_keys(SegTrainConfig, read_yaml(path))
+        if acted:
+            logger.info("%s: not a burn-in donor, trained with the since-removed %s", path, ", ".join(acted))
+            continue
+        donors.append(config_from_dict(SegTrainConfig, data, source=str(path)))
     return donors
 
 
@@ -642,15 +653,3 @@ def run_experiment(args: argparse.Namespace) -> int:
     )
     print((Path(cfg.out_dir) / "results.md").read_text())
     return 0 if results["arms"] else 1
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m segmentation.experiment CONFIG ...`: the same as `u4d experiment`."""
-    parser = argparse.ArgumentParser(prog="python -m segmentation.experiment", description=run_experiment.__doc__)
-    add_experiment_arguments(parser)
-    argv = sys.argv[1:] if argv is None else argv
-    return exit_code_of(lambda args: run_experiment(parse_command_line(parser, args)), argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -45,24 +45,17 @@ class MeanTeacherConfig:
     # Laine & Aila 2017): the young teacher is close to the random init, and matching it makes the student
     # underconfident on short schedules; 0 = constant weight (LaserMix upstream, trained for many epochs)
     consistency_rampup_steps: int = 0
-    # burn-in (Unbiased Teacher, Liu et al. 2021): the first steps train the student on the labeled scans only,
-    # the teacher follows as an EMA with the student's BatchNorm statistics; LaserMix, pseudo-labels and L_mt
-    # start after it (the ramp-up counts from there). 0 = mean teacher from step 0 (LaserMix upstream).
+    # burn-in (Unbiased Teacher, Liu et al. 2021): the first steps train the student on the labeled scans only and
+    # the teacher is a copy of the student (weights and BatchNorm statistics), so the first pseudo-labels come from
+    # the burnt-in student; LaserMix, pseudo-labels and L_mt start after it (the ramp-up counts from there).
+    # 0 = mean teacher from step 0 (LaserMix upstream).
     burn_in_steps: int = 0
-    # the teacher during burn-in: "copy" = the student's weights exactly (decay 0), so the first pseudo-labels come
-    # from the burnt-in student, as Unbiased Teacher copies it; "ema" = the EMA of the burn-in students (a teacher
-    # ~1 / (1 - ema_decay) steps behind the student when pseudo-labelling starts)
-    burn_in_teacher: Literal["copy", "ema"] = "copy"
     sup_weight: float = 1.0  # weight of L_sup (labeled scans)
     mix_weight: float = 1.0  # weight of L_mix (LaserMix scans with GT / pseudo-labels)
     num_areas_choices: tuple[int, ...] = (3, 4, 5, 6)  # LaserMix MinkUNet18 config
     # (down, up) pitch range in degrees; None = the sensor's (fov_down_deg, fov_up_deg)
     pitch_range_deg: tuple[float, float] | None = None
     bn_mode: Literal["batch", "copy_student"] = "batch"
-    # pseudo-labels from the teacher's mean softmax over this many mirror views of each unlabeled scan (identity,
-    # x -> -x, y -> -y, both; symmetries of the training augmentation): test-time augmentation, 1 = the scan only
-    # (LaserMix). L_mt still compares with the teacher on the scan itself.
-    teacher_views: int = 1
 
 
 def make_teacher(student: nn.Module) -> nn.Module:
@@ -165,11 +158,6 @@ def scan_views(points: torch.Tensor, views: int) -> list[torch.Tensor]:
 def mean_view_probs(view_logits: list[torch.Tensor]) -> torch.Tensor:
     """Mean softmax over views, (N, K) logits each -> (N, K) float32 probabilities (test-time augmentation)."""
     return torch.stack([F.softmax(logits.float(), dim=1) for logits in view_logits]).mean(dim=0)
-
-
-def mean_view_logits(view_logits: list[torch.Tensor]) -> torch.Tensor:
-    """log of the mean softmax over views, (N, K) each -> (N, K): its softmax is the averaged distribution."""
-    return mean_view_probs(view_logits).clamp_min(1e-12).log()
 
 
 def consistency_loss(student_logits: torch.Tensor, teacher_logits: torch.Tensor) -> torch.Tensor:

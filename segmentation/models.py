@@ -214,10 +214,8 @@ class MinkUNet(nn.Module):
         self.unet = VoxelUNet(cfg)
         self.head = nn.Linear(self.unet.decoder_channels[-1], cfg.num_classes)
 
-    def forward(
-        self, points: Sequence[torch.Tensor], voxel_output: bool = False, rows: torch.Tensor | None = None
-    ) -> torch.Tensor | VoxelLogits:
-        """List of (N_b, >= 4) scans -> (sum N_b, K) logits, points in input order; `rows` (R,) -> those points' (R, K).
+    def forward(self, points: Sequence[torch.Tensor], voxel_output: bool = False) -> torch.Tensor | VoxelLogits:
+        """List of (N_b, >= 4) scans -> (sum N_b, K) logits, points in input order.
 
         voxel_output=True returns the voxels' logits with the point -> voxel map instead (loss.level "voxel").
         readout "trilinear": the point logits are log p with p (N, K) the voxels' softmax interpolated over the 8
@@ -234,8 +232,6 @@ class MinkUNet(nn.Module):
         logits = self.head(x.features)  # (M, K)
         if voxel_output:
             return VoxelLogits(logits, inverse, x.coords[:, 0])
-        if rows is not None:
-            xyzi, batch, inverse = xyzi[rows], batch[rows], inverse[rows]
         if self.cfg.readout == "trilinear":
             positions = xyzi[:, :3] / self.cfg.voxel_size  # (N, 3) in voxel units
             probs = voxels_to_points(x.replace(torch.softmax(logits, dim=1)), positions, batch, "trilinear")
@@ -263,9 +259,8 @@ class SPVCNN(nn.Module):
         self.dropout = nn.Dropout(cfg.dropout)
         self.head = nn.Linear(dec[-1], cfg.num_classes)
 
-    def forward(self, points: Sequence[torch.Tensor], rows: torch.Tensor | None = None) -> torch.Tensor:
-        """List of (N_b, >= 4) scans -> (sum N_b, K) logits, points in input order; `rows` (R,) -> those points' (R, K)
-        (the point branch still runs on every point)."""
+    def forward(self, points: Sequence[torch.Tensor]) -> torch.Tensor:
+        """List of (N_b, >= 4) scans -> (sum N_b, K) logits, points in input order."""
         cfg = self.cfg
         xyzi, batch = _batch(points, self.head.weight.device)
         positions = xyzi[:, :3] / cfg.voxel_size  # (N, 3) in voxel units
@@ -283,7 +278,7 @@ class SPVCNN(nn.Module):
                 z = voxels_to_points(x, positions, batch, cfg.interpolation) + self.point_mlps[1](z)  # z2
                 x = self._revoxelize(z, x, coords)
         z = voxels_to_points(x, positions, batch, cfg.interpolation) + self.point_mlps[2](z)  # z3
-        return self.head(z if rows is None else z[rows])  # (N, K) or (R, K)
+        return self.head(z)  # (N, K)
 
     def _revoxelize(self, z: torch.Tensor, like: SparseTensor, coords: torch.Tensor) -> SparseTensor:
         x = points_to_voxels(z, like, point_voxel_index(like, coords))

@@ -28,20 +28,21 @@ from u4d_aug.config import config_from_dict
 from u4d_aug.data.datasets import DATASET_FORMATS, SEMANTICKITTI_SPLITS, open_scans
 from u4d_aug.data.nuscenes import NUSCENES_VERSION
 from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
-from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_save_npy, atomic_write_json, file_sha256, remove_temp_files
 from u4d_aug.io import load_checkpoint as load_torch_checkpoint
 from u4d_aug.progress import progress_bar
+from u4d_aug.run import checkpoint_kind
 from u4d_aug.runlock import run_lock
 from u4d_aug.weights import SEGMENTATION_KIND, exported_model, is_exported
 
 MANIFEST_FORMAT = "u4d-seg-probs"
-SEG_CHECKPOINT_FORMAT = "u4d-seg-checkpoint"  # segmentation.train.CHECKPOINT_FORMAT (train imports this module)
 
 
 def load_checkpoint(path: str | Path) -> dict:
-    """Read a checkpoint written by segmentation.train, or its exported float16 weights (`u4d_aug.weights`, then
-    'model' holds them cast back to float32 and 'step' the training step); on CPU, tensors and plain python only."""
+    """Read a checkpoint written by segmentation.train (also one older than the run layer's "kind"), or its exported
+    float16 weights (`u4d_aug.weights`, then 'model' holds them cast back to float32 and 'step' the training step);
+    on CPU, tensors and plain python only."""
     ckpt = load_torch_checkpoint(path, "segmentation checkpoint")
     if "model" not in ckpt or "config" not in ckpt:
         raise InputError(f"{path}: not a segmentation checkpoint (expected keys 'config' and 'model')")
@@ -49,7 +50,7 @@ def load_checkpoint(path: str | Path) -> dict:
         if ckpt.get("kind") != SEGMENTATION_KIND:
             raise InputError(f"{path}: exported {ckpt.get('kind')} weights, not a segmentation checkpoint")
         ckpt = {**ckpt, "model": exported_model(ckpt, str(path)), "step": ckpt.get("trained", {}).get("step")}
-    elif ckpt.get("format") != SEG_CHECKPOINT_FORMAT:
+    elif checkpoint_kind(ckpt) != SEGMENTATION_KIND:
         kind = ckpt.get("kind") or ckpt.get("format")
         found = f"a {kind} checkpoint" if isinstance(kind, str) else "another kind of checkpoint"
         raise InputError(f"{path}: not a segmentation checkpoint ({found}; `u4d seg-train` writes model.pt)")
@@ -335,14 +336,3 @@ def run_seg_predict(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m segmentation.predict CKPT DATA --out DIR`: as `u4d seg-predict`, handy under torchrun."""
-    parser = argparse.ArgumentParser(prog="python -m segmentation.predict", description=run_seg_predict.__doc__)
-    add_seg_predict_arguments(parser)
-    return exit_code_of(lambda args: run_seg_predict(parser.parse_args(args)), argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

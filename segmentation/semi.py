@@ -20,9 +20,7 @@ from segmentation.mean_teacher import (
     consistency_loss,
     copy_buffers,
     ema_update,
-    mean_view_logits,
     pseudo_labels,
-    scan_views,
     total_loss,
 )
 from u4d_aug.data.datasets import NuscenesScanDataset, ScanDataset, open_scans
@@ -151,22 +149,14 @@ def semi_step(
         raise ValueError(f"semi batch needs as many unlabeled as labeled scans; got {len(unlabeled)} vs {len(labeled)}")
 
     voxel = cfg.loss.level == "voxel"  # losses on voxel rows (majority labels) instead of points
-    # teacher: pseudo-labels y_hat (sum M_b,) of the unlabeled scans, ignore id below the threshold; with
-    # teacher_views > 1 one forward over the scans and their mirror views, pseudo-labels from the mean softmax
-    b, num_views = len(unlabeled), cfg.semi.teacher_views
-    views = [view for scan in unlabeled for view in scan_views(scan, num_views)]  # scan-major: b * num_views
-    order = [i * num_views + v for v in range(num_views) for i in range(b)]  # view-major: the scans themselves first
+    # teacher: pseudo-labels y_hat (sum M_b,) of the unlabeled scans, ignore id below the threshold
     with torch.no_grad():
         if voxel:
-            teacher_out = teacher([views[i] for i in order], voxel_output=True)
-            point_logits = teacher_out.logits[teacher_out.inverse]  # (num_views * sum M_b, K)
-            teacher_logits = teacher_out.logits[teacher_out.batch < b]  # (V_u, K) voxels of the scans themselves
+            teacher_out = teacher(unlabeled, voxel_output=True)
+            teacher_logits = teacher_out.logits  # (V_u, K) voxels of the unlabeled scans
+            teacher_point_logits = teacher_out.logits[teacher_out.inverse]  # (sum M_b, K)
         else:
-            point_logits = teacher([views[i] for i in order])  # (num_views * sum M_b, K)
-            teacher_logits = point_logits[: sum(p.shape[0] for p in unlabeled)]  # (sum M_b, K)
-        teacher_point_logits = (
-            mean_view_logits(list(point_logits.chunk(num_views))) if num_views > 1 else point_logits
-        )  # (sum M_b, K)
+            teacher_logits = teacher_point_logits = teacher(unlabeled)  # (sum M_b, K)
     ignore = cfg.data.label_set.ignore_index
     pseudo, _ = pseudo_labels(teacher_point_logits, cfg.semi.pseudo_threshold, ignore, cfg.semi.pseudo_class_share)
     pseudo_per_scan = pseudo.split([p.shape[0] for p in unlabeled])
@@ -227,11 +217,10 @@ def in_burn_in(cfg: SemiConfig, step: int) -> bool:
 def update_teacher(teacher: nn.Module, student: nn.Module, cfg: SemiConfig, step: int) -> None:
     """EMA of the parameters after optimiser step `step`; BatchNorm buffers copied when bn_mode == copy_student.
 
-    During burn-in the teacher never runs forward, so its BatchNorm statistics are copied from the student too
-    (otherwise they would stay at their initial values until the first mean-teacher step), and with
-    burn_in_teacher "copy" its parameters as well (Unbiased Teacher: the burnt-in student becomes the teacher).
+    During burn-in the teacher is the student: its parameters and BatchNorm statistics are copied (Unbiased
+    Teacher: the burnt-in student becomes the teacher; it never runs forward before the first mean-teacher step).
     """
     burn_in = in_burn_in(cfg, step)
-    ema_update(teacher, student, 0.0 if burn_in and cfg.burn_in_teacher == "copy" else cfg.ema_decay)
+    ema_update(teacher, student, 0.0 if burn_in else cfg.ema_decay)
     if cfg.bn_mode == "copy_student" or burn_in:
         copy_buffers(teacher, student)

@@ -26,7 +26,7 @@ from u4d_aug.config import load_config
 from u4d_aug.data.formats import write_kitti_label, write_kitti_scan, write_nuscenes_scan
 from u4d_aug.ema import EMA
 from u4d_aug.io import atomic_save_npy, atomic_torch_save
-from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state
+from u4d_aug.stage import DiffusionTrainConfig, build_net, checkpoint_state
 
 U4D_TINY = REPO / "configs" / "u4d" / "tiny.yaml"
 EXTRACTOR_TINY = REPO / "configs" / "extractor" / "tiny.yaml"

@@ -26,7 +26,7 @@ from u4d_aug.export_weights import export_weights
 from u4d_aug.io import atomic_torch_save
 from u4d_aug.metrics.extractors import load_extractor, train_extractor
 from u4d_aug.pipeline import load_generator
-from u4d_aug.train import build_net, checkpoint_state
+from u4d_aug.stage import build_net, checkpoint_state
 from u4d_aug.train import train as train_diffusion
 
 
@@ -162,6 +162,8 @@ def test_our_own_checkpoints_still_load(roots, tmp_path):
     assert bench_module("bench_generation").training_budget(run)["steps"] == 2
     record = train_diffusion(diffusion_config(world, run, "stage1", "steps=3"), resume="last", progress=False)
     assert record["step"] == 3
+    export_weights(run, tmp_path / "stage1.pt")  # a run folder exports its newest checkpoint
+    assert bench_module("bench_generation").training_budget(tmp_path / "stage1.pt")["steps"] == 3
 
     frd_path, frd_hash = train_extractor("frd", extractor_config(roots["extractor"], tmp_path / "extractor"))
     assert load_extractor(frd_path).hash == frd_hash

@@ -175,3 +175,19 @@ def test_quiet_and_verbose_anywhere(tmp_path, capsys):
     assert main(["info", str(tmp_path), "--quiet", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["frames"] == 1
     assert main(["--verbose", "info", str(tmp_path)]) == 0
+
+
+def test_one_launch_path_no_command_module_is_a_script_of_its_own():
+    """`u4d COMMAND`, or `torchrun ... -m u4d_aug.cli COMMAND` for several processes: the modules behind the commands
+    have no `main` and no `__main__` block of their own (they used to, one launch path each)."""
+    import ast
+    import importlib
+    from pathlib import Path
+
+    for name in ("u4d_aug.train", "u4d_aug.generate", "segmentation.train", "segmentation.evaluate",
+                 "segmentation.predict", "segmentation.experiment"):  # fmt: skip
+        module = importlib.import_module(name)
+        tree = ast.parse(Path(module.__file__).read_text(encoding="utf-8"))
+        blocks = [node for node in tree.body if isinstance(node, ast.If) and "__main__" in ast.unparse(node.test)]
+        assert not hasattr(module, "main") and not blocks, name
+    assert "__main__" in Path(importlib.import_module("u4d_aug.cli").__file__).read_text(encoding="utf-8")

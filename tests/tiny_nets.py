@@ -19,7 +19,8 @@ from u4d_aug.ema import EMA
 from u4d_aug.generate import GenerateConfig
 from u4d_aug.io import atomic_torch_save
 from u4d_aug.metrics.extractors import ExtractorConfig
-from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state, split_stage_override
+from u4d_aug.stage import DiffusionTrainConfig, build_net, checkpoint_state
+from u4d_aug.train import split_stage_override
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = REPO / "configs" / "u4d" / "tiny.yaml"

@@ -1,4 +1,7 @@
-"""The `u4d` command: one sub-command per job; the only u4d_aug module that may import `segmentation` (lazily)."""
+"""The `u4d` command: one sub-command per job; the only u4d_aug module that may import `segmentation` (lazily).
+
+The one launch path: `u4d COMMAND` in one process, `torchrun ... -m u4d_aug.cli COMMAND` in several.
+"""
 
 from __future__ import annotations
 

@@ -2,8 +2,9 @@
 
 Imitates R2DM `utils/option.py` and dinov2's defaults + yaml + CLI merge: the dataclass holds every default, a
 yaml file overrides some, command-line `a.b=value` arguments override those. Unknown keys and wrong types are
-rejected with an `InputError` that names the key and lists the valid ones. `config_to_dict` gives the resolved
-config that is saved next to every output and inside every checkpoint.
+rejected with an `InputError` that names the key and lists the valid ones; a key a config class has removed
+(`REMOVED_KEYS`) is named as removed, with why. `config_to_dict` gives the resolved config that is saved next to
+every output and inside every checkpoint; `saved_config` reads one back, also one saved before a key was removed.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import math
 import re
 import types
 import typing
+import warnings
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar
@@ -89,6 +91,10 @@ def config_from_dict(cls: type[T], data: Mapping[str, Any] | None, source: str =
     data = dict(data or {})
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - set(fields))
+    removed = [name for name in unknown if name in removed_keys(cls)]
+    if removed:
+        why = removed_keys(cls)[removed[0]][1]
+        raise InputError(f"{source}: config key '{prefix}{removed[0]}' was removed ({why}); delete it from the config")
     if unknown:
         key = prefix + str(unknown[0])
         raise InputError(f"{source}: unknown config key '{key}'; valid keys here: {', '.join(sorted(fields))}")
@@ -102,6 +108,40 @@ def config_from_dict(cls: type[T], data: Mapping[str, Any] | None, source: str =
         if isinstance(exc, InputError):
             raise
         raise InputError(f"{source}: invalid value under '{prefix.rstrip('.') or cls.__name__}': {exc}") from None
+
+
+def removed_keys(cls: type) -> dict[str, tuple[Any, str]]:
+    """{key: (its value that meant "off", why it was removed)} of the keys dataclass `cls` no longer has."""
+    return getattr(cls, "REMOVED_KEYS", {})
+
+
+def without_removed_keys(cls: type, data: Mapping[str, Any], prefix: str = "") -> tuple[dict[str, Any], dict]:
+    """A saved config mapping without the keys `cls` (and its nested configs) has removed, and apart from it
+    {dotted key: value} of those that held another value than their "off" one (a setting that acted)."""
+    data = dict(data)
+    acted = {}
+    for name, (off, _) in removed_keys(cls).items():
+        if name in data:
+            value = data.pop(name)
+            if value != off:
+                acted[prefix + name] = value
+    hints = typing.get_type_hints(cls)
+    for field in dataclasses.fields(cls):
+        if dataclasses.is_dataclass(hints[field.name]) and isinstance(data.get(field.name), Mapping):
+            data[field.name], inner = without_removed_keys(
+                hints[field.name], data[field.name], f"{prefix}{field.name}."
+            )
+            acted |= inner
+    return data, acted
+
+
+def saved_config(cls: type[T], data: Mapping[str, Any] | None, source: str) -> T:
+    """A resolved config read back (a checkpoint's, a run's config.yaml), also one saved before a key was removed:
+    removed keys are dropped, with a warning for one that was set (the run used a since-removed setting)."""
+    clean, acted = without_removed_keys(cls, data or {})
+    for key, value in acted.items():
+        warnings.warn(f"{source}: trained with {key}={value!r}, a setting since removed; read without it", stacklevel=2)
+    return config_from_dict(cls, clean, source=source)
 
 
 def config_to_dict(cfg: Any) -> dict[str, Any]:

@@ -12,6 +12,7 @@ from pathlib import Path
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_torch_save, file_sha256, load_checkpoint
 from u4d_aug.metrics.extractors import load_extractor
+from u4d_aug.run import newest_checkpoint
 from u4d_aug.weights import (
     DIFFUSION_KIND,
     EXTRACTOR_KINDS,
@@ -35,10 +36,15 @@ def trained_info(state: dict, kind: str, source: Path) -> dict:
     return info
 
 
+def checkpoint_file(path: Path) -> Path:
+    """The checkpoint itself, or a run folder's newest checkpoints/step_*.pt."""
+    return newest_checkpoint(path) if path.is_dir() else path
+
+
 def export_weights(checkpoint_path: str | Path, out_path: str | Path, int8: bool = False) -> dict:
     """Write the float16 (`int8`: large tensors as int8 groups) inference weights of a training checkpoint to
-    `out_path` atomically; returns what it wrote."""
-    source, out = Path(checkpoint_path), Path(out_path)
+    `out_path` atomically; returns what it wrote. A run folder stands for its newest checkpoint."""
+    source, out = checkpoint_file(Path(checkpoint_path)), Path(out_path)
     state = load_checkpoint(source, "training checkpoint")
     if is_exported(state):
         raise InputError(f"{source}: already exported weights; export from the training checkpoint")
@@ -76,7 +82,10 @@ def export_weights(checkpoint_path: str | Path, out_path: str | Path, int8: bool
 def add_export_weights_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `u4d export-weights CKPT --out FILE`."""
     parser.add_argument(
-        "checkpoint", type=Path, help="training checkpoint of train-diffusion, train-extractor or seg-train"
+        "checkpoint",
+        type=Path,
+        help="training checkpoint of train-diffusion, train-extractor or seg-train, or a run folder "
+        "(its newest checkpoints/step_*.pt)",
     )
     parser.add_argument("--out", type=Path, required=True, help="the float16 weights file to write (e.g. weights/*.pt)")
     parser.add_argument(
@@ -89,7 +98,7 @@ def add_export_weights_arguments(parser: argparse.ArgumentParser) -> None:
 def run_export_weights(args: argparse.Namespace) -> int:
     """`u4d export-weights`: float16 inference weights + config + hash of a training checkpoint."""
     exported = export_weights(args.checkpoint, args.out, int8=args.int8)
-    size, before = args.out.stat().st_size, args.checkpoint.stat().st_size
+    size, before = args.out.stat().st_size, checkpoint_file(args.checkpoint).stat().st_size
     print(
         f"{exported['kind']} weights: {args.out} ({size / 1e6:.2f} MB; checkpoint {before / 1e6:.2f} MB), "
         f"hash {exported['hash']}, step {exported['trained']['step']}"

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -50,7 +49,7 @@ from u4d_aug.data.datasets import (
 from u4d_aug.data.formats import read_calib, read_poses
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
-from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.errors import InputError
 from u4d_aug.export_bank import export_bank
 from u4d_aug.io import remove_temp_files
 from u4d_aug.pipeline import Sampler, complete, generate_baseline, generate_u4d, load_generator, to_points
@@ -486,14 +485,3 @@ def run_generate(args: argparse.Namespace) -> int:
     finally:
         cleanup()
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m u4d_aug.generate CONFIG ...`: the same as `u4d generate`, handy under torchrun."""
-    parser = argparse.ArgumentParser(prog="python -m u4d_aug.generate", description=run_generate.__doc__)
-    add_generate_arguments(parser)
-    return exit_code_of(lambda args: run_generate(parser.parse_args(args)), argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

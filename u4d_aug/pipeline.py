@@ -26,9 +26,10 @@ from u4d_aug.errors import InputError
 from u4d_aug.io import load_checkpoint
 from u4d_aug.nn.unet import RangeUNet
 from u4d_aug.range_view import RowMode, unproject
+from u4d_aug.run import newest_checkpoint
 from u4d_aug.sampling import SAMPLER_NAMES, Generators, Grid, Sample, check_grid
 from u4d_aug.sampling import sample as sample_named
-from u4d_aug.stage import DiffusionTrainConfig, build_net, config_from_checkpoint, find_checkpoint
+from u4d_aug.stage import DiffusionTrainConfig, build_net, config_from_checkpoint
 from u4d_aug.weights import is_exported, load_exported
 
 # u4d_aug.sampling.sample: DDIM, ancestral DDPM, DPM-Solver++(2M) and its SDE form; the last two also on grid="logsnr"
@@ -41,7 +42,7 @@ def load_generator(ckpt: str | Path, device: torch.device | str = "cpu") -> Load
     (`u4d_aug.weights`) or a run folder."""
     path = Path(ckpt)
     if path.is_dir():
-        path = find_checkpoint(path, "last")
+        path = newest_checkpoint(path)
     state = load_checkpoint(path, "diffusion checkpoint")
     cfg = config_from_checkpoint(state, str(path))
     net = build_net(cfg, "cpu")

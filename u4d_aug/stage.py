@@ -8,7 +8,6 @@ stage 2 learns the full scan given concat(x0_u, m_u) (L_c), the baseline learns 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Literal
 
 import torch
@@ -18,9 +17,11 @@ from u4d_aug.data.datasets import DATASET_FORMATS
 from u4d_aug.data.nuscenes import NUSCENES_VERSION
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.diffusion import DiffusionConfig
+from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.nn.unet import RangeUNet, UNetConfig
 from u4d_aug.range_view import RowMode, ray_angles
+from u4d_aug.run import checkpoint_state as run_checkpoint_state
 from u4d_aug.uncertainty import Strategy
 from u4d_aug.validate import check_finite_config, check_positive
 
@@ -36,7 +37,7 @@ class UncertaintyConfig:
 
 
 @dataclass
-class OptimConfig:
+class DiffusionOptimConfig:
     """AdamW with linear warm-up (R2DM: lr 1e-4, batch 8, no weight decay, grad-norm clip 1)."""
 
     lr: float = 1e-4
@@ -73,7 +74,7 @@ class DiffusionTrainConfig:
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
     net: UNetConfig = field(default_factory=UNetConfig)
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
+    optim: DiffusionOptimConfig = field(default_factory=DiffusionOptimConfig)
     ema_decay: float = 0.995
     ema_warmup_steps: int = 0
     steps: int = 1000
@@ -125,17 +126,17 @@ def build_net(cfg: DiffusionTrainConfig, device: torch.device | str = "cpu") -> 
     return net.to(device)
 
 
-def find_checkpoint(out_dir: Path, resume: str | Path) -> Path:
-    """`--resume` without a path -> newest OUT/checkpoints/step_*.pt; with a path -> that file."""
-    if str(resume) != "last":
-        path = Path(resume)
-        if not path.is_file():
-            raise InputError(f"{path}: checkpoint to resume from not found")
-        return path
-    found = sorted((out_dir / "checkpoints").glob("step_*.pt"))
-    if not found:
-        raise InputError(f"{out_dir / 'checkpoints'}: no step_*.pt checkpoint to resume from")
-    return found[-1]
+def checkpoint_state(
+    cfg: DiffusionTrainConfig,
+    step: int,
+    net: RangeUNet,
+    ema: EMA,
+    optimizer: torch.optim.Optimizer | None = None,
+    elapsed: float = 0.0,
+) -> dict:
+    """A train-diffusion checkpoint (`u4d_aug.run.checkpoint_state` of kind CHECKPOINT_KIND): resolved config, step,
+    wall-clock seconds, model, EMA, optimizer (None: an untrained or test checkpoint), RNG."""
+    return run_checkpoint_state(CHECKPOINT_KIND, cfg, step, elapsed, net, optimizer, ema)
 
 
 def config_from_checkpoint(ckpt: dict, source: str) -> DiffusionTrainConfig:

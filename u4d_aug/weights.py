@@ -22,11 +22,12 @@ import torch
 from torch import Tensor
 
 from u4d_aug.errors import InputError
+from u4d_aug.run import checkpoint_kind as checkpoint_kind_of
 
 WEIGHTS_FORMAT = "u4d-weights-v1"
 # The checkpoint kinds, as their writers name them (tests/u4d_aug/test_weights.py checks they agree; u4d_aug does not
-# import segmentation): u4d_aug.train.CHECKPOINT_KIND, u4d_aug.metrics.extractors.EXTRACTOR_KINDS,
-# segmentation.train.CHECKPOINT_FORMAT (seg-train checkpoints carry it as "format", not "kind").
+# import segmentation): u4d_aug.stage.CHECKPOINT_KIND, u4d_aug.metrics.extractors.EXTRACTOR_KINDS,
+# segmentation.train.CHECKPOINT_KIND (seg-train checkpoints older than the run layer carry it as "format").
 DIFFUSION_KIND = "u4d-diffusion"
 # buffers a loader rebuilds from the config (the ray-angle Fourier features of the sensor: 4.2 MB at 64x1024 in
 # float16), so they are not shipped; `load_exported` checks that only these are absent
@@ -44,12 +45,14 @@ def is_exported(state: dict) -> bool:
 
 
 def checkpoint_kind(state: dict, source: str) -> str:
-    """'u4d-diffusion', 'frd', 'fpd' or 'u4d-seg-checkpoint': the kind of a training checkpoint."""
-    if state.get("kind") == DIFFUSION_KIND:
+    """'u4d-diffusion', 'frd', 'fpd' or 'u4d-seg-checkpoint': the kind of a training checkpoint, also of one written
+    before the run layer (`u4d_aug.run.checkpoint_kind`)."""
+    kind = checkpoint_kind_of(state)
+    if kind == DIFFUSION_KIND:
         return DIFFUSION_KIND
-    elif state.get("kind") in EXTRACTOR_KINDS:
-        return state["kind"]
-    elif state.get("format") == SEGMENTATION_KIND:
+    elif kind in EXTRACTOR_KINDS:
+        return kind
+    elif kind == SEGMENTATION_KIND:
         return SEGMENTATION_KIND
     raise InputError(
         f"{source}: not a training checkpoint of u4d train-diffusion, train-extractor or seg-train "

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 from segmentation.evaluate import evaluate
 from segmentation.experiment import (
@@ -18,6 +19,7 @@ from segmentation.experiment import (
     ExperimentConfig,
     add_experiment_arguments,
     burn_in_signature,
+    donors_on_disk,
     mean_std,
     paired_differences,
     run_config,
@@ -180,9 +182,8 @@ def test_arms_share_their_burn_in_and_end_as_if_trained_alone(tmp_path, caplog):
     root = write_toy_root(tmp_path / "toy")
     parser = argparse.ArgumentParser()
     add_experiment_arguments(parser)
-    arms = (
-        "arms=[{name: sup-only, mode: supervised}, {name: mt, mode: semi}, "
-        "{name: mt-ema, mode: semi, overrides: [semi.burn_in_teacher=ema]}]"
+    arms = "arms=[{name: sup-only, mode: supervised}, {name: mt, mode: semi}, {name: mt-w05, mode: semi, " + (
+        "overrides: [semi.mix_weight=0.5]}]"
     )
     common = [f"base={TINY_SEMI}", f"overrides=[data.root={root}, optim.steps=4, eval_every=4, semi.burn_in_steps=2]"]
     shared, alone = tmp_path / "shared", tmp_path / "alone"
@@ -195,28 +196,26 @@ def test_arms_share_their_burn_in_and_end_as_if_trained_alone(tmp_path, caplog):
         return out / "runs" / arm / "minkunet" / "seed0"
 
     # every run that trains its burn-in keeps that checkpoint beside its rotated ones; the shared mt run did not
-    assert all((run_dir(alone, arm) / "burn_in.pt").is_file() for arm in ("sup-only", "mt", "mt-ema"))
-    assert [(run_dir(shared, arm) / "burn_in.pt").is_file() for arm in ("sup-only", "mt", "mt-ema")] == [
+    assert all((run_dir(alone, arm) / "burn_in.pt").is_file() for arm in ("sup-only", "mt", "mt-w05"))
+    assert [(run_dir(shared, arm) / "burn_in.pt").is_file() for arm in ("sup-only", "mt", "mt-w05")] == [
         True,
         False,
-        True,
+        False,
     ]
     # the shared mt run resumed at step 2: its log holds sup-only's first two records, then its own
     sup_log = [r for r in read_jsonl(run_dir(shared, "sup-only") / "log.jsonl") if "loss" in r]
     mt_log = [r for r in read_jsonl(run_dir(shared, "mt") / "log.jsonl") if "loss" in r]
     assert mt_log[:2] == sup_log[:2] and [r["step"] for r in mt_log] == [1, 2, 3, 4] and "loss_mt" in mt_log[2]
-    for arm in ("mt", "mt-ema"):  # shared or not, the same final teacher
+    for arm in ("mt", "mt-w05"):  # shared or not, the same final teacher
         a = torch.load(run_dir(shared, arm) / "model.pt", weights_only=True)["model"]
         b = torch.load(run_dir(alone, arm) / "model.pt", weights_only=True)["model"]
         for key in a:
             assert torch.equal(a[key], b[key]), (arm, key)
-    # the EMA burn-in teacher is the run's own: never seeded from another run (it trained its own first steps)
+    # both mean-teacher arms (a semi key read after burn-in apart) start from sup-only's burn-in
     started = [line.split(" -> ")[0] for line in shared_log if " -> " in line]
     announced = [line for line in shared_log if "(the same burn-in)" in line]
-    assert started == ["sup-only / minkunet / seed 0", "mt / minkunet / seed 0", "mt-ema / minkunet / seed 0"]
-    assert len(announced) == 1 and str(run_dir(shared, "sup-only") / "burn_in.pt") in announced[0]
-    ema_log = [r for r in read_jsonl(run_dir(shared, "mt-ema") / "log.jsonl") if "loss" in r]
-    assert [r["step"] for r in ema_log] == [1, 2, 3, 4] and "loss_mt" in ema_log[2]
+    assert started == ["sup-only / minkunet / seed 0", "mt / minkunet / seed 0", "mt-w05 / minkunet / seed 0"]
+    assert len(announced) == 2 and all(str(run_dir(shared, "sup-only") / "burn_in.pt") in a for a in announced)
 
 
 def tiny_experiment(tmp_path: Path, overrides: str) -> tuple[Callable[..., int], Path]:
@@ -313,26 +312,20 @@ def test_an_arm_run_by_another_process_donates_its_burn_in(tmp_path):
     assert not (runs / "mt" / "minkunet" / "seed0" / "burn_in.pt").is_file()
 
 
-def test_a_warm_restart_at_the_burn_in_still_shares_it(tmp_path):
-    """optim.restart_step = burn-in: the same first steps as sup-only (burn_in.pt shared), a new lr cycle after."""
-    run, _ = tiny_experiment(tmp_path, "optim.steps=4, optim.warmup_steps=1, eval_every=4, semi.burn_in_steps=2")
-    restart = "overrides: [optim.restart_step=2, optim.restart_lr=0.5]"
-    arms = f"arms=[{{name: sup-only, mode: supervised}}, {{name: mt-restart, mode: semi, {restart}}}]"
-    assert run(arms) == 0
-    runs = tmp_path / "out" / "runs"
-    sup_log = [r for r in read_jsonl(runs / "sup-only" / "minkunet" / "seed0" / "log.jsonl") if "loss" in r]
-    mt_log = [r for r in read_jsonl(runs / "mt-restart" / "minkunet" / "seed0" / "log.jsonl") if "loss" in r]
-    assert mt_log[:2] == sup_log[:2] and not (runs / "mt-restart" / "minkunet" / "seed0" / "burn_in.pt").is_file()
-    assert mt_log[2]["lr"] == pytest.approx(0.5) and mt_log[2]["lr"] > 2 * sup_log[2]["lr"]
-    cfg = load_config(ExperimentConfig, TINY, ["overrides=[semi.burn_in_steps=4]"])
-
-    def signature(*overrides: str) -> str | None:
-        return burn_in_signature(
-            run_config(cfg, ArmConfig(name="x", mode="semi", overrides=list(overrides)), "minkunet", 0)
-        )
-
-    assert signature("optim.restart_step=4", "optim.restart_lr=0.5") == signature()
-    assert signature("optim.restart_step=2") != signature()  # a restart inside the burn-in changes it
+def test_a_run_saved_before_a_key_was_removed_still_donates_its_burn_in(tmp_path):
+    """A donor's config.yaml written before a key was removed: at its "off" value it still donates its burn_in.pt;
+    a burn-in trained with a since-removed setting (a warm restart inside it) does not."""
+    run, _ = tiny_experiment(tmp_path, "optim.steps=4, eval_every=4, semi.burn_in_steps=2")
+    assert run("arms=[{name: sup-only, mode: supervised}]") == 0
+    config = tmp_path / "out" / "runs" / "sup-only" / "minkunet" / "seed0" / "config.yaml"
+    saved = yaml.safe_load(config.read_text())
+    saved["optim"] |= {"restart_step": 0, "restart_lr": None}
+    saved["semi"] |= {"teacher_views": 1, "burn_in_teacher": "copy"}
+    config.write_text(yaml.safe_dump(saved))
+    assert [str(donor.out_dir) for donor in donors_on_disk(tmp_path / "out")] == [str(config.parent)]
+    saved["optim"]["restart_step"] = 1
+    config.write_text(yaml.safe_dump(saved))
+    assert donors_on_disk(tmp_path / "out") == []
 
 
 @pytest.mark.parametrize("path", sorted((REPO / "configs" / "experiment").glob("*.yaml")), ids=lambda p: p.name)

@@ -113,17 +113,6 @@ def test_trilinear_readout_interpolates_the_voxel_softmax(generator):
         tiny_config("spvcnn", readout="trilinear")
 
 
-@pytest.mark.parametrize("name,readout", [("minkunet", "voxel"), ("minkunet", "trilinear"), ("spvcnn", "voxel")])
-def test_rows_select_the_logits_of_those_points(name, readout, generator):
-    """forward(points, rows=r) = forward(points)[r] (the loss of loss.point_fraction < 1 reads sampled points)."""
-    torch.manual_seed(0)
-    model = build_model(tiny_config(name, readout=readout)).eval()
-    scans = random_scans(generator)
-    rows = torch.tensor([0, 5, 699, 700, 1099])  # first / last point of each scan and one inside
-    with torch.no_grad():
-        torch.testing.assert_close(model(scans, rows=rows), model(scans)[rows])
-
-
 def test_default_channels_follow_minkunet18_w32():
     model = build_model(SegModelConfig())
     assert isinstance(model, MinkUNet)

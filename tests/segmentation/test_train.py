@@ -11,31 +11,21 @@ import socket
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from segmentation.config import LossConfig, OptimConfig, SegTrainConfig
+from segmentation.batches import TrainBatches, train_scans
+from segmentation.config import LossConfig, SegTrainConfig
 from segmentation.losses import class_weights, lovasz_softmax, segmentation_loss, voxel_targets
 from segmentation.models import build_model
-from segmentation.train import (
-    TrainBatches,
-    add_seg_train_arguments,
-    batch_indices,
-    learning_rate,
-    run_seg_train,
-    supervised_step,
-    train,
-    train_class_counts,
-    train_scans,
-)
+from segmentation.train import add_seg_train_arguments, run_seg_train, supervised_step, train
 from tests.tiny_nets import CPU, REPO, SEG_TINY
 from u4d_aug.config import load_config
-from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
-from u4d_aug.distributed import DistInfo
 from u4d_aug.errors import InputError
 from u4d_aug.io import read_jsonl
 from u4d_aug.validate import NonFiniteLossError
@@ -148,54 +138,7 @@ def test_weighted_cross_entropy_is_torch_weighted_mean():
     assert float(out["loss_ce"]) == pytest.approx(float((w * per_point).sum() / w.sum()), rel=1e-6)
 
 
-def test_class_counts_of_the_training_scans(toy_root):
-    scans = ScanDataset(toy_root, ["00"], labeled_only=True)
-    counts = train_class_counts(scans)
-    expected = sum(np.bincount(scans[i]["labels"], minlength=20)[:19] for i in range(len(scans)))
-    np.testing.assert_array_equal(counts.numpy(), expected)
-    assert counts[0] > 0 and counts[8] > 0 and counts[12] > 0  # car, road, building of the toy scans
-
-
 # ------------------------------------------------------------------------------------------- schedule, data
-
-
-def test_learning_rate_warmup_then_cosine():
-    cfg = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1)
-    assert learning_rate(0, cfg) == pytest.approx(0.1)
-    assert learning_rate(9, cfg) == pytest.approx(1.0)
-    assert learning_rate(10, cfg) == pytest.approx(1.0)
-    assert learning_rate(60, cfg) == pytest.approx(0.55)  # half-way down the cosine
-    assert learning_rate(110, cfg) == pytest.approx(0.1)
-    lrs = [learning_rate(s, cfg) for s in range(10, 111)]
-    assert all(a >= b for a, b in itertools.pairwise(lrs))
-
-
-def test_learning_rate_warm_restart_keeps_the_steps_before_it():
-    one = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1)
-    cfg = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1, restart_step=60, restart_lr=0.5)
-    assert [learning_rate(s, cfg) for s in range(60)] == [learning_rate(s, one) for s in range(60)]
-    assert learning_rate(60, cfg) == pytest.approx(0.05)  # warm-up again, to restart_lr
-    assert learning_rate(69, cfg) == pytest.approx(0.5)
-    assert learning_rate(90, cfg) == pytest.approx(0.05 + 0.5 * 0.45)  # half-way down the second cosine
-    assert learning_rate(110, cfg) == pytest.approx(0.05)  # min_lr_ratio of restart_lr
-    assert learning_rate(69, OptimConfig(lr=1.0, warmup_steps=10, steps=110, restart_step=60)) == pytest.approx(1.0)
-    with pytest.raises(InputError, match="optim.restart_step must be 0 or in"):
-        load_config(SegTrainConfig, TINY, ["optim.restart_step=100000"])
-    with pytest.raises(InputError, match="optim.restart_lr must be positive and needs optim.restart_step"):
-        load_config(SegTrainConfig, TINY, ["optim.restart_lr=0.5"])  # would be ignored without a restart step
-
-
-def test_learning_rate_annealed_to_the_budget_follows_the_larger_progress():
-    cfg = OptimConfig(lr=1.0, warmup_steps=10, steps=110, min_lr_ratio=0.1, anneal_to="budget")
-    assert learning_rate(60, cfg, 0.0) == learning_rate(60, cfg) == pytest.approx(0.55)  # steps ahead of time
-    assert learning_rate(60, cfg, 0.25) == pytest.approx(0.55)
-    assert learning_rate(20, cfg, 0.5) == pytest.approx(0.55)  # time ahead of steps: half-way down anyway
-    assert learning_rate(20, cfg, 1.0) == pytest.approx(0.1)  # budget used: min lr
-    assert learning_rate(5, cfg, 1.0) == pytest.approx(0.6)  # warm-up is counted in steps only
-    with pytest.raises(InputError, match="anneal_to=budget needs a wall-clock budget"):
-        load_config(SegTrainConfig, TINY, ["optim.anneal_to=budget"])
-    with pytest.raises(InputError, match="anneal_to"):
-        load_config(SegTrainConfig, TINY, ["optim.anneal_to=time", "max_minutes=1"])
 
 
 def test_budget_annealed_run_reaches_min_lr_when_the_budget_is_gone(toy_root, tmp_path):
@@ -205,14 +148,6 @@ def test_budget_annealed_run_reaches_min_lr_when_the_budget_is_gone(toy_root, tm
     records = [r for r in read_jsonl(tmp_path / "run" / "log.jsonl") if "loss" in r]
     assert [r["step"] for r in records] == [1]
     assert records[0]["lr"] == pytest.approx(cfg.optim.lr * cfg.optim.min_lr_ratio)
-
-
-def test_batch_indices_are_epochs_of_permutations_and_depend_on_seed_and_step_only():
-    order = [i for step in range(6) for i in batch_indices(step, 5, 3, seed=7)]  # 18 draws = 3 epochs + 3
-    for epoch in range(3):
-        assert sorted(order[5 * epoch : 5 * epoch + 5]) == list(range(5))
-    assert batch_indices(4, 5, 3, seed=7) == batch_indices(4, 5, 3, seed=7)
-    assert [batch_indices(s, 50, 2, 1) for s in range(5)] != [batch_indices(s, 50, 2, 2) for s in range(5)]
 
 
 def test_config_rejects_bad_values(tmp_path):
@@ -286,35 +221,6 @@ def test_voxel_level_loss_reads_majority_labels_and_learns(toy_root, tmp_path):
     assert records[-1]["loss"] < records[0]["loss"]
 
 
-def test_point_fraction_loss_reads_the_sampled_points(toy_root, tmp_path):
-    """loss.point_fraction=0.25: each scan's batch item holds a quarter of its rows (sorted, distinct, the same
-    for the same step), and the losses are those of the full point logits at those rows."""
-    cfg = tiny_config(toy_root, tmp_path / "frac", "loss.point_fraction=0.25", "loss.lovasz_weight=1.0")
-    batches = TrainBatches(train_scans(cfg, CPU), cfg, 0, 1)
-    batch = batches[0]
-    for rows, labels in zip(batch["loss_rows"], batch["labels"]):
-        assert len(rows) == round(0.25 * len(labels)) and bool((rows.diff() > 0).all()) and int(rows[-1]) < len(labels)
-    torch.testing.assert_close(batches[0]["loss_rows"], batch["loss_rows"])
-    assert not torch.equal(batches[1]["loss_rows"][0][:50], batch["loss_rows"][0][:50])
-    torch.manual_seed(0)
-    model = build_model(cfg.model).eval()  # eval: batch norm does not see which points were computed
-    losses = supervised_step(model, batch, cfg, torch.device("cpu"))
-    start = len(batch["points"][0])
-    rows = torch.cat([batch["loss_rows"][0], batch["loss_rows"][1] + start])
-    want = segmentation_loss(
-        model(batch["points"])[rows], torch.cat(batch["labels"])[rows], cfg.loss, SEMANTICKITTI_IGNORE
-    )
-    for key in ("loss", "loss_ce", "loss_lovasz"):
-        assert float(losses[key].detach()) == pytest.approx(float(want[key].detach()), rel=1e-5), key
-    assert "loss_rows" not in TrainBatches(train_scans(cfg, CPU), tiny_config(toy_root, tmp_path), 0, 1)[0]
-    with pytest.raises(ValueError, match="loss.level=point"):
-        tiny_config(toy_root, tmp_path, "loss.level=voxel", "loss.point_fraction=0.5")
-    with pytest.raises(ValueError, match="point_fraction must be in"):
-        tiny_config(toy_root, tmp_path, "loss.point_fraction=0")
-    with pytest.raises(ValueError, match="mode=supervised"):
-        tiny_config(toy_root, tmp_path, "mode=semi", "loss.point_fraction=0.5")
-
-
 def test_class_weighted_run_logs_its_weights(toy_root, tmp_path):
     out = tmp_path / "weighted"
     train(tiny_config(toy_root, out, "optim.steps=2", "loss.class_weighting=inverse_sqrt"), progress=False)
@@ -323,19 +229,6 @@ def test_class_weighted_run_logs_its_weights(toy_root, tmp_path):
     assert first["step"] == 0 and weight["car"] > weight["road"] > 0  # the toy scans hold 2x road as car
     ckpt = torch.load(out / "checkpoints" / "step_0000002.pt", weights_only=True)
     assert ckpt["class_weight"].tolist() == pytest.approx(list(weight.values()))
-
-
-def test_paste_augmentation_adds_labelled_copies_in_the_batch(toy_root, tmp_path):
-    base = ["optim.steps=1", "augment.paste_classes=[car]", "augment.paste_copies=2", "data.max_points=null"]
-    scans = ScanDataset(toy_root, ["00", "01"], labeled_only=True)
-    plain = TrainBatches(scans, tiny_config(toy_root, tmp_path, *base), 0, 1)[0]
-    pasted = TrainBatches(scans, tiny_config(toy_root, tmp_path, *base, "augment.paste_prob=1.0"), 0, 1)[0]
-    for before, after, labels in zip(plain["labels"], pasted["labels"], pasted["points"]):
-        extra = len(after) - len(before)
-        assert extra > 0 and extra % 2 == 0 and len(labels) == len(after)
-        assert int((after == 0).sum()) == int((before == 0).sum()) + extra  # every pasted point is a car
-    with pytest.raises(InputError, match="paste_classes: unknown class names \\['lorry'\\]"):
-        tiny_config(toy_root, tmp_path, "augment.paste_classes=[lorry]")  # refused when the config loads
 
 
 def test_label_fraction_trains_on_the_split(toy_root, tmp_path):
@@ -385,6 +278,48 @@ def test_resume_in_a_fresh_process_is_bit_exact(toy_root, tmp_path):
     hosts = read_jsonl(half / "hosts.jsonl")  # one machine record per start: here only the resume at step 3
     assert [h["step"] for h in hosts] == [3] and hosts[0]["cores"] >= 1 and hosts[0]["world_size"] == 1
     assert [h["step"] for h in read_jsonl(full / "hosts.jsonl")] == [0]
+
+
+def as_written_before_the_run_layer(state: dict) -> dict:
+    """A seg-train checkpoint in the key layout of the code before `u4d_aug.run` (its kind under "format") with the
+    config keys removed since, at their "off" values."""
+    old = {key: value for key, value in state.items() if key != "kind"}
+    old["format"] = "u4d-seg-checkpoint"
+    config = old["config"]
+    config["optim"] |= {"restart_step": 0, "restart_lr": None}
+    config["loss"]["point_fraction"] = 1.0
+    config["semi"] |= {"teacher_views": 1, "burn_in_teacher": "copy"}
+    return old
+
+
+def test_a_checkpoint_written_before_the_run_layer_resumes_exactly_and_exports(toy_root, tmp_path):
+    """The old layout ("format", no "kind"; removed keys in its config) resumes a mean-teacher run to the weights of
+    an uninterrupted one, without a changed-config warning; its weights export and load as a segmentor's."""
+    from segmentation.predict import load_checkpoint
+    from tests.tiny_nets import SEG_TINY_SEMI
+    from u4d_aug.export_weights import export_weights
+    from u4d_aug.weights import SEGMENTATION_KIND
+
+    overrides = [f"data.root={toy_root}", "semi.burn_in_steps=2", "data.max_points=600"]
+    full, half = tmp_path / "full", tmp_path / "half"
+    train(load_config(SegTrainConfig, SEG_TINY_SEMI, [*overrides, f"out_dir={full}"]), progress=False)
+    state = torch.load(full / "checkpoints" / "step_0000003.pt", weights_only=True)
+    assert state["kind"] == "u4d-seg-checkpoint" and "format" not in state
+    (half / "checkpoints").mkdir(parents=True)
+    torch.save(as_written_before_the_run_layer(state), half / "checkpoints" / "step_0000003.pt")
+    (half / "log.jsonl").write_text((full / "log.jsonl").read_text())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        train(
+            load_config(SegTrainConfig, SEG_TINY_SEMI, [*overrides, f"out_dir={half}"]), resume="last", progress=False
+        )
+    a, b = (torch.load(run / "model.pt", weights_only=True) for run in (full, half))
+    assert all(torch.equal(a["model"][key], b["model"][key]) for key in a["model"])
+    old_final = as_written_before_the_run_layer({**a, "optimizer": None})
+    torch.save(old_final, tmp_path / "old_model.pt")
+    assert load_checkpoint(tmp_path / "old_model.pt")["step"] == 6
+    exported = export_weights(half / "checkpoints" / "step_0000003.pt", tmp_path / "exported.pt")
+    assert exported["kind"] == SEGMENTATION_KIND and load_checkpoint(tmp_path / "exported.pt")["step"] == 3
 
 
 def test_a_run_killed_before_its_first_checkpoint_starts_again_from_step_0(toy_root, tmp_path, caplog):
@@ -487,18 +422,6 @@ def test_cli_functions(toy_root, tmp_path, capsys):
     with pytest.warns(UserWarning, match="optim.steps"):
         assert run_seg_train(args) == 0
     assert torch.load(out / "model.pt", weights_only=True)["step"] == 3
-
-
-def test_global_batch_does_not_depend_on_the_number_of_ranks(toy_root):
-    from segmentation.train import TrainBatches, train_scans
-
-    cfg = tiny_config(toy_root, toy_root / "unused", "optim.batch_size=3", "data.max_points=500")
-    scans = train_scans(cfg, DistInfo(0, 1, 0, torch.device("cpu")))
-    single = TrainBatches(scans, cfg, 0, 1)[5]
-    rank0, rank1 = TrainBatches(scans, cfg, 0, 2)[5], TrainBatches(scans, cfg, 1, 2)[5]
-    merged = [rank0["points"][0], rank1["points"][0], rank0["points"][1]]  # slots 0, 1, 2
-    assert all(torch.equal(a, b) for a, b in zip(single["points"], merged))
-    assert all(p.shape == (500, 4) for p in single["points"])
 
 
 @pytest.mark.parametrize("path", sorted((REPO / "configs" / "seg").glob("*.yaml")), ids=lambda p: p.name)

@@ -9,21 +9,15 @@ import numpy as np
 import pytest
 import torch
 
+from segmentation.batches import TrainBatches, train_class_counts, train_scans
 from segmentation.config import SegTrainConfig
 from segmentation.losses import class_weights
 from segmentation.mean_teacher import make_teacher, teacher_mode
 from segmentation.models import build_model
+from segmentation.optimizer import learning_rate, make_optimizer
 from segmentation.predict import predict_root, probs_path
 from segmentation.semi import in_burn_in, semi_step, unlabeled_stream, update_teacher
-from segmentation.train import (
-    _STEP,
-    TrainBatches,
-    learning_rate,
-    make_optimizer,
-    supervised_step,
-    train_class_counts,
-    train_scans,
-)
+from segmentation.train import _STEP, supervised_step
 from tests.tiny_nets import CPU, SEG_TINY_SEMI, torchrun
 from tests.tiny_nets import SEG_TINY as TINY
 from u4d_aug.config import load_config
@@ -76,7 +70,7 @@ def two_ranks_in_one_process(cfg: SegTrainConfig) -> tuple[list[float], dict[str
 def test_two_process_training_and_sharded_prediction(toy_root, tmp_path):
     out = tmp_path / "run"
     overrides = [f"data.root={toy_root}", "optim.steps=4", "eval_every=2"]
-    torchrun("-m", "segmentation.train", str(TINY), *overrides, "--out", str(out), "--no-progress")
+    torchrun("-m", "u4d_aug.cli", "seg-train", str(TINY), *overrides, "--out", str(out), "--no-progress")
     records = read_jsonl(out / "log.jsonl")  # written by rank 0 only: one record per step, not two
     assert [r["step"] for r in records if "loss" in r] == [1, 2, 3, 4]
     evals = [r for r in records if "val_miou" in r]
@@ -93,8 +87,9 @@ def test_two_process_training_and_sharded_prediction(toy_root, tmp_path):
 
     probs_dir = tmp_path / "probs"
     torchrun(
-        "-m", "segmentation.predict", str(out / "model.pt"), str(toy_root), "--out", str(probs_dir), "--no-progress"
-    )
+        "-m", "u4d_aug.cli", "seg-predict", str(out / "model.pt"), str(toy_root), "--out", str(probs_dir),
+        "--no-progress",
+    )  # fmt: skip
     files = sorted(probs_dir.glob("sequences/*/probs/*.npy"))
     assert len(files) == 6  # rank 0 took scans 0, 2, 4 and rank 1 took 1, 3, 5
     probs = np.load(probs_path(probs_dir, "00", "000001"))
@@ -113,7 +108,7 @@ def test_two_process_semi_training(toy_root, tmp_path, level):
     one process running both ranks' shares of the same global batches (LaserMix, teacher, EMA)."""
     out = tmp_path / "ddp"
     overrides = [f"data.root={toy_root}", "optim.steps=2", "eval_every=2", f"loss.level={level}"]
-    torchrun("-m", "segmentation.train", str(SEG_TINY_SEMI), *overrides, "--out", str(out), "--no-progress")
+    torchrun("-m", "u4d_aug.cli", "seg-train", str(SEG_TINY_SEMI), *overrides, "--out", str(out), "--no-progress")
     records = [r for r in read_jsonl(out / "log.jsonl") if "loss" in r]
     assert [r["step"] for r in records] == [1, 2]
     ckpt = torch.load(out / "checkpoints" / "step_0000002.pt", weights_only=True)

@@ -21,7 +21,7 @@ from u4d_aug.errors import InputError
 from u4d_aug.generate import GenerateConfig, add_generate_arguments, generate_bank, run_generate
 from u4d_aug.io import atomic_save_npy, atomic_torch_save
 from u4d_aug.range_view import project
-from u4d_aug.train import DiffusionTrainConfig, build_net, checkpoint_state
+from u4d_aug.stage import DiffusionTrainConfig, build_net, checkpoint_state
 
 
 @pytest.fixture(scope="module")

@@ -3,12 +3,20 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 import pytest
 import yaml
 
-from u4d_aug.config import config_from_dict, config_to_dict, load_config, parse_override, save_config
+from u4d_aug.config import (
+    config_from_dict,
+    config_to_dict,
+    load_config,
+    parse_override,
+    save_config,
+    saved_config,
+    without_removed_keys,
+)
 from u4d_aug.errors import InputError
 
 
@@ -54,6 +62,33 @@ def test_unknown_key_is_named_with_valid_keys(tmp_path):
     path.write_text("inner:\n  stepz: 5\n")
     with pytest.raises(InputError, match=r"unknown config key 'inner.stepz'; valid keys here: lr, mode, steps"):
         load_config(Outer, path)
+
+
+@dataclass
+class Pruned:
+    steps: int = 10
+
+    REMOVED_KEYS: ClassVar[dict] = {"views": (1, "measured no gain")}
+
+
+@dataclass
+class PrunedOuter:
+    inner: Pruned = field(default_factory=Pruned)
+    REMOVED_KEYS: ClassVar[dict] = {"restart": (0, "changed nothing")}
+
+
+def test_a_removed_key_is_named_as_removed_and_a_saved_config_still_reads():
+    with pytest.raises(InputError, match=r"config key 'inner.views' was removed \(measured no gain\); delete it"):
+        load_config(PrunedOuter, None, ["inner.views=4"])
+    with pytest.raises(InputError, match="unknown config key 'inner.viewz'"):
+        load_config(PrunedOuter, None, ["inner.viewz=4"])
+    saved = {"restart": 0, "inner": {"steps": 3, "views": 1}}  # written before the keys were removed, both "off"
+    assert without_removed_keys(PrunedOuter, saved) == ({"inner": {"steps": 3}}, {})
+    assert saved_config(PrunedOuter, saved, "old.pt") == PrunedOuter(Pruned(3))
+    saved["inner"]["views"] = 4  # a removed setting that acted: named, then read without it
+    assert without_removed_keys(PrunedOuter, saved)[1] == {"inner.views": 4}
+    with pytest.warns(UserWarning, match="old.pt: trained with inner.views=4, a setting since removed"):
+        assert saved_config(PrunedOuter, saved, "old.pt") == PrunedOuter(Pruned(3))
 
 
 def test_wrong_type_in_yaml_is_named(tmp_path):

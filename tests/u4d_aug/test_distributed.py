@@ -12,6 +12,7 @@ import torch
 from tests.tiny_nets import TINY, torchrun
 from tests.tiny_worlds import write_tiny_world
 from u4d_aug.bank import read_manifest
+from u4d_aug.batches import _NOISE, RangeImages, batch_indices, make_batch, stage_inputs
 from u4d_aug.config import load_config
 from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.diffusion import GaussianDiffusion
@@ -20,15 +21,7 @@ from u4d_aug.generate import GenerateConfig, generate_bank
 from u4d_aug.io import read_jsonl
 from u4d_aug.seeding import derived_seed
 from u4d_aug.stage import DiffusionTrainConfig, build_net
-from u4d_aug.train import (
-    _NOISE,
-    RangeImages,
-    batch_indices,
-    learning_rate,
-    make_batch,
-    split_stage_override,
-    stage_inputs,
-)
+from u4d_aug.train import learning_rate, split_stage_override
 
 CPU = torch.device("cpu")
 
@@ -70,7 +63,7 @@ def test_two_process_training_then_sharded_generation(tmp_path: Path):
     write_tiny_world(world, probs)
     run = tmp_path / "baseline"
     overrides = ["stage=baseline", f"data_root={world}", "steps=2"]
-    torchrun("-m", "u4d_aug.train", str(TINY), *overrides, "--out", str(run), "--no-progress")
+    torchrun("-m", "u4d_aug.cli", "train-diffusion", str(TINY), *overrides, "--out", str(run), "--no-progress")
     log = read_jsonl(run / "log.jsonl")
     assert [r["step"] for r in log] == [2]  # rank 0 logs once per logging step
     ckpt = torch.load(run / "checkpoints" / "step_0000002.pt", weights_only=False)
@@ -91,7 +84,7 @@ def test_two_process_training_then_sharded_generation(tmp_path: Path):
     generate = [str(Path(TINY).with_name("generate_cpu.yaml")), f"baseline={run}", "mode=baseline", "num=4", "steps=2"]
     generate += ["batch_size=2", "device=cpu"]
     bank = tmp_path / "bank"
-    torchrun("-m", "u4d_aug.generate", *generate, "--out", str(bank), "--no-progress")
+    torchrun("-m", "u4d_aug.cli", "generate", *generate, "--out", str(bank), "--no-progress")
     manifest = read_manifest(bank)
     assert manifest["complete"] and [s["index"] for s in manifest["samples"]] == [0, 1, 2, 3]
     scans = sorted((bank / "sequences" / "00" / "velodyne").glob("*.bin"))

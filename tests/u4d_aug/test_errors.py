@@ -44,20 +44,22 @@ def test_benchmark_scripts_report_bad_input_in_one_line(tmp_path, script, args, 
 
 
 @pytest.mark.parametrize(
-    ("module", "args"),
+    ("command", "args"),
     [
-        ("segmentation.train", ["{missing}"]),
-        ("segmentation.evaluate", ["{missing}", "{tmp}"]),
-        ("segmentation.predict", ["{missing}", "{tmp}", "--out", "{tmp}/probs"]),
-        ("segmentation.experiment", ["{missing}"]),
-        ("u4d_aug.train", ["{missing}"]),
-        ("u4d_aug.generate", ["{missing}", "--out", "{tmp}/bank"]),
+        ("seg-train", ["{missing}"]),
+        ("seg-eval", ["{missing}", "{tmp}"]),
+        ("seg-predict", ["{missing}", "{tmp}", "--out", "{tmp}/probs"]),
+        ("experiment", ["{missing}"]),
+        ("train-diffusion", ["{missing}"]),
+        ("generate", ["{missing}", "--out", "{tmp}/bank"]),
     ],
 )
-def test_torchrun_entry_points_report_a_missing_file_in_one_line(tmp_path, capsys, module, args):
+def test_torchrun_commands_report_a_missing_file_in_one_line(tmp_path, capsys, command, args):
+    """The commands run under `torchrun ... -m u4d_aug.cli COMMAND` (the one launch path) fail in one line."""
+    from u4d_aug.cli import main
+
     missing = tmp_path / "nowhere.yaml"
     argv = [a.format(missing=missing, tmp=tmp_path) for a in args]
-    main = __import__(module, fromlist=["main"]).main
-    assert main(argv) == 2
+    assert main([command, *argv]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and "nowhere.yaml" in lines[0]

@@ -16,19 +16,14 @@ import torch
 
 from tests.tiny_nets import REPO, TINY, diffusion_config
 from tests.tiny_worlds import write_tiny_world
+from u4d_aug.batches import RangeImages, crop_batch
 from u4d_aug.config import load_config
 from u4d_aug.data.formats import write_kitti_scan
 from u4d_aug.diffusion import GaussianDiffusion
 from u4d_aug.errors import InputError
 from u4d_aug.io import read_jsonl
-from u4d_aug.train import (
-    DiffusionTrainConfig,
-    RangeImages,
-    add_train_diffusion_arguments,
-    crop_batch,
-    run_train_diffusion,
-    train,
-)
+from u4d_aug.stage import DiffusionTrainConfig
+from u4d_aug.train import add_train_diffusion_arguments, run_train_diffusion, train
 from u4d_aug.validate import NonFiniteLossError
 
 
@@ -67,8 +62,8 @@ def test_resume_continues_to_the_same_weights(tiny_world, tmp_path):
         train(diffusion_config(tiny_world, tmp_path / "part", "stage2"), progress=False)
     # a new process resumes from the checkpoint of step 2 (nothing of the first run's memory reaches it)
     subprocess.run(
-        [sys.executable, "-m", "u4d_aug.train", str(TINY), f"data_root={tiny_world[0]}", f"probs_root={tiny_world[1]}",
-         "stage=stage2", "--out", str(tmp_path / "part"), "--resume", "--no-progress"],
+        [sys.executable, "-m", "u4d_aug.cli", "train-diffusion", str(TINY), f"data_root={tiny_world[0]}",
+         f"probs_root={tiny_world[1]}", "stage=stage2", "--out", str(tmp_path / "part"), "--resume", "--no-progress"],
         check=True, cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, timeout=300,
     )  # fmt: skip
     assert [r["step"] for r in read_jsonl(tmp_path / "part" / "log.jsonl")] == [2, 4]
@@ -101,9 +96,9 @@ def test_a_run_killed_before_its_first_checkpoint_starts_again_from_step_0(tiny_
     files; the next run, with or without --resume, takes over the stale lock and trains from step 0."""
     out = tmp_path / "killed"
     code = (
-        "import sys; from u4d_aug.train import main; "
-        f"sys.exit(main([{str(TINY)!r}, 'stage=baseline', 'data_root={tiny_world[0]}', 'steps=100000', "
-        f"'log_every=1', 'checkpoint_every=100000', '--out', {str(out)!r}, '--no-progress']))"
+        "import sys; from u4d_aug.cli import main; "
+        f"sys.exit(main(['train-diffusion', {str(TINY)!r}, 'stage=baseline', 'data_root={tiny_world[0]}', "
+        f"'steps=100000', 'log_every=1', 'checkpoint_every=100000', '--out', {str(out)!r}, '--no-progress']))"
     )
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     process = subprocess.Popen([sys.executable, "-c", code], env=env, stderr=subprocess.PIPE, text=True)
@@ -220,7 +215,7 @@ def test_stage_needs_probabilities(tiny_world, tmp_path):
 def test_stage2_overfits_one_scan(tmp_path):
     """Stage 2 trained on one scan completes that scan's x0_u far closer to it than the untrained net (~35 s)."""
     from u4d_aug.pipeline import complete, load_generator
-    from u4d_aug.train import RangeImages, build_net
+    from u4d_aug.stage import build_net
 
     world = (tmp_path / "world", tmp_path / "probs")
     write_tiny_world(*world, num_scans=1)
@@ -248,8 +243,6 @@ def tiny_most_config(world: tuple[Path, Path], out: Path, stage: str, *extra: st
 
 
 def test_frames_items_are_windows_of_one_sequence(tiny_world, tmp_path):
-    from u4d_aug.train import RangeImages
-
     images = RangeImages(tiny_most_config(tiny_world, tmp_path / "x", "stage2"))
     assert len(images) == 2  # 3 scans -> windows (0, 1), (1, 2)
     assert images.window(1) == ("00", ["000001", "000002"])
@@ -293,13 +286,6 @@ def test_frames_without_most_train_frames_independently(tiny_world, tmp_path):
     cfg = tiny_most_config(tiny_world, tmp_path / "plain", "baseline", "net.most=false", "steps=2")
     record = train(cfg, progress=False)
     assert record["step"] == 2 and "most_cv" not in record and "most_alpha_s" not in record
-
-
-def test_crop_batch_wraps_around_the_ring():
-    image = torch.arange(8.0).expand(2, 3, 1, 4, 8)  # (B, L, C, H, W), value = column
-    cropped = crop_batch({"x0": image}, torch.tensor([6, 2]), 4)["x0"]
-    assert cropped.shape == (2, 3, 1, 4, 4)
-    assert cropped[0, 0, 0, 0].tolist() == [6, 7, 0, 1] and cropped[1, 2, 0, 3].tolist() == [2, 3, 4, 5]
 
 
 def test_crop_config_is_checked(tiny_world, tmp_path):

@@ -19,7 +19,7 @@ import torch
 from segmentation.config import SegTrainConfig
 from segmentation.predict import load_checkpoint as load_seg_checkpoint
 from segmentation.predict import model_from_checkpoint, predict_probs
-from segmentation.train import CHECKPOINT_FORMAT
+from segmentation.train import CHECKPOINT_KIND as SEG_CHECKPOINT_KIND
 from segmentation.train import train as train_segmentor
 from tests.tiny_nets import SEG_TINY, diffusion_config, extractor_config
 from tests.tiny_worlds import read_scans, write_tiny_root, write_tiny_world, write_toy_root
@@ -67,7 +67,7 @@ def diffusion(tmp_path_factory) -> dict:
 def test_kind_names_match_their_writers():
     assert weights.DIFFUSION_KIND == CHECKPOINT_KIND
     assert weights.EXTRACTOR_KINDS == extractors.EXTRACTOR_KINDS
-    assert weights.SEGMENTATION_KIND == CHECKPOINT_FORMAT
+    assert weights.SEGMENTATION_KIND == SEG_CHECKPOINT_KIND
 
 
 def test_diffusion_export_is_half_size_stable_and_keeps_heads(diffusion, tmp_path):
@@ -158,7 +158,7 @@ def test_segmentation_export_predicts_the_same_probabilities(tmp_path):
     )
     train_segmentor(cfg, progress=False)
     exported = export_weights(run / "model.pt", tmp_path / "seg.pt")
-    assert exported["kind"] == CHECKPOINT_FORMAT and exported["trained"]["step"] == 4
+    assert exported["kind"] == SEG_CHECKPOINT_KIND and exported["trained"]["step"] == 4
     assert export_weights(run / "model.pt", tmp_path / "seg_again.pt")["hash"] == exported["hash"]
     a, b = load_seg_checkpoint(run / "model.pt"), load_seg_checkpoint(tmp_path / "seg.pt")
     assert b["step"] == 4 and b["config"] == a["config"]
@@ -174,6 +174,11 @@ def test_cli_command(diffusion, tmp_path, capsys):
     checkpoint, exported, _ = diffusion["baseline"]
     assert cli_main(["export-weights", str(checkpoint), "--out", str(tmp_path / "w.pt")]) == 0
     assert exported["hash"] in capsys.readouterr().out
+    # a run folder stands for its newest checkpoint (the one the fixture exported)
+    assert cli_main(["export-weights", str(checkpoint.parents[1]), "--out", str(tmp_path / "r.pt")]) == 0
+    assert exported["hash"] in capsys.readouterr().out
+    assert cli_main(["export-weights", str(tmp_path), "--out", str(tmp_path / "y.pt")]) == 2
+    assert "checkpoints: no step_*.pt checkpoint in this run folder" in capsys.readouterr().err
     assert cli_main(["export-weights", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "x.pt")]) == 2
     assert "missing.pt: training checkpoint not found" in capsys.readouterr().err
 
@@ -195,7 +200,13 @@ def test_bad_input_is_a_one_line_error(diffusion, tmp_path):
     _one_line_error(load_extractor, path, match="not an extractor checkpoint")
     _one_line_error(load_seg_checkpoint, path, match="not a segmentation checkpoint")
     resume = diffusion_config(diffusion["world"], tmp_path / "resume", "stage2")
-    _one_line_error(train_diffusion, resume, path, False, match="exported weights hold no optimizer")
+    _one_line_error(
+        train_diffusion,
+        resume,
+        path,
+        False,
+        match="holds weights only \\(exported weights or a final model.pt\\), no optimizer",
+    )
     state = torch.load(path, weights_only=True)
     name = next(iter(state["model"]))
     state["model"][name] = state["model"][name] + 1

@@ -9,8 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from segmentation.config import SegTrainConfig
-from segmentation.train import class_names
+from segmentation.config import SegTrainConfig, class_names
 from tests.tiny_nets import REPO
 from u4d_aug.config import load_config
 from u4d_aug.data.datasets import NuscenesScanDataset, ScanDataset

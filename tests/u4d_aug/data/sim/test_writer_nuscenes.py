@@ -17,6 +17,7 @@ from segmentation.evaluate import evaluate
 from segmentation.predict import predict_root
 from segmentation.train import train
 from tests.tiny_nets import REPO
+from u4d_aug.batches import RangeImages
 from u4d_aug.cli import main
 from u4d_aug.config import load_config
 from u4d_aug.data.datasets import NuscenesScanDataset, NuscenesSequenceDataset, SequenceDataset
@@ -36,7 +37,6 @@ from u4d_aug.data.sim.writer import add_simulate_arguments, lidar_to_ego, run_si
 from u4d_aug.errors import InputError
 from u4d_aug.range_view import project
 from u4d_aug.stage import DiffusionTrainConfig
-from u4d_aug.train import RangeImages
 from u4d_aug.train import train as train_diffusion
 from u4d_aug.uncertainty import load_probs, probs_path
 

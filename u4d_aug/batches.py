@@ -1,0 +1,171 @@
+"""What a diffusion stage trains on: the range images of the scans (or L-frame windows) and the batch of each step.
+
+Item i of `RangeImages` is scan i projected to x0 (2, H, W) with, for stages 1 and 2, its uncertain region x0_u
+(2, H, W) and mask m_u (1, H, W) (U4D paper §2.1); with `frames` = L > 1 the L scans of window i, (L, C, H, W).
+The scans of step s and the noise of step s depend only on (seed, step, rank) (`training_batch`), so a resumed
+run draws what an uninterrupted one would; `crop_batch` cuts azimuth crops for training on part of the ring.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from u4d_aug.data.beams import check_beams
+from u4d_aug.data.datasets import (
+    NuscenesScanDataset,
+    NuscenesSequenceDataset,
+    ScanDataset,
+    SequenceDataset,
+    open_scans,
+    open_sequences,
+)
+from u4d_aug.data.sensors import Sensor, get_sensor
+from u4d_aug.errors import InputError
+from u4d_aug.nn.unet import crop_columns
+from u4d_aug.range_view import project, to_image
+from u4d_aug.seeding import derived_seed
+from u4d_aug.stage import DiffusionTrainConfig
+from u4d_aug.trajectory import relative_motion
+from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
+
+_BATCH, _NOISE = 1, 2  # streams of derived_seed
+
+
+class RangeImages:
+    """Item i = dict(x0 (2, H, W), x0_u (2, H, W), m_u (1, H, W)) of scan i; x0_u/m_u need probabilities.
+
+    With cfg.frames = L > 1, item i stacks the L scans of window i of a `SequenceDataset` (one sequence,
+    frame_stride apart): x0 (L, 2, H, W), x0_u (L, 2, H, W), m_u (L, 1, H, W); poses are not needed.
+    x0_u and m_u are recomputed per scan for strategy 'random' (seeded by `generator`), cached otherwise.
+    """
+
+    def __init__(self, cfg: DiffusionTrainConfig) -> None:
+        if not cfg.data_root:
+            raise InputError("data_root: expected a SemanticKITTI-layout folder (or a nuScenes root) of training scans")
+        self.cfg = cfg
+        self.sensor: Sensor = get_sensor(cfg.sensor)
+        layout = (cfg.data_format, cfg.nuscenes_version)
+        self.scans: ScanDataset | NuscenesScanDataset = open_scans(cfg.data_root, cfg.sequences, False, *layout)
+        if len(self.scans) == 0:
+            raise InputError(f"{cfg.data_root}: no scans found")
+        first = self.scans.entries[0]
+        check_beams(self.scans.load_points(*first), self.sensor, f"{cfg.data_root}: scan {'/'.join(first)}")
+        self.windows: SequenceDataset | NuscenesSequenceDataset | None = None
+        if cfg.frames > 1:
+            self.windows = open_sequences(
+                cfg.data_root, cfg.frames, cfg.sequences, cfg.frame_stride, cfg.net.pose_dim > 0, *layout
+            )
+        self.needs_probs = cfg.diffusion.stage in ("stage1", "stage2") and cfg.uncertainty.strategy != "none"
+        if self.needs_probs and not cfg.probs_root:
+            raise InputError(
+                f"probs_root: stage {cfg.diffusion.stage} needs the probability files of `u4d seg-predict`"
+            )
+        self.cache: dict[tuple[str, str], dict[str, Tensor]] = {}
+
+    def __len__(self) -> int:
+        return len(self.windows) if self.windows is not None else len(self.scans)
+
+    def window(self, index: int) -> tuple[str, list[str]]:
+        """(sequence, frame names) of item `index`: one scan, or the L scans of a window."""
+        if self.windows is None:
+            seq, frame = self.scans.entries[index]
+            return seq, [frame]
+        seq, start = self.windows.windows[index]
+        stop = start + self.cfg.frames * self.cfg.frame_stride
+        return seq, self.windows.frames[seq][start : stop : self.cfg.frame_stride]
+
+    def __getitem__(self, index: int, generator: torch.Generator | None = None) -> dict[str, Tensor]:
+        seq, frames = self.window(index)
+        if self.windows is None:
+            return self.scan_images(seq, frames[0], generator)
+        items = [self.scan_images(seq, frame, generator) for frame in frames]
+        out = {key: torch.stack([item[key] for item in items]) for key in items[0]}  # (L, C, H, W) each
+        if self.cfg.net.pose_dim:  # the ego motion of the window's frames, (L, 4) in the first frame's sensor frame
+            start = self.windows.windows[index][1]
+            positions = list(range(start, start + self.cfg.frames * self.cfg.frame_stride, self.cfg.frame_stride))
+            out["motion"] = torch.from_numpy(relative_motion(self.windows.poses[seq][positions]))
+        return out
+
+    def scan_images(self, seq: str, frame: str, generator: torch.Generator | None = None) -> dict[str, Tensor]:
+        """x0 (2, H, W) and, for stages 1 and 2, x0_u (2, H, W), m_u (1, H, W) of one scan (cached)."""
+        if (seq, frame) in self.cache:
+            return self.cache[(seq, frame)]
+        cfg = self.cfg
+        points = torch.from_numpy(self.scans.load_points(seq, frame))
+        x0 = to_image(project(points, self.sensor, cfg.height, cfg.width, cfg.row_mode), self.sensor)
+        out = {"x0": x0}
+        if cfg.diffusion.stage != "baseline":
+            if self.needs_probs:
+                path = probs_path(cfg.probs_root, seq, frame)
+                probs = load_probs(path, points.shape[0])
+            else:
+                probs = np.zeros((points.shape[0], 1), dtype=np.float32)
+            x0_u, m_u, _ = uncertain_range_view(
+                points, probs, self.sensor, cfg.height, cfg.width, cfg.row_mode,
+                cfg.uncertainty.k, cfg.uncertainty.strategy, generator,
+            )  # fmt: skip
+            out.update(x0_u=x0_u, m_u=m_u)
+        if cfg.cache_images and cfg.uncertainty.strategy != "random":
+            self.cache[(seq, frame)] = out
+        return out
+
+
+def batch_indices(step: int, rank: int, num_scans: int, batch_size: int, seed: int) -> list[int]:
+    """This rank's scan indices of `step`: uniform with replacement from a (seed, step, rank) stream."""
+    rng = np.random.default_rng(derived_seed(seed, _BATCH, step, rank))
+    return rng.integers(0, num_scans, batch_size).tolist()
+
+
+def make_batch(images: RangeImages, indices: list[int], generator: torch.Generator, device: torch.device) -> dict:
+    """Stack the items of `indices` into (B, [L,] C, H, W) tensors on `device`."""
+    items = [images.__getitem__(i, generator) for i in indices]
+    return {key: torch.stack([item[key] for item in items]).to(device) for key in items[0]}
+
+
+def crop_offsets(batch_size: int, cfg: DiffusionTrainConfig, generator: torch.Generator) -> Tensor | None:
+    """(B,) random first columns of the azimuth crops, multiples of the net's downsampling (None: no crop)."""
+    if not cfg.crop_width:
+        return None
+    factor = cfg.net.downsampling_factor
+    return factor * torch.randint(0, cfg.width // factor, (batch_size,), generator=generator)
+
+
+IMAGE_KEYS = ("x0", "x0_u", "m_u")  # the range images of a batch; its other entries (the ego motion) are per frame
+
+
+def crop_batch(batch: dict[str, Tensor], offsets: Tensor, crop_width: int) -> dict[str, Tensor]:
+    """Azimuth crops (B, [L,] C, H, crop_width) of the batch's images (`IMAGE_KEYS`), wrapping around the ring."""
+    out = dict(batch)
+    for key in IMAGE_KEYS:
+        if key not in batch:
+            continue
+        value = batch[key]
+        columns = crop_columns(offsets.to(value.device), crop_width, value.shape[-1])  # (B, w)
+        index = columns.view(value.shape[0], *([1] * (value.dim() - 2)), crop_width).expand(*value.shape[:-1], -1)
+        out[key] = torch.gather(value, -1, index)
+    return out
+
+
+def stage_inputs(stage: str, batch: dict) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """(x0, cond, m_u) of GaussianDiffusion.forward: stage 1 learns x0 := x0_u; stage 2 reads x0_u, m_u."""
+    if stage == "stage1":
+        return batch["x0_u"], None, batch["m_u"]
+    if stage == "stage2":
+        return batch["x0"], batch["x0_u"], batch["m_u"]
+    return batch["x0"], None, None
+
+
+def training_batch(
+    images: RangeImages, cfg: DiffusionTrainConfig, step: int, rank: int, device: torch.device
+) -> tuple[dict[str, Tensor], Tensor | None, torch.Generator]:
+    """This rank's batch of `step` on `device`, its azimuth crop offsets (None: the full panorama) and the generator
+    of (seed, step, rank) that drew them, which then draws the step's noise."""
+    generator = torch.Generator().manual_seed(derived_seed(cfg.seed, _NOISE, step, rank))
+    indices = batch_indices(step, rank, len(images), cfg.batch_size, cfg.seed)
+    batch = make_batch(images, indices, generator, device)
+    offsets = crop_offsets(len(indices), cfg, generator)
+    if offsets is not None:
+        batch = crop_batch(batch, offsets, cfg.crop_width)
+    return batch, offsets, generator
