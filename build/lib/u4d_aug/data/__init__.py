@@ -1,1 +1,0 @@
-"""SemanticKITTI / nuScenes readers and writers, sensors, datasets and the simulated world."""

@@ -1,1 +1,0 @@
-"""Generation metrics: FRD, FPD, BEV JSD/MMD, TTCE, CTC."""

@@ -1,1 +1,0 @@
-"""Network building blocks for range-image diffusion (ring convolutions, UNet, MoST)."""
