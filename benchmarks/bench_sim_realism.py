@@ -11,7 +11,7 @@ benchmarks/results/<name>.json, <name>.md and <name>_remission.png (the per-clas
 pooled against the real ones); `--table NAME ...` writes one markdown table over several such json files.
 
     python benchmarks/bench_sim_realism.py [--seeds 0 1 2 3] [--config sim/varied] [--set key=value ...] [--name N]
-    python benchmarks/bench_sim_realism.py --table sim_realism_default sim_realism_varied --name sim_realism_issue45
+    python benchmarks/bench_sim_realism.py --table sim_realism_default sim_realism_varied --name sim_realism
 """
 
 from __future__ import annotations
@@ -140,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
     }
     result = {
         "name": args.name,
-        "command": " ".join(sys.argv),
+        "command": "python " + " ".join(sys.argv),
         "config": args.config,
         "overrides": args.set,
         "sequences": args.sequences,
@@ -209,29 +209,20 @@ def table(names: list[str], out: str) -> int:
         f"{real['edges']['roughness_median_mm']:.1f} | {real['edges']['mixed_share_of_edges']:.3f} |"
     )
     classes = sorted({c for r in results for c in r["remission_js_per_class_mean"]})
-    lines += [
-        "",
-        "Remission JS per class (mean over seeds), and the share of returns reading 0 (pooled; real last):",
-        "",
-    ]
-    lines.append(
-        "| class | "
-        + " | ".join(f"`{r['name']}`" for r in results)
-        + " | zeros: "
-        + " / ".join(f"`{r['name']}`" for r in results)
-        + " / real |"
-    )
+    header = " | ".join(f"`{r['name']}`" for r in results)
+    lines += ["", "Remission JS distance per class (mean over seeds):", "", f"| class | {header} |"]
+    lines.append("|---|" + "---|" * len(results))
+    for c in classes:
+        cells = [r["remission_js_per_class_mean"].get(c) for r in results]
+        lines.append(f"| {c} | " + " | ".join("-" if v is None else f"{v:.3f}" for v in cells) + " |")
+    lines += ["", "Share of returns reading 0 per class (seeds pooled):", "", f"| class | {header} | real |"]
     lines.append("|---|" + "---|" * (len(results) + 1))
     for c in classes:
-        js = " | ".join(
-            f"{r['remission_js_per_class_mean'][c]:.3f}" if c in r["remission_js_per_class_mean"] else "-"
-            for r in results
-        )
-        zeros = [r["remission_js_pooled"]["zero_share"].get(c, {}).get("sim") for r in results]
-        real_zero = results[0]["real"]["zero_share"].get(c)
-        cells = " / ".join("-" if z is None else f"{z:.2f}" for z in zeros)
-        lines.append(f"| {c} | {js} | {cells} / {'-' if real_zero is None else f'{real_zero:.2f}'} |")
-    lines += ["", "Commands:", ""] + [f"- `{r['name']}`: `{r['command']}`" for r in results]
+        cells = [r["remission_js_pooled"]["zero_share"].get(c, {}).get("sim") for r in results]
+        cells.append(results[0]["real"]["zero_share"].get(c))
+        lines.append(f"| {c} | " + " | ".join("-" if v is None else f"{v:.2f}" for v in cells) + " |")
+    commands = [r["command"] if r["command"].startswith("python") else f"python {r['command']}" for r in results]
+    lines += ["", "Commands:", ""] + [f"- `{r['name']}`: `{c}`" for r, c in zip(results, commands)]
     path = RESULTS / f"{out}_table.md"
     atomic_write_text(path, "\n".join(lines) + "\n")
     print("\n".join(lines))

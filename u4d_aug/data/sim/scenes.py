@@ -116,7 +116,7 @@ def street_type_config(cfg: SimConfig, kind: str) -> SimConfig:
         cfg = _replace(cfg, "objects", street_tree_prob=0.95, tree_spacing=(6.0, 10.0), sidewalk_bicycle_prob=0.1)
         return _replace(cfg, "agents", pedestrians_per_100m=5.0, bicyclists_per_100m=2.0, standing_person_prob=0.3)
     elif kind == "parking":
-        # parking lots, driveways, dropped kerbs (4-10 cm), parking strips on most street sides
+        # parking lots (hedged), driveways to the houses, dropped kerbs (4-10 cm), marked parking strips
         cfg = _replace(cfg, "street", curb_height=(0.04, 0.10), parking_prob=0.35, parking_label_prob=0.9)
         cfg = _replace(
             cfg,
@@ -141,7 +141,7 @@ def street_type_config(cfg: SimConfig, kind: str) -> SimConfig:
             ground_cover_prob=0.9,
             courtyard_tree_area=60.0,
         )
-        return _replace(cfg, "objects", street_tree_prob=1.0, tree_spacing=(5.0, 8.0), tree_clearance=2.0)
+        return _replace(cfg, "objects", street_tree_prob=1.0, tree_spacing=(5.0, 8.0))
     elif kind == "plaza":
         # small squares: cobbled blocks with planters, benches and kiosks; low kerbs, people standing and walking
         cfg = _replace(cfg, "street", sidewalk_width=(4.0, 8.0), curb_height=(0.03, 0.08), sidewalk_material="cobble")

@@ -408,7 +408,7 @@ def _segment_markings(mb, rng, cfg: SimConfig, net: Network, seg) -> None:
             mb.add(top, "terrain", "grass", sample_reflectivity(rng, "grass", len(top[1])))
             for s in np.arange(m0 + 5.0, m1 - 3.0, rng.uniform(8.0, 14.0)):
                 xy = (s, c) if kind == "h" else (c, s)
-                objects.tree(mb, rng, xy, h, rng.uniform(0.7, 1.0), clearance=2.5)
+                objects.tree(mb, rng, xy, h, rng.uniform(0.6, 0.8), clearance=4.0)  # lifted over the lanes
         else:
             island = merge(top, wall_strip(densify(ring, STEP, closed=True), 0.0, h, closed=True))
             mb.add(island, "other-ground", "curb", sample_reflectivity(rng, "curb", len(island[1])))
