@@ -97,8 +97,8 @@ def park(mb: MeshBuilder, rng: np.random.Generator, cfg: SimConfig, inner, h: fl
                 bench = (t + 3.0, py - width / 2 - 0.5) if along_x else (px - width / 2 - 0.5, t + 3.0)
                 objects.other_object(mb, rng, bench, h + 0.09, 0.0 if along_x else np.pi / 2)
     edge = rng.random()  # a shrub belt or a low fence round the lawn, open where the paths leave the park
-    if edge < 0.75:
-        _perimeter(mb, rng, inner, (px, py, px, py), width / 2 + 0.5, h, "hedge" if edge < 0.5 else "fence")
+    if edge < 0.85:
+        _perimeter(mb, rng, inner, (px, py, px, py), width / 2 + 0.5, h, "hedge" if edge < 0.7 else "fence")
     return [np.array([(x0, py), (x1, py)]), np.array([(px, y0), (px, y1)])]
 
 
@@ -202,7 +202,7 @@ def parking_lot(mb: MeshBuilder, rng: np.random.Generator, cfg: SimConfig, inner
         return []
     surface = flat_grid(x0, x1, y0, y1, h + 0.005, 4.0)
     mb.add(surface, "parking", "parking", sample_reflectivity(rng, "parking", len(surface[1])))
-    if rng.random() < 0.6:  # a hedge round the lot, an entrance on each side
+    if rng.random() < 0.8:  # a hedge round the lot, an entrance on each side
         cuts = (
             rng.uniform(x0 + 8, x1 - 8),
             rng.uniform(y0 + 7, y1 - 7),

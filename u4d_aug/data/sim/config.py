@@ -53,6 +53,8 @@ class StreetConfig:
     median_terrain_prob: float = 0.0  # a traffic island is a lawn (terrain) with trees, not paved other-ground
     sidewalk_material: Literal["paving", "concrete", "cobble"] = "paving"
     signal_prob: float = 0.0  # traffic lights (pole + traffic-sign heads) at the corners of main-street crossings
+    roundabout_prob: float = 0.0  # a crossing of two residential streets is a roundabout
+    roundabout_radius: tuple[float, float] = (3.0, 5.0)  # m, central island (capped by the room between the kerbs)
 
 
 @dataclass
@@ -238,6 +240,7 @@ class SimConfig:
             "lidar.mixed_pixel_jump",
             "street.median_terrain_prob",
             "street.signal_prob",
+            "street.roundabout_prob",
             "lots.park_block_prob",
             "lots.plaza_block_prob",
             "lots.parking_block_prob",

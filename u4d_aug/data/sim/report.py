@@ -119,7 +119,7 @@ def intensity_distances(sim_hist: np.ndarray, real_hist: np.ndarray) -> dict:
     }
 
 
-def _edge_summary(stats: dict) -> dict:
+def edge_summary(stats: dict) -> dict:
     """Mixed-pixel share of depth edges and the median range roughness (mm) of a dataset's summed edge counts."""
     hist = stats["roughness_hist"]
     cdf = np.cumsum(hist) / max(hist.sum(), 1)
@@ -247,7 +247,7 @@ def compare(sim_root: Path, real_root: Path, max_frames: int = 30) -> tuple[dict
             "real": np.round(real["ring_counts"][: _rings(real)], 1).tolist(),
         },
         "class_share": {},
-        "edges": {"sim": _edge_summary(sim), "real": _edge_summary(real)},
+        "edges": {"sim": edge_summary(sim), "real": edge_summary(real)},
     }
     if "intensity_hist" in sim and "intensity_hist" in real:
         report["intensity_js"] = intensity_distances(sim["intensity_hist"], real["intensity_hist"])

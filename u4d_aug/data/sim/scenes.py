@@ -83,7 +83,8 @@ def street_type_config(cfg: SimConfig, kind: str) -> SimConfig:
             agent_route_extra=300.0,
         )
     elif kind == "intersection":
-        # short blocks, so the route crosses (and turns at) a junction every 45-80 m: crosswalks, traffic lights
+        # short blocks, so the route crosses (and turns at) a junction every 45-80 m: crosswalks, traffic lights,
+        # roundabouts where two residential streets meet
         cfg = _replace(
             cfg,
             "street",
@@ -93,6 +94,7 @@ def street_type_config(cfg: SimConfig, kind: str) -> SimConfig:
             corner_radius=(5.0, 10.0),
             signal_prob=0.8,
             sidewalk_width=(3.0, 5.0),
+            roundabout_prob=0.3,
         )
         cfg = _replace(cfg, "lots", kind_weights=(0.25, 0.45, 0.05, 0.05, 0.20))  # town centre: row houses
         cfg = _replace(cfg, "objects", sign_prob=1.0)
@@ -100,22 +102,22 @@ def street_type_config(cfg: SimConfig, kind: str) -> SimConfig:
             cfg, "agents", ego_turn_prob=0.7, cars_per_100m=3.5, pedestrians_per_100m=5.0, bicyclists_per_100m=1.5
         )
     elif kind == "park":
-        # park-side road: a 1.5-4 m lawn strip with street trees between the kerb and the paving, parks behind
+        # park-side road: a 1.5-3 m lawn strip with street trees between the kerb and the paving, parks behind
         cfg = _replace(
             cfg,
             "street",
             grass_strip_prob=0.9,
-            grass_width=(1.5, 4.0),
-            sidewalk_width=(4.0, 7.0),
+            grass_width=(1.5, 3.0),
+            sidewalk_width=(3.5, 6.0),
             curb_height=(0.08, 0.14),
-            parking_prob=0.5,
+            parking_prob=0.35,
         )
         cfg = _replace(cfg, "lots", park_block_prob=0.3, kind_weights=(0.50, 0.10, 0.30, 0.03, 0.07))
         cfg = _replace(cfg, "objects", street_tree_prob=0.95, tree_spacing=(6.0, 10.0), sidewalk_bicycle_prob=0.1)
         return _replace(cfg, "agents", pedestrians_per_100m=5.0, bicyclists_per_100m=2.0, standing_person_prob=0.3)
     elif kind == "parking":
-        # parking lots, driveways, dropped kerbs (4-10 cm), parking strips on most street sides
-        cfg = _replace(cfg, "street", curb_height=(0.04, 0.10), parking_prob=0.5, parking_label_prob=0.9)
+        # parking lots (hedged), driveways to the houses, dropped kerbs (4-10 cm), marked parking strips
+        cfg = _replace(cfg, "street", curb_height=(0.04, 0.10), parking_prob=0.35, parking_label_prob=0.9)
         cfg = _replace(
             cfg,
             "lots",
@@ -139,7 +141,7 @@ def street_type_config(cfg: SimConfig, kind: str) -> SimConfig:
             ground_cover_prob=0.9,
             courtyard_tree_area=60.0,
         )
-        return _replace(cfg, "objects", street_tree_prob=1.0, tree_spacing=(5.0, 8.0), tree_clearance=2.0)
+        return _replace(cfg, "objects", street_tree_prob=1.0, tree_spacing=(5.0, 8.0))
     elif kind == "plaza":
         # small squares: cobbled blocks with planters, benches and kiosks; low kerbs, people standing and walking
         cfg = _replace(cfg, "street", sidewalk_width=(4.0, 8.0), curb_height=(0.03, 0.08), sidewalk_material="cobble")

@@ -19,7 +19,7 @@ the left of the sensor lies 0.7 m lower than under it).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -181,6 +181,7 @@ class Network:
     corner_radius: float
     curb_height: float
     warp: Warp
+    roundabouts: dict[tuple[int, int], float] = field(default_factory=dict)  # node -> central island radius, m
 
     def node(self, i: int, j: int) -> np.ndarray:
         return np.array([self.xs[i].position, self.ys[j].position])
@@ -240,7 +241,31 @@ def make_network(rng: np.random.Generator, cfg: StreetConfig, extent: float) -> 
     min_sidewalk = min(min(line.sidewalk) for line in xs + ys)
     curb_height = float(rng.uniform(*cfg.curb_height))
     warp = Warp(_make_bend(rng, cfg), _make_bend(rng, cfg))
-    return Network(xs, ys, corner_radius=min(radius, 2.5 * min_sidewalk), curb_height=curb_height, warp=warp)
+    net = Network(xs, ys, corner_radius=min(radius, 2.5 * min_sidewalk), curb_height=curb_height, warp=warp)
+    if cfg.roundabout_prob > 0:  # drawn last, and only when asked: the default world keeps its streams
+        for i in range(len(xs)):
+            for j in range(len(ys)):
+                if rng.random() < cfg.roundabout_prob and not (xs[i].main or ys[j].main):
+                    island = min(float(rng.uniform(*cfg.roundabout_radius)), _island_room(net, i, j))
+                    if island >= 2.0:
+                        net.roundabouts[(i, j)] = island
+    return net
+
+
+RING_LANE = 2.5  # m from the island's kerb to the centre of the circulating lane
+RING_CLEARANCE = 1.4  # m from the circulating lane centre to the corner kerbs (half a car and a margin)
+
+
+def _island_room(net: Network, i: int, j: int) -> float:
+    """Largest central island at node (i, j) whose circulating lane clears the four rounded corner kerbs."""
+    r = net.corner_radius
+    nearest = min(float(np.hypot(net.xs[i].curb(sx) + r, net.ys[j].curb(sy) + r)) - r for sx in (0, 1) for sy in (0, 1))
+    return nearest - RING_CLEARANCE - RING_LANE
+
+
+def ring_radius(net: Network, node: tuple[int, int], offset: float) -> float:
+    """Radius of a roundabout path for a lane `offset` m right of its street's centre."""
+    return max(net.roundabouts[node] + RING_LANE, abs(offset) + 1.0)
 
 
 def plan_route(
@@ -318,6 +343,9 @@ def lane_path(
         line1, line2 = net.line_of(*nodes[k], h1), net.line_of(*nodes[k], h2)
         o1, o2 = offset_fn(line1, right_side(h1)), offset_fn(line2, right_side(h2))
         node = net.node(*nodes[k])
+        if nodes[k] in net.roundabouts:  # round the island counter-clockwise from the entry to the exit lane
+            cursor = _roundabout(pieces, turning, cursor, node, h1, h2, o1, o2, ring_radius(net, nodes[k], max(o1, o2)))
+            continue
         if h1 == h2:
             continue
         d1, d2 = DIRECTIONS[h1], DIRECTIONS[h2]
@@ -349,6 +377,24 @@ def lane_path(
     pieces.append(_segment(cursor, end, spacing, include_end=True))
     turning.append(np.zeros(len(pieces[-1])))
     return np.concatenate(pieces), np.concatenate(turning)
+
+
+def _roundabout(pieces, turning, cursor, node, h1: int, h2: int, o1: float, o2: float, radius: float, spacing=0.05):
+    """Append the approach to a roundabout and the arc round its centre `node`; returns the exit point."""
+    d1, d2 = DIRECTIONS[h1], DIRECTIONS[h2]
+    entry = node + _right(h1) * o1 - d1 * np.sqrt(radius**2 - o1**2)
+    exit_ = node + _right(h2) * o2 + d2 * np.sqrt(radius**2 - o2**2)
+    if not pieces and np.dot(entry - cursor, d1) < spacing:  # the start lies inside the roundabout
+        cursor = entry - d1 * spacing
+    pieces.append(_segment(cursor, entry, spacing))
+    turning.append(np.zeros(len(pieces[-1])))
+    a0 = np.arctan2(*(entry - node)[::-1])
+    sweep = (np.arctan2(*(exit_ - node)[::-1]) - a0) % (2 * np.pi)  # counter-clockwise (right-hand traffic)
+    n = max(2, int(sweep * radius / spacing))
+    angles = a0 + sweep * np.arange(n) / n
+    pieces.append(node + radius * np.column_stack([np.cos(angles), np.sin(angles)]))
+    turning.append(np.ones(n))
+    return exit_
 
 
 def _segment(p0: np.ndarray, p1: np.ndarray, spacing: float, include_end: bool = False) -> np.ndarray:

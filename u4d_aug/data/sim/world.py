@@ -163,11 +163,30 @@ def build_world(rng: np.random.Generator, cfg: SimConfig, net: Network, route_xy
         mb.axis = 0 if seg[0] == "h" else 1
         _segment_markings(mb, rng, cfg, net, seg)
     mb.axis = None
+    corners = {(i + di, j + dj) for i, j in chosen for di in (0, 1) for dj in (0, 1)}
+    for node in sorted(corners & set(net.roundabouts)):  # none in the default world
+        _roundabout_island(mb, rng, net, node)
     xs = [b.curb[0] for b in blocks] + [b.curb[2] for b in blocks]
     ys = [b.curb[1] for b in blocks] + [b.curb[3] for b in blocks]
     _road_plane(mb, rng, (min(xs) - 40, min(ys) - 40, max(xs) + 40, max(ys) + 40))
     parts.append(mb.build())
     return World(concat_meshes(parts), net, blocks, ids.next)
+
+
+def _roundabout_island(mb: MeshBuilder, rng, net: Network, node: tuple[int, int]) -> None:
+    """Central island of a roundabout: a kerb ring (other-ground) round a lawn (terrain) with shrubs or a tree."""
+    h, radius = net.curb_height, net.roundabouts[node]
+    center = net.node(*node)
+    angles = np.linspace(0.0, 2.0 * np.pi, max(12, int(2.0 * np.pi * radius / 1.0)), endpoint=False)
+    ring = center + radius * np.column_stack([np.cos(angles), np.sin(angles)])
+    kerb = wall_strip(ring, 0.0, h, closed=True)
+    mb.add(kerb, "other-ground", "curb", sample_reflectivity(rng, "curb", len(kerb[1])))
+    lawn = polygon_fan(np.concatenate([center[None], ring, ring[:1]]), h + 0.02)
+    mb.add(lawn, "terrain", "grass", sample_reflectivity(rng, "grass", len(lawn[1])))
+    if rng.random() < 0.5:
+        objects.tree(mb, rng, center, h, rng.uniform(0.7, 1.0), clearance=2.5)
+    for a in np.linspace(0.0, 2.0 * np.pi, 5, endpoint=False) + rng.uniform(0, 1):
+        objects.bush(mb, rng, center + 0.55 * radius * np.array([np.cos(a), np.sin(a)]), h, rng.uniform(0.5, 0.9))
 
 
 def _road_plane(mb: MeshBuilder, rng, bounds) -> None:
@@ -389,7 +408,7 @@ def _segment_markings(mb, rng, cfg: SimConfig, net: Network, seg) -> None:
             mb.add(top, "terrain", "grass", sample_reflectivity(rng, "grass", len(top[1])))
             for s in np.arange(m0 + 5.0, m1 - 3.0, rng.uniform(8.0, 14.0)):
                 xy = (s, c) if kind == "h" else (c, s)
-                objects.tree(mb, rng, xy, h, rng.uniform(0.7, 1.0), clearance=2.5)
+                objects.tree(mb, rng, xy, h, rng.uniform(0.6, 0.8), clearance=4.0)  # lifted over the lanes
         else:
             island = merge(top, wall_strip(densify(ring, STEP, closed=True), 0.0, h, closed=True))
             mb.add(island, "other-ground", "curb", sample_reflectivity(rng, "curb", len(island[1])))
