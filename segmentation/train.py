@@ -112,19 +112,7 @@ def train_locked(cfg: SegTrainConfig, info: DistInfo, resume: str | Path | None,
     for batch in loader:  # after the body of step s, done = s + 1 steps are finished
         step = int(batch["step"])
         lr = learning_rate(step, cfg.optim, clock.fraction() if cfg.optim.anneal_to == "budget" else 0.0)
-        for group in optimizer.param_groups:
-            group["lr"] = lr
-        torch.manual_seed(derived_seed(cfg.seed, _STEP, step, info.rank))  # dropout of this step only
-
-        losses = step_losses(ddp_model, teacher, batch, cfg, info.device, class_weight)
-        check_finite_loss(losses["loss"], step + 1)
-        optimizer.zero_grad(set_to_none=True)
-        losses["loss"].backward()
-        grad_norm = nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip) if cfg.optim.grad_clip else None
-        check_finite_loss(losses["loss"], step + 1, gradient_norm(model, grad_norm))  # before NaN weights follow
-        optimizer.step()
-        if teacher is not None:
-            update_teacher(teacher, model, cfg.semi, step)
+        losses, grad_norm = optimize(step, lr, batch, (ddp_model, model, teacher), optimizer, cfg, info, class_weight)
         done = step + 1
 
         window.add(losses, grad_norm)
@@ -201,6 +189,34 @@ def extra_state(
         "class_names": class_names(cfg),
         "class_weight": class_weight,
     }
+
+
+def optimize(
+    step: int,
+    lr: float,
+    batch: dict,
+    models: tuple[nn.Module, nn.Module, nn.Module | None],
+    optimizer: torch.optim.Optimizer,
+    cfg: SegTrainConfig,
+    info: DistInfo,
+    class_weight: torch.Tensor | None,
+) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
+    """Step `step` of the loop: seed its dropout, loss of the mode, backward, clip, AdamW at `lr`, then the teacher's
+    EMA update; models = (the DDP-wrapped student, the student, the teacher or None). Returns (losses, grad norm)."""
+    ddp_model, model, teacher = models
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    torch.manual_seed(derived_seed(cfg.seed, _STEP, step, info.rank))  # dropout of this step only
+    losses = step_losses(ddp_model, teacher, batch, cfg, info.device, class_weight)
+    check_finite_loss(losses["loss"], step + 1)
+    optimizer.zero_grad(set_to_none=True)
+    losses["loss"].backward()
+    grad_norm = nn.utils.clip_grad_norm_(model.parameters(), cfg.optim.grad_clip) if cfg.optim.grad_clip else None
+    check_finite_loss(losses["loss"], step + 1, gradient_norm(model, grad_norm))  # before NaN weights follow
+    optimizer.step()
+    if teacher is not None:
+        update_teacher(teacher, model, cfg.semi, step)
+    return losses, grad_norm
 
 
 def supervised_step(
