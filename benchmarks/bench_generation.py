@@ -1,14 +1,14 @@
 """U4D vs the R2DM-style baseline on the simulated world: Table 1 metrics per seed, mean ± std, real-vs-real floor.
 
-    python benchmarks/bench_generation.py --root data/sim_eval --stage1 weights/u4d_stage1.pt \
-        --stage2 weights/u4d_stage2.pt --baseline weights/baseline.pt --reference 00-11 --floor 12-23 \
-        --num 64 --seeds 0 1 2 --samplers dpmpp2m:20:6 ddpm:32:16 --metrics frd,fpd,jsd,mmd,points,rangejs \
-        --extractor-frd weights/extractor_frd.pt --extractor-fpd weights/extractor_fpd.pt \
+    python benchmarks/bench_generation.py --root data/sim_eval --reference 00-11 --floor 12-23 --num 64 \
+        --seeds 0 1 2 --samplers dpmpp2m-sde:20:6 ddpm:32:16 --metrics frd,fpd,jsd,mmd,points,rangejs \
         --out benchmarks/results/generation_64x1024.json
     python benchmarks/bench_generation.py ... --quick            # 8 scans, seeds 0 1, ddpm 8 steps (stage 1: 4)
 
-Train the generators first with one budget for each method (U4D's budget = stage 1 + stage 2 = the baseline's
-steps x batch on the same net); the training budgets read from the checkpoints are printed with the table.
+The nets and extractors default to the shipped ones in weights/ (`--stage1 --stage2 --baseline --extractor-frd
+--extractor-fpd` take run folders, checkpoints or other weights). Train the generators with one budget for each
+method (U4D's budget = stage 1 + stage 2 = the baseline's steps x batch on the same net); the training budgets
+read from the checkpoints (or the weights' training record) are printed with the table.
 Per sampler setting and seed s: each method generates `--num` scans (sample i uses seed s * 100000 + i) into
 WORK/<method>_<sampler tag>_s<s>, scored by `u4d_aug.metrics.evaluate.evaluate` against the reference sequences;
 the floor draws `--num` real scans of the `--floor` sequences (disjoint from the reference) with seed s and
@@ -41,6 +41,7 @@ from u4d_aug.run import newest_checkpoint
 from u4d_aug.weights import is_exported
 
 REPO = Path(__file__).resolve().parents[1]
+WEIGHTS = REPO / "weights"  # the shipped 64x1024 nets and extractors (weights/README.md)
 METHODS = ("u4d", "baseline")
 SEED_STRIDE = 100_000
 
@@ -216,9 +217,24 @@ def sampler_block(spec: SamplerSpec, rows: dict, speed: dict, metrics: tuple[str
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--root", type=Path, required=True, help="SemanticKITTI root of the reference and floor scans")
-    parser.add_argument("--stage1", type=Path, required=True, help="U4D stage-1 run folder, checkpoint or weights")
-    parser.add_argument("--stage2", type=Path, required=True, help="U4D stage-2 run folder, checkpoint or weights")
-    parser.add_argument("--baseline", type=Path, required=True, help="baseline run folder, checkpoint or weights")
+    parser.add_argument(
+        "--stage1",
+        type=Path,
+        default=WEIGHTS / "u4d_stage1.pt",
+        help="(default: the shipped net) U4D stage-1 run folder, checkpoint or weights",
+    )
+    parser.add_argument(
+        "--stage2",
+        type=Path,
+        default=WEIGHTS / "u4d_stage2.pt",
+        help="(default: the shipped net) U4D stage-2 run folder, checkpoint or weights",
+    )
+    parser.add_argument(
+        "--baseline",
+        type=Path,
+        default=WEIGHTS / "baseline.pt",
+        help="(default: the shipped net) baseline run folder, checkpoint or weights",
+    )
     parser.add_argument("--reference", nargs="+", default=["07"], help="held-out sequences scored against")
     parser.add_argument("--floor", nargs="+", default=["06"], help="other held-out sequences: real-vs-real floor")
     parser.add_argument("--num", type=int, default=64, help="scans per method and seed")
@@ -230,8 +246,8 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     parser.add_argument("--batch-size", type=int, default=1, help="scans per sampler call (1: fastest per scan on CPU)")
     parser.add_argument("--metrics", default="jsd,mmd,points,rangejs", help="subset of frd,fpd,jsd,mmd,points,rangejs")
-    parser.add_argument("--extractor-frd", type=Path, default=None)
-    parser.add_argument("--extractor-fpd", type=Path, default=None)
+    parser.add_argument("--extractor-frd", type=Path, default=WEIGHTS / "extractor_frd.pt", help="(default: shipped)")
+    parser.add_argument("--extractor-fpd", type=Path, default=WEIGHTS / "extractor_fpd.pt", help="(default: shipped)")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--work", type=Path, default=REPO / "runs" / "bench_generation", help="banks go here")
     parser.add_argument("--quick", action="store_true", help="8 scans, seeds 0 1, ddpm 8 steps (stage 1: 4)")
