@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numpy as np
 
 from u4d_aug.config import load_config
-from u4d_aug.data.datasets import list_frames
+from u4d_aug.data.datasets import expand_sequences, list_frames
 from u4d_aug.errors import InputError
 from u4d_aug.generate import GenerateConfig, generate_bank
 from u4d_aug.host import host_info
@@ -69,7 +69,7 @@ def training_budget(run: Path) -> dict:
 
 def floor_bank(root: Path, sequences: list[str], num: int, seed: int, out: Path) -> Path:
     """A 'bank' of `num` real scans of `sequences` drawn with `seed`: symlinks in SemanticKITTI layout."""
-    entries = [(seq, frame) for seq in sequences for frame in list_frames(root, seq)]
+    entries = [(seq, frame) for seq in expand_sequences(sequences) for frame in list_frames(root, seq)]
     if len(entries) < num:
         raise InputError(f"--floor {' '.join(sequences)}: {len(entries)} scans, fewer than --num {num}")
     chosen = np.random.default_rng(seed).choice(len(entries), num, replace=False)

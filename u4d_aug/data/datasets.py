@@ -85,6 +85,21 @@ def scan_path(root: PathLike, seq: str, frame: str) -> Path:
 _RANGE = re.compile(r"^(\d+)-(\d+)$")
 
 
+def expand_sequences(sequences: Sequence[str | int]) -> list[str]:
+    """Sequence names of a list of names, ints (as '%02d') and 'A-B' ranges ('08-10' -> '08', '09', '10')."""
+    names = []
+    for s in sequences:
+        match = _RANGE.match(s) if isinstance(s, str) else None
+        if match:
+            first, last = match.groups()
+            if int(last) < int(first):
+                raise InputError(f"sequences: range {s!r} ends before it starts")
+            names += [f"{i:0{len(first)}d}" for i in range(int(first), int(last) + 1)]
+        else:
+            names.append(f"{s:02d}" if isinstance(s, int) else str(s))
+    return names
+
+
 def resolve_sequences(root: PathLike, sequences: str | Sequence[str | int] | None) -> list[str]:
     """None -> every sequence present; 'train'/'val'/'test' -> that split; 'A-B' -> A..B; a list -> those.
 
@@ -103,16 +118,7 @@ def resolve_sequences(root: PathLike, sequences: str | Sequence[str | int] | Non
                 f"sequences={sequences!r}: expected a split name {sorted(SEMANTICKITTI_SPLITS)}, a range like "
                 "'00-87' or a list of sequences"
             )
-    names = []
-    for s in sequences:
-        match = _RANGE.match(s) if isinstance(s, str) else None
-        if match:
-            first, last = match.groups()
-            if int(last) < int(first):
-                raise InputError(f"sequences: range {s!r} ends before it starts")
-            names += [f"{i:0{len(first)}d}" for i in range(int(first), int(last) + 1)]
-        else:
-            names.append(f"{s:02d}" if isinstance(s, int) else str(s))
+    names = expand_sequences(sequences)
     if not names:
         raise InputError(f"{root}: empty sequence list")
     for name in names:

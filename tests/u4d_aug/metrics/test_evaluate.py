@@ -130,6 +130,9 @@ def test_bad_inputs(tmp_path):
     assert [seq for seq, _, _ in list_scans(root, None, ["00"])] == ["00", "00"]
     with pytest.raises(InputError, match="sequence.*07 not found; present: 00"):
         list_scans(root, None, ["07"])
+    assert [seq for seq, _, _ in list_scans(root, None, ["00-00"])] == ["00", "00"]  # ranges as in configs
+    with pytest.raises(InputError, match="sequence.*01 not found; present: 00"):
+        list_scans(root, None, ["00-01"])
 
 
 def write_scans(root: Path, scans: list) -> Path:
