@@ -121,6 +121,8 @@ def generate(method: str, args: argparse.Namespace, spec: SamplerSpec, seed: int
         overrides.append(f"sampler_grid={spec.grid}")
     if method == "u4d":
         overrides += [f"stage1={args.stage1}", f"stage2={args.stage2}", f"stage1_steps={spec.stage1_steps}"]
+        if args.mask_fraction is not None:
+            overrides.append(f"stage1_mask_fraction={args.mask_fraction}")
     else:
         overrides.append(f"baseline={args.baseline}")
     cfg = load_config(GenerateConfig, None, overrides)
@@ -243,6 +245,10 @@ def main(argv: list[str] | None = None) -> int:
         "--samplers", type=parse_sampler, nargs="+", default=[parse_sampler("ddpm:32:8")],
         help="NAME:STEPS:STAGE1_STEPS[:GRID] settings, each scored on its own banks; the first is the headline "
         "(`methods` in the json), e.g. dpmpp2m:20:6 ddpm:32:16",
+    )  # fmt: skip
+    parser.add_argument(
+        "--mask-fraction", type=float, default=None,
+        help="U4D: stage 1's mask keeps at most this share of pixels (generate's stage1_mask_fraction; none: no cap)",
     )  # fmt: skip
     parser.add_argument("--batch-size", type=int, default=1, help="scans per sampler call (1: fastest per scan on CPU)")
     parser.add_argument("--metrics", default="jsd,mmd,points,rangejs", help="subset of frd,fpd,jsd,mmd,points,rangejs")

@@ -283,6 +283,11 @@ CASES = [
     ),  # fmt: skip
     ("generate-negative-num", [*GEN, "num=-1", "--out", "{base}/g4"], "num must be >= 0"),
     ("generate-zero-steps", [*GEN, "steps=0", "--out", "{base}/g5"], "steps >= 1"),
+    (
+        "generate-mask-fraction",
+        [*GEN, "stage1_mask_fraction=1.5", "--out", "{base}/g6"],
+        "stage1_mask_fraction must be in (0, 1]",
+    ),
     ("generate-out-is-file", [*GEN, "mode=baseline", "baseline={diffusion_ckpt}", "--out", "{file}"], "is a file"),
     (
         "generate-locked-bank",

@@ -83,6 +83,9 @@ class GenerateConfig:
     sampler_grid: Grid = "time"  # "logsnr": steps uniform in log-SNR (dpmpp2m and dpmpp2m-sde only)
     steps: int = 32
     stage1_steps: int | None = None  # None = steps; the uncertain region allows fewer
+    # u4d mode: stage 1's mask keeps at most this share of the pixels, those its head is surest of (the share
+    # P_u covers in training range images); null = every pixel over the head's calibrated threshold
+    stage1_mask_fraction: float | None = None
     num: int = 64
     seed: int = 0  # sample i uses seed + i
     # samples per sampler call (fixed blocks of consecutive indices); each keeps its own seed, so a batch gives
@@ -108,6 +111,8 @@ class GenerateConfig:
     def __post_init__(self) -> None:
         if self.num < 0 or self.steps < 1 or (self.stage1_steps is not None and self.stage1_steps < 1):
             raise InputError(f"num must be >= 0 and steps >= 1, got num={self.num}, steps={self.steps}")
+        if self.stage1_mask_fraction is not None and not 0.0 < self.stage1_mask_fraction <= 1.0:
+            raise InputError(f"stage1_mask_fraction must be in (0, 1] or null, got {self.stage1_mask_fraction}")
         if self.batch_size < 1:
             raise InputError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.frames is not None and self.frames < 1:
@@ -160,6 +165,8 @@ def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bo
                 "sampling": {k: config[k] for k in ("sampler", "steps", "stage1_steps")}}  # fmt: skip
     if cfg.sampler_grid != "time":  # banks written before the grid option (all "time") stay compatible
         identity["sampling"]["sampler_grid"] = cfg.sampler_grid
+    if cfg.stage1_mask_fraction is not None:  # likewise for banks written before the mask cap
+        identity["sampling"]["stage1_mask_fraction"] = cfg.stage1_mask_fraction
     if cfg.mode == "complete":
         identity["source"] = {k: config[k] for k in ("data_root", "sequences", "probs_root")}
     nets = {name: load_generator(path, info.device) for name, path in paths.items()}
@@ -259,6 +266,7 @@ def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bo
                 frames,
                 grid=cfg.sampler_grid,
                 motion=motion,
+                mask_fraction=cfg.stage1_mask_fraction,
             )
             masks, x0_u = _per_sample(result["m_u_pred"], n)[:, :, 0], _per_sample(result["x0_u"], n)
         elif cfg.mode == "baseline":

@@ -15,6 +15,7 @@ from u4d_aug.data.sensors import hdl64
 from u4d_aug.errors import InputError
 from u4d_aug.nn.most import MoSTBlock
 from u4d_aug.pipeline import (
+    cap_mask,
     complete,
     generate_baseline,
     generate_stage1,
@@ -51,6 +52,29 @@ def test_same_generator_same_output_and_masking(random_ema_checkpoints):
     d = generate_baseline(baseline, 1, 3, torch.Generator().manual_seed(1), sampler="ddpm")
     e = generate_baseline(baseline, 1, 3, torch.Generator().manual_seed(1), sampler="ddpm")
     assert torch.equal(d["x0"], e["x0"]) and float(d["x0"].abs().max()) <= 1.0
+
+
+def test_cap_mask_keeps_the_surest_pixels_of_each_frame():
+    logits = torch.randn(2, 3, 1, 4, 8, generator=torch.Generator().manual_seed(0))  # (B, L, 1, H, W)
+    full = torch.ones_like(logits)
+    capped = cap_mask(full, logits, 0.25)  # 8 of each frame's 32 pixels
+    assert capped.shape == logits.shape and capped.sum(dim=(-3, -2, -1)).eq(8).all()
+    kept_min = torch.where(capped.bool(), logits, torch.inf).amin(dim=(-3, -2, -1))
+    dropped_max = torch.where(capped.bool(), -torch.inf, logits).amax(dim=(-3, -2, -1))
+    assert bool((kept_min > dropped_max).all())  # the top logits of every frame, not of the batch
+    sparse = (logits > 1.5).float()  # fewer pixels than the cap: left as they are
+    assert sparse.sum(dim=(-3, -2, -1)).lt(8).all() and torch.equal(cap_mask(sparse, logits, 0.25), sparse)
+
+
+def test_mask_fraction_caps_the_stage1_mask(random_ema_checkpoints):
+    stage1, stage2 = load_generator(random_ema_checkpoints["stage1"]), load_generator(random_ema_checkpoints["stage2"])
+    free = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7))
+    capped = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7), mask_fraction=0.05)
+    limit = round(0.05 * 16 * 64)
+    assert bool((free["m_u_pred"].sum(dim=(1, 2, 3)) > limit).all())  # the cap binds
+    assert bool((capped["m_u_pred"].sum(dim=(1, 2, 3)) <= limit).all())
+    assert bool((capped["m_u_pred"] <= free["m_u_pred"]).all())  # a subset of the thresholded mask
+    assert bool((capped["x0_u"][~capped["m_u_pred"].bool().expand_as(capped["x0_u"])] == -1).all())
 
 
 def test_stage2_output_depends_on_its_condition(random_ema_checkpoints):

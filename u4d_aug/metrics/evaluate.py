@@ -43,7 +43,7 @@ def parse_metrics(text: str) -> tuple[str, ...]:
 def list_scans(
     root: str | Path, max_scans: int | None = None, sequences: list[str] | None = None
 ) -> list[tuple[str, str, Path]]:
-    """(seq, frame, path) of the first `max_scans` scans of `sequences` (names or 'A-B' ranges; None = all) of a root."""
+    """(seq, frame, path) of the first `max_scans` scans of `sequences` (names or 'A-B' ranges; None = all)."""
     root = Path(root)
     present = list_sequences(root)
     sequences = expand_sequences(sequences) if sequences else None  # '00-11' ranges as in configs
@@ -321,7 +321,9 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--md", action="store_true", help="write OUT/evaluation.md")
     parser.add_argument("--out", type=Path, default=Path("runs/evaluate"), help="folder for --json/--md")
     parser.add_argument("--max-scans", type=int, default=None, help="first N scans of each root (sorted)")
-    parser.add_argument("--real-sequences", nargs="+", default=None, help="only these sequences of --real (held out; names or A-B ranges)")
+    parser.add_argument(
+        "--real-sequences", nargs="+", default=None, help="only these sequences of --real (held out; A-B ranges too)"
+    )
     parser.add_argument("--extractor-frd", type=Path, default=None, help="FRD extractor checkpoint (frd.pt)")
     parser.add_argument("--extractor-fpd", type=Path, default=None, help="FPD extractor checkpoint (fpd.pt)")
 
