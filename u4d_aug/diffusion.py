@@ -57,6 +57,10 @@ class DiffusionConfig:
     mask_weight: float = 1.0  # λ of L_u = ε-MSE + λ · BCE(m_u, m_p) (stage 1 only)
     mask_pos_weight: float = 1.0  # BCE weight of positive (uncertain) pixels; m_u is sparse
     most_cv_weight: float = 0.01  # weight of Σ CV² of the MoST gate importances (nets with net.most only)
+    # stage 2: in training, the uncertain region's values of the condition x0_u get Gaussian noise of a std drawn
+    # per sample in [0, cond_noise], so stage 2 learns to read an imperfect, generated P_u (conditioning
+    # augmentation of cascaded diffusion models, Ho et al. 2022); 0 = the exact x0_u
+    cond_noise: float = 0.0
 
     def __post_init__(self) -> None:
         if self.stage not in ("stage1", "stage2", "baseline"):
@@ -67,6 +71,19 @@ class DiffusionConfig:
             raise InputError("diffusion.mask_weight must be >= 0 and diffusion.mask_pos_weight > 0")
         if self.most_cv_weight < 0:
             raise InputError(f"diffusion.most_cv_weight must be >= 0, got {self.most_cv_weight}")
+        if self.cond_noise < 0 or (self.cond_noise > 0 and self.stage != "stage2"):
+            raise InputError(f"diffusion.cond_noise must be >= 0, and 0 unless stage=stage2, got {self.cond_noise}")
+
+
+def noisy_condition(x0_u: Tensor, m_u: Tensor, max_std: float, generator: torch.Generator | None) -> Tensor:
+    """x0_u (B, [L,] 2, H, W) with N(0, s²) added inside m_u (B, [L,] 1, H, W), s ~ U(0, max_std) per sample, clamped
+    to [-1, 1]; pixels outside the mask stay empty (−1). Conditioning augmentation (Ho et al. 2022, §4.2)."""
+    batch = x0_u.shape[0]
+    draw_device = generator.device if generator is not None else x0_u.device
+    std = torch.rand(batch, generator=generator, device=draw_device).to(x0_u.device, x0_u.dtype) * max_std
+    noise = torch.randn(x0_u.shape, generator=generator, device=draw_device).to(x0_u.device, x0_u.dtype)
+    noisy = (x0_u + std.view(batch, *([1] * (x0_u.dim() - 1))) * noise).clamp(-1.0, 1.0)
+    return torch.where(m_u.bool().expand_as(x0_u), noisy, x0_u)
 
 
 def stage_cond(x0_u: Tensor, m_u: Tensor) -> Tensor:
@@ -135,6 +152,8 @@ class GaussianDiffusion(nn.Module):
         lam = log_snr(t)  # (B,)
         alpha, sigma = alpha_sigma(lam.view(batch, *([1] * (x0.dim() - 1))))
         x_t = alpha * x0 + sigma * eps
+        if stage == "stage2" and self.cfg.cond_noise > 0:  # drawn after t and ε: runs without it are unchanged
+            net_cond = stage_cond(noisy_condition(cond, m_u, self.cfg.cond_noise, generator), m_u)
 
         if crop_offsets is not None or poses is not None:
             eps_pred, mask_logits = self.net(

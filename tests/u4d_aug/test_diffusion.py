@@ -15,6 +15,7 @@ from u4d_aug.diffusion import (
     alpha_sigma,
     log_snr,
     min_snr_weight,
+    noisy_condition,
     stage_cond,
 )
 from u4d_aug.errors import InputError
@@ -136,6 +137,48 @@ def test_stage_checks():
         DiffusionConfig(stage="stage3")  # type: ignore[arg-type]
     with pytest.raises(InputError, match="min_snr_gamma"):
         DiffusionConfig(min_snr_gamma=0.0)
+    with pytest.raises(InputError, match="cond_noise"):
+        DiffusionConfig(stage="stage1", cond_noise=0.1)
+    with pytest.raises(InputError, match="cond_noise"):
+        DiffusionConfig(stage="stage2", cond_noise=-0.1)
+
+
+def test_noisy_condition_touches_only_the_uncertain_region():
+    x0 = toy_scan().expand(3, -1, -1, -1)  # (3, 2, H, W)
+    m_u = torch.zeros(3, 1, H, W)
+    m_u[:, :, 4:9, 10:40] = 1.0
+    x0_u = torch.where(m_u.bool().expand_as(x0), x0, torch.full_like(x0, -1.0))
+    noisy = noisy_condition(x0_u, m_u, 0.3, torch.Generator().manual_seed(0))
+    inside = m_u.bool().expand_as(x0_u)
+    assert torch.equal(noisy[~inside], x0_u[~inside])  # empty pixels stay empty
+    assert float(noisy.abs().max()) <= 1.0
+    change = (noisy - x0_u)[inside].view(3, -1)
+    assert bool((change.abs().amax(dim=1) > 0).all()) and float(change.std(dim=1).max()) <= 0.3 + 0.05
+    assert not torch.allclose(change.std(dim=1)[0], change.std(dim=1)[1])  # a noise level per sample
+    assert torch.equal(noisy, noisy_condition(x0_u, m_u, 0.3, torch.Generator().manual_seed(0)))
+    assert torch.equal(noisy_condition(x0_u, m_u, 0.0, torch.Generator().manual_seed(0)), x0_u)
+
+
+def test_stage2_cond_noise_reaches_the_net_and_zero_changes_nothing():
+    torch.manual_seed(0)
+    net = tiny_net(cond_channels=3)
+    seen: list[torch.Tensor] = []
+    net.register_forward_pre_hook(lambda module, args: seen.append(args[2].clone()))
+    x0 = toy_scan()
+    m_u = torch.zeros(1, 1, H, W)
+    m_u[:, :, 4:9, 20:30] = 1.0
+    x0_u = torch.where(m_u.bool().expand_as(x0), x0, torch.full_like(x0, -1.0))
+    losses = {}
+    for noise in (0.0, 0.5):
+        diffusion = GaussianDiffusion(net, DiffusionConfig(stage="stage2", cond_noise=noise))
+        losses[noise] = diffusion(x0, cond=x0_u, m_u=m_u, generator=torch.Generator().manual_seed(3))["loss"]
+    plain = GaussianDiffusion(net, DiffusionConfig(stage="stage2"))(
+        x0, cond=x0_u, m_u=m_u, generator=torch.Generator().manual_seed(3)
+    )["loss"]
+    assert torch.equal(losses[0.0], plain)  # off: the very same loss
+    assert torch.equal(seen[0], stage_cond(x0_u, m_u))
+    noisy = seen[1]
+    assert not torch.equal(noisy[:, :2], x0_u) and torch.equal(noisy[:, 2:], m_u)  # values perturbed, mask kept
 
 
 def test_stage1_mask_bce_present_and_decreasing():
