@@ -627,7 +627,7 @@ def results_markdown(results: dict) -> str:
 
 def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `u4d experiment CONFIG [key=value ...] [--out DIR]`."""
-    parser.add_argument("config", type=Path, help="experiment yaml, e.g. configs/experiment/cpu.yaml")
+    parser.add_argument("config", type=Path, help="experiment yaml, e.g. configs/experiment/downstream_10pct.yaml")
     parser.add_argument("overrides", nargs="*", help="key=value overrides, e.g. 'seeds=[0]' 'backbones=[minkunet]'")
     parser.add_argument("--out", type=Path, default=None, help="output folder (overrides out_dir)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")

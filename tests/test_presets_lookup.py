@@ -59,7 +59,7 @@ def test_unknown_preset_is_a_one_line_error(elsewhere):
 
 def test_presets_that_name_presets_resolve_from_any_folder(elsewhere):
     """Experiment configs name their seg-train preset (`base: configs/seg/cpu_semi.yaml`)."""
-    cfg = load_config(ExperimentConfig, "experiment/cpu")
+    cfg = load_config(ExperimentConfig, "experiment/downstream_10pct")
     run = run_config(cfg, cfg.arms[0], cfg.backbones[0], cfg.seeds[0])
     assert run.mode == cfg.arms[0].mode
     assert get_sensor("configs/sensors/example_sensor.yaml").height > 0
@@ -79,7 +79,7 @@ def test_demo_presets_resolve_outside_the_repository(elsewhere):
 
 def test_list_presets_names_every_shipped_yaml():
     presets = list_presets()
-    assert {"seg/tiny", "u4d/cpu_hdl64", "experiment/cpu", "sensors/example_sensor"} <= set(presets)
+    assert {"seg/tiny", "u4d/cpu_hdl64", "experiment/downstream_10pct", "sensors/example_sensor"} <= set(presets)
     assert len(presets) == len(list((REPO / "configs").glob("*/*.yaml")))
 
 

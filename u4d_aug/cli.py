@@ -216,7 +216,7 @@ EXAMPLES = {
     "gates": "u4d gates runs/u4d_most_stage2 --png gates.png --json",
     "evaluate": "u4d evaluate --bank banks/u4d --real data/sim --real-sequences 02 --metrics jsd,mmd,ctc --md "
     "--out runs/eval_u4d",
-    "experiment": "u4d experiment experiment/cpu --arms sup-only 'seeds=[0]'",
+    "experiment": "u4d experiment experiment/downstream_10pct --arms sup-only 'seeds=[0]'",
     "export": "u4d export banks/u4d --labels --mmdet3d-infos",
 }
 
