@@ -3,7 +3,7 @@
 One world per seed (a SimConfig preset, HDL-64E, `--sequences` places x `--frames` frames, as `u4d simulate
 --sequences N --frames F --seed S --config PRESET`), each compared with ../shared/data/real/semantickitti by
 `u4d_aug.data.sim.report.compare` (30 evenly spaced simulated scans vs the real ones): range-histogram JS distance (1 m
-bins, 0-80 m; the issue's goal is <= 0.10), elevation JS, points per scan, range shares, the range JS of one simulated
+bins, 0-80 m; the goal is <= 0.10), elevation JS, points per scan, range shares, the range JS of one simulated
 place (6 consecutive scans) against its own pool (the spread a 6-frame reference of one place carries), the 1 m bins
 that add most to the mean JS divergence, the per-class remission JS distance (labelled returns within 50 m, the real
 seq-00 frames 0-2), the range roughness and the mixed-pixel share of depth edges. Writes

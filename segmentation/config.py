@@ -2,7 +2,7 @@
 
 Defaults here, yaml presets in configs/seg/*.yaml, `a.b=value` overrides on the command line
 (`u4d_aug.config.load_config`). The resolved config is saved as OUT/config.yaml and inside every checkpoint.
-Settings that measured as no-ops or losses were removed (issue 43); each class's `REMOVED_KEYS` names them with
+Settings that measured as no-ops or losses were removed; each class's `REMOVED_KEYS` names them with
 the value that meant "off" and why, so that a config naming one is a one-line error and a saved config holding
 one at its "off" value still reads (`u4d_aug.config.saved_config`).
 """

@@ -1,4 +1,4 @@
-"""segmentation.config: the settings removed after they measured as no-ops or losses (issue 43) are named as removed,
+"""segmentation.config: the settings removed after they measured as no-ops or losses are named as removed,
 and configs saved before their removal still read."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The default world and configs/sim/seg_rich.yaml stay bit for bit what they were (issue 45, item 4).
+"""The default world and configs/sim/seg_rich.yaml stay bit for bit what they were (results depend on them).
 
 Committed results (segmentation runs, realism figures) were measured on these worlds, so every new behaviour of the
 simulator is off in them. The hashes below were computed before the street types and the sensor-realism model were
