@@ -35,6 +35,7 @@ from segmentation.evaluate import evaluate
 from segmentation.metrics import ReliabilityBins
 from segmentation.plots import plot_arm_curves, plot_paired, plot_reliability
 from segmentation.train import train
+from u4d_aug.bank import read_manifest
 from u4d_aug.config import (
     config_from_dict,
     config_to_dict,
@@ -134,7 +135,12 @@ def bank_problem(arm: ArmConfig) -> str | None:
         count = len(ScanDataset(arm.bank, None))
     except InputError as exc:
         return f"bank {arm.bank} unusable: {exc}"
-    return None if count > 0 else f"bank {arm.bank} holds no scan"
+    if count == 0:
+        return f"bank {arm.bank} holds no scan"
+    manifest = read_manifest(arm.bank)  # None for a bank written by other tools
+    if manifest is not None and manifest.get("complete") is False:
+        return f"bank {arm.bank} is incomplete ({count} scans so far): its `u4d generate` has not finished"
+    return None
 
 
 def run_config(cfg: ExperimentConfig, arm: ArmConfig, backbone: str, seed: int) -> SegTrainConfig:

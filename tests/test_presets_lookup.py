@@ -15,9 +15,9 @@ from setuptools import find_packages
 from segmentation.config import SegTrainConfig
 from segmentation.experiment import ExperimentConfig, run_config
 from tests.tiny_nets import REPO
-from u4d_aug.cli import DEMO_PRESETS, demo_experiment, demo_steps
 from u4d_aug.config import load_config, read_yaml
 from u4d_aug.data.sensors import get_sensor
+from u4d_aug.demo import DEMO_PRESETS, demo_experiment, demo_steps
 from u4d_aug.errors import InputError
 from u4d_aug.generate import GenerateConfig
 from u4d_aug.presets import configs_root, list_presets, resolve_config_path
@@ -69,7 +69,11 @@ def test_demo_presets_resolve_outside_the_repository(elsewhere):
     assert load_config(SegTrainConfig, DEMO_PRESETS["seg"]).model.name == "minkunet"
     assert load_config(DiffusionTrainConfig, DEMO_PRESETS["diffusion"], ["diffusion.stage=stage1"]).height > 0
     assert load_config(GenerateConfig, DEMO_PRESETS["generate"]).num > 0
-    commands = [command for _, command in demo_steps(elsewhere / "demo", 0, elsewhere / "no-real")]
+    assert load_config(GenerateConfig, DEMO_PRESETS["generate_toy"]).num > 0
+    shipped = {name: elsewhere / f"{name}.pt" for name in ("u4d_stage1", "u4d_stage2", "baseline")}
+    steps = [*demo_steps(elsewhere / "demo", 0, elsewhere / "no-real", shipped)]
+    steps += demo_steps(elsewhere / "demo", 0, elsewhere / "no-real", None)  # no weights/: the seconds-trained nets
+    commands = [step.command for step in steps]
     named = [word for command in commands for word in command if word in DEMO_PRESETS.values()]
     named.append(demo_experiment(elsewhere / "demo", 0)["base"])  # the downstream step's config file names it
     assert sorted(set(named)) == sorted(DEMO_PRESETS.values())

@@ -298,158 +298,45 @@ def run_info(args: argparse.Namespace) -> int:
 # The shipped presets (u4d_aug.presets): configs/ of the checkout, or the package data of an installed wheel.
 CONFIGS_DIR = configs_root()
 
-# The presets the demo runs with, named as `u4d` takes them from any folder (tests/test_presets_lookup.py).
-DEMO_PRESETS = {
-    "seg": "seg/tiny",
-    "diffusion": "u4d/demo",
-    "generate": "u4d/generate_cpu",
-    "experiment_base": "seg/tiny_semi",
-}
-
-
-def demo_steps(out: Path, seed: int, real: Path) -> list[tuple[str, list[str]]]:
-    """(title, `u4d` command line) of every demo step, in the order of DESIGN.md §3."""
-    world = out / "world"
-    frame0 = world / "sequences" / "00" / "velodyne" / "000000.bin"
-    steps = [
-        (
-            "simulate a small world (3 sequences x 6 frames, HDL-64E)",
-            ["simulate", "--out", str(world), "--sequences", "3", "--frames", "6", "--seed", str(seed)],
-        ),
-        ("summarise it", ["info", str(world)]),
-        ("picture of frame 0: range image + BEV", ["show", str(frame0), "--png", str(out / "frame0.png")]),
-    ]
-    if (real / "sequences").is_dir():
-        steps.append(
-            (
-                "realism report against the real scans",
-                [
-                    "sim-report",
-                    str(world),
-                    "--real",
-                    str(real),
-                    "--png",
-                    str(out / "sim_vs_real.png"),
-                    "--max-frames",
-                    "6",
-                ],
-            )
-        )
-    seg_dir = out / "seg"
-    steps += [
-        (
-            "train a small MinkUNet-like segmentor (sequences 00-01, held-out 02)",
-            [
-                "seg-train",
-                DEMO_PRESETS["seg"],
-                f"data.root={world}",
-                'data.train_sequences=["00", "01"]',
-                'data.val_sequences=["02"]',
-                "optim.steps=40",
-                "eval_every=20",
-                "checkpoint_every=20",
-                f"seed={seed}",
-                "--out",
-                str(seg_dir),
-            ],
-        ),
-        (
-            "evaluate it: mIoU, ECE, reliability diagram",
-            [
-                "seg-eval",
-                str(seg_dir / "model.pt"),
-                str(world),
-                "--sequences",
-                "02",
-                "--png",
-                str(out / "reliability.png"),
-            ],
-        ),
-        (
-            "per-point probabilities for U4D's uncertainty",
-            ["seg-predict", str(seg_dir / "model.pt"), str(world), "--out", str(out / "probs")],
-        ),
-    ]
-    diffusion = [DEMO_PRESETS["diffusion"], f"data_root={world}", 'sequences=["00", "01"]', f"seed={seed}"]
-    probs = f"probs_root={out / 'probs'}"
-    banks = {"u4d": out / "bank_u4d", "baseline": out / "bank_baseline"}
-    generate = [DEMO_PRESETS["generate"], "steps=16", "stage1_steps=8", "num=4", f"seed={seed}"]
-    steps += [
-        ("U4D stage 1: diffusion of the uncertain region P_u + mask head",
-         ["train-diffusion", *diffusion, "stage=stage1", probs, "--out", str(out / "u4d_stage1")]),
-        ("U4D stage 2: completion conditioned on (x0_u, m_u)",
-         ["train-diffusion", *diffusion, "stage=stage2", probs, "--out", str(out / "u4d_stage2")]),
-        ("R2DM-style baseline: one unconditional stage",
-         ["train-diffusion", *diffusion, "stage=baseline", "--out", str(out / "baseline")]),
-        ("generate 4 scans hard-to-easy with U4D",
-         ["generate", *generate, "mode=u4d", f"stage1={out / 'u4d_stage1'}", f"stage2={out / 'u4d_stage2'}",
-          "--out", str(banks["u4d"])]),
-        ("generate 4 scans with the baseline",
-         ["generate", *generate, "mode=baseline", f"baseline={out / 'baseline'}", "--out", str(banks["baseline"])]),
-        ("real vs U4D vs baseline: uncertainty, stage 1, stage 2, BEV",
-         ["gen-report", str(world), "--sequences", "02", "--probs", str(out / "probs"),
-          "--bank", f"u4d={banks['u4d']}", "--bank", f"baseline={banks['baseline']}",
-          "--png", str(out / "generated.png")]),
-    ]  # fmt: skip
-    for name, bank in banks.items():
-        steps.append(
-            (f"generation metrics of the {name} bank vs held-out sequence 02 (BEV JSD/MMD, CTC)",
-             ["evaluate", "--bank", str(bank), "--real", str(world), "--real-sequences", "02",
-              "--metrics", "jsd,mmd,ctc", "--json", "--md", "--out", str(out / f"eval_{name}")])
-        )  # fmt: skip
-    steps.append(
-        (
-            "downstream, toy size: sup-only vs MT+LaserMix vs + baseline bank vs + U4D bank (mIoU, ECE on sequence 02)",
-            ["experiment", str(out / "downstream.yaml"), "--no-progress"],
-        )
-    )
-    return steps
-
-
-def demo_experiment(out: Path, seed: int) -> dict:
-    """The demo's `u4d experiment` config: the four arms of the comparison on the demo world and its two banks."""
-    world = out / "world"
-    overrides = [f"data.root={world}", 'data.train_sequences=["00", "01"]', 'data.val_sequences=["02"]']
-    overrides += ["optim.steps=12", "semi.burn_in_steps=6", "eval_every=12", "checkpoint_every=6", "log_every=2"]
-    return {
-        "base": DEMO_PRESETS["experiment_base"],
-        "overrides": overrides,
-        "arms": [
-            {"name": "sup-only", "mode": "supervised"},
-            {"name": "mt", "mode": "semi"},
-            {"name": "mt+baseline", "mode": "semi", "bank": str(out / "bank_baseline"), "bank_ratio": 0.5},
-            {"name": "mt+u4d", "mode": "semi", "bank": str(out / "bank_u4d"), "bank_ratio": 0.5},
-        ],
-        "contrasts": [["mt+u4d", "mt"], ["mt+u4d", "mt+baseline"]],
-        "backbones": ["minkunet"],
-        "seeds": [seed],
-        "final_eval": True,
-        "out_dir": str(out / "downstream"),
-    }
-
 
 def run_demo(args: argparse.Namespace) -> int:
-    """`u4d demo`: every stage that exists, in the order of DESIGN.md §3, each through its own command."""
-    real = args.real or Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "semantickitti"
-    steps = demo_steps(args.out, args.seed, real)
-    verbosity = [flag for flag, level in VERBOSITY_FLAGS.items() if level == args.log_level and flag.startswith("--")]
-    print(
-        "u4d demo: every stage at toy size (minutes on 2 CPU cores), ending with the downstream comparison at toy "
-        "size (one seed, a few steps: it shows the pipeline, not whether U4D helps; that is `u4d experiment "
-        "experiment/downstream_10pct`, hours). Not run here: FRD/FPD (need trained extractors)."
-    )
+    """`u4d demo`: every stage, each through its own command (`u4d_aug.demo`), then OUT/report.md."""
+    import time
+
     import yaml
 
+    from u4d_aug.demo import demo_experiment, demo_report, demo_steps
+    from u4d_aug.weights import shipped_weights
+
+    real = args.real or Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "semantickitti"
+    weights = shipped_weights()
+    steps = demo_steps(args.out, args.seed, real, weights)
+    verbosity = [flag for flag, level in VERBOSITY_FLAGS.items() if level == args.log_level and flag.startswith("--")]
+    print(
+        "u4d demo: every stage at toy size (minutes on 2 CPU cores): a small simulated world, nets trained for "
+        "seconds to show the training loops run, banks of 64x1024 scans from the shipped nets (weights/), their "
+        "generation metrics and the four downstream arms at toy size (one seed, a few steps: it shows the pipeline, "
+        "not whether U4D helps; that is `u4d experiment experiment/downstream_10pct`, hours). Ends with OUT/report.md."
+    )
+    if weights is None:
+        print(
+            "warning: no shipped nets under weights/ (a wheel install?): the banks come from the seconds-trained nets"
+        )
+    timings = []
     with run_lock(args.out):  # one demo per output folder; each step locks its own sub-folder too
         atomic_write_text(args.out / "downstream.yaml", yaml.safe_dump(demo_experiment(args.out, args.seed)))
-        for number, (title, command) in enumerate(steps, start=1):
-            command = _resume_if_started(command)
-            print(f"\n[{number}/{len(steps)}] {title}\n$ u4d {' '.join(command)}", flush=True)
+        for number, step in enumerate(steps, start=1):
+            command = _resume_if_started(step.command)
+            print(f"\n[{number}/{len(steps)}] {step.title}\n$ u4d {' '.join(command)}", flush=True)
+            start = time.perf_counter()
             status = main([*verbosity, *command])
+            timings.append((step, time.perf_counter() - start))
             if status != 0:
                 print(f"demo stopped at step {number} (exit {status}); re-run to resume", file=sys.stderr)
                 return status
-    print(f"\ndemo done: outputs in {args.out}; the downstream table: {args.out / 'downstream' / 'results.md'}")
+        atomic_write_text(args.out / "report.md", demo_report(args.out, timings, weights))
+    total = sum(seconds for _, seconds in timings)
+    print(f"\ndemo done in {total:.0f} s: outputs in {args.out}; the report: {args.out / 'report.md'}")
     return 0
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -178,3 +179,18 @@ def load_exported(net: torch.nn.Module, state: dict, source: str) -> None:
             f"{source}: exported weights do not fit the net of their config (missing "
             f"{sorted(set(missing) - set(RECOMPUTED_BUFFERS))[:3]}, unexpected {sorted(unexpected)[:3]})"
         )
+
+
+# The nets committed under the checkout's weights/ (weights/README.md), by role. A wheel does not carry them.
+SHIPPED_DIR = Path(__file__).resolve().parents[1] / "weights"
+SHIPPED_GENERATORS = ("u4d_stage1", "u4d_stage2", "baseline")
+SHIPPED_OPTIONAL = ("extractor_frd", "extractor_fpd", "uncertainty_segmentor")
+
+
+def shipped_weights(root: Path = SHIPPED_DIR) -> dict[str, Path] | None:
+    """{role: file} of the shipped nets under `root`, or None when any of the three generators is absent."""
+    found = {name: root / f"{name}.pt" for name in (*SHIPPED_GENERATORS, *SHIPPED_OPTIONAL)}
+    found = {name: path for name, path in found.items() if path.is_file()}
+    if not all(name in found for name in SHIPPED_GENERATORS):
+        return None
+    return found

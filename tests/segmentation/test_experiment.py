@@ -18,6 +18,7 @@ from segmentation.experiment import (
     ArmConfig,
     ExperimentConfig,
     add_experiment_arguments,
+    bank_problem,
     burn_in_signature,
     donors_on_disk,
     mean_std,
@@ -25,6 +26,7 @@ from segmentation.experiment import (
     run_config,
     run_experiment,
 )
+from tests.segmentation.test_semi import write_bank
 from tests.tiny_nets import REPO
 from tests.tiny_worlds import write_toy_root
 from u4d_aug.config import load_config
@@ -73,6 +75,16 @@ def test_an_arm_asked_for_that_cannot_run_is_an_error(tmp_path):
     argv = [str(TINY), f"arms=[{{name: u4d, mode: semi, bank: {tmp_path / 'no_bank'}}}]", "--out", str(tmp_path / "o")]
     with pytest.raises(InputError, match="--arms: arm 'u4d' cannot run: bank .*no_bank not found"):
         run_experiment(parser.parse_args([*argv, "--arms", "u4d"]))
+
+
+def test_a_bank_still_being_generated_cannot_be_used(tmp_path):
+    bank = write_bank(tmp_path / "bank")
+    arm = ArmConfig("mt+u4d", "semi", bank=bank)
+    assert bank_problem(arm) is None  # a bank written by other tools has no manifest
+    (bank / "manifest.json").write_text(json.dumps({"mode": "u4d", "samples": [0, 1], "complete": False}))
+    assert "incomplete (2 scans so far)" in bank_problem(arm)
+    (bank / "manifest.json").write_text(json.dumps({"mode": "u4d", "samples": [0, 1], "complete": True}))
+    assert bank_problem(arm) is None
 
 
 def test_a_run_folder_locked_by_another_process_is_refused(tmp_path):

@@ -34,7 +34,7 @@ from u4d_aug.metrics.extractors import extract_features, load_extractor, train_e
 from u4d_aug.pipeline import complete, generate_baseline, generate_u4d, load_generator
 from u4d_aug.train import CHECKPOINT_KIND
 from u4d_aug.train import train as train_diffusion
-from u4d_aug.weights import WEIGHTS_FORMAT
+from u4d_aug.weights import SHIPPED_DIR, WEIGHTS_FORMAT, shipped_weights
 
 STAGES = ("stage1", "stage2", "baseline")
 CPU = torch.device("cpu")
@@ -212,3 +212,18 @@ def test_bad_input_is_a_one_line_error(diffusion, tmp_path):
     state["model"][name] = state["model"][name] + 1
     torch.save(state, tmp_path / "tampered.pt")
     _one_line_error(load_generator, tmp_path / "tampered.pt", match="does not match")
+
+
+def test_shipped_weights_are_found_by_role(tmp_path):
+    assert shipped_weights(tmp_path) is None  # a wheel install: no weights/ folder
+    for name in ("u4d_stage1", "u4d_stage2", "extractor_frd"):
+        (tmp_path / f"{name}.pt").write_bytes(b"x")
+    assert shipped_weights(tmp_path) is None  # a generator missing: the demo falls back to its own nets
+    (tmp_path / "baseline.pt").write_bytes(b"x")
+    found = shipped_weights(tmp_path)
+    assert found == {
+        name: tmp_path / f"{name}.pt" for name in ("u4d_stage1", "u4d_stage2", "baseline", "extractor_frd")
+    }
+    # the checkout's own weights/ folder holds the three generators and the FRD extractor
+    shipped = shipped_weights(SHIPPED_DIR)
+    assert shipped is not None and {"u4d_stage1", "u4d_stage2", "baseline", "extractor_frd"} <= set(shipped)
