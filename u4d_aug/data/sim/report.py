@@ -8,16 +8,17 @@ the pooled simulated histogram); a sim-vs-real JS inside that spread is as close
 Rings are recovered from the storage order (KITTI stores one ring after the other in azimuth order; a new ring
 starts where the azimuth wraps around), as in data/sensors.py.
 
-Surfaces (labelled scans, returns within `LABEL_RANGE`): per-class remission histograms (a bin of its own for 0, then
-0.05 steps) and their JS distance sim vs real, class by class, as a macro mean over the classes both hold
-(`MIN_CLASS_POINTS`) and weighted by the real class shares. Edges and noise (`edge_stats`, neighbours along a ring):
-the range roughness (median |second difference| of range over smooth triples within 20 m: range noise), and the
-share of depth edges with a return floating between the two sides (mixed pixels).
+Surfaces: remission histograms (a bin of its own for 0, then 0.05 steps) of every return (`intensity_all`) and, for
+labelled scans, per class over the returns within `LABEL_RANGE`; their JS distance sim vs real, class by class, as a
+macro mean over the classes both hold (`MIN_CLASS_POINTS`) and weighted by the real class shares. Edges and noise
+(`edge_stats`, neighbours along a ring): the range roughness (median |second difference| of range over smooth triples
+within 20 m: range noise), and the share of depth edges with a return floating between the two sides (mixed pixels).
 """
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -84,11 +85,16 @@ def edge_stats(points: np.ndarray, ring: np.ndarray) -> dict:
     }
 
 
+def _intensity_bin(intensity: np.ndarray) -> np.ndarray:
+    """(N,) INTENSITY_BINS index of each remission; values outside [0, 1] fall into the end bins."""
+    return np.clip(np.searchsorted(INTENSITY_BINS, intensity, side="right") - 1, 0, len(INTENSITY_BINS) - 2)
+
+
 def intensity_hist(points: np.ndarray, semantic: np.ndarray) -> np.ndarray:
     """(SEMANTICKITTI_IGNORE + 1, bins) remission histogram per train id of the returns within LABEL_RANGE."""
     train = map_semantickitti(semantic)
     near = np.linalg.norm(points[:, :3].astype(np.float64), axis=1) <= LABEL_RANGE
-    bins = np.clip(np.searchsorted(INTENSITY_BINS, points[:, 3], side="right") - 1, 0, len(INTENSITY_BINS) - 2)
+    bins = _intensity_bin(points[:, 3])
     num = len(INTENSITY_BINS) - 1
     flat = np.bincount(train[near] * num + bins[near], minlength=(SEMANTICKITTI_IGNORE + 1) * num)
     return flat.reshape(SEMANTICKITTI_IGNORE + 1, num)
@@ -132,16 +138,23 @@ def edge_summary(stats: dict) -> dict:
     }
 
 
-def scan_stats(points: np.ndarray, semantic: np.ndarray | None = None) -> dict:
-    """Histograms of one scan: range, elevation, points per ring, train-id class counts (if labelled)."""
+def scan_stats(
+    points: np.ndarray,
+    semantic: np.ndarray | None = None,
+    ring: np.ndarray | None = None,
+    elevation_bins: np.ndarray = ELEVATION_BINS,
+) -> dict:
+    """Histograms of one scan: range, elevation, points per ring, remission of every return, train-id class counts
+    and per-class remission (if labelled); ring None = recovered from the storage order (ring-major scans)."""
     xyz = points[:, :3].astype(np.float64)
     r = np.linalg.norm(xyz, axis=1)
     elevation = np.degrees(np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1])))
-    ring = rings_from_storage(points)
+    ring = rings_from_storage(points) if ring is None else np.asarray(ring, dtype=np.int64)
     stats = {
         "points": len(points),
         "range_hist": np.histogram(r, RANGE_BINS)[0],
-        "elevation_hist": np.histogram(elevation, ELEVATION_BINS)[0],
+        "elevation_hist": np.histogram(elevation, elevation_bins)[0],
+        "intensity_all": np.bincount(_intensity_bin(points[:, 3]), minlength=len(INTENSITY_BINS) - 1),
         "ring_counts": np.bincount(np.minimum(ring, MAX_RINGS - 1), minlength=MAX_RINGS),
         "num_rings": int(ring.max()) + 1,
         "beyond_50m": float(np.mean(r > 50.0)),
@@ -170,18 +183,18 @@ def _frames(root: Path, max_frames: int) -> list[tuple[Path, Path | None]]:
     return out
 
 
-def dataset_stats(root: Path, max_frames: int = 30) -> dict:
-    """Summed histograms over up to `max_frames` scans of a root (class counts over the labelled ones)."""
-    frames = _frames(root, max_frames)
+def frames_stats(frames: Iterable[tuple], elevation_bins: np.ndarray = ELEVATION_BINS) -> dict:
+    """Summed `scan_stats` histograms of (points, semantic or None, ring or None) scans (class counts and per-class
+    remission over the labelled ones)."""
     total: dict = {}
     points, example = [], None
-    for scan_path, label_path in frames:
-        frame = load_kitti_frame(scan_path, label_path)
-        stats = scan_stats(frame.points, frame.semantic)
+    for scan, semantic, ring in frames:
+        stats = scan_stats(scan, semantic, ring, elevation_bins)
         points.append(stats["points"])
         for key in (
             "range_hist",
             "elevation_hist",
+            "intensity_all",
             "ring_counts",
             "class_counts",
             "intensity_hist",
@@ -193,12 +206,20 @@ def dataset_stats(root: Path, max_frames: int = 30) -> dict:
             if key in stats:
                 total[key] = total.get(key, 0) + stats[key]
         if example is None:
-            example = (frame.points, frame.semantic)
-    total["frames"] = len(frames)
+            example = (scan, semantic)
+    if not points:
+        raise InputError("frames_stats: no scans")
+    total["frames"] = len(points)
     total["points_per_scan"] = float(np.mean(points))
-    total["ring_counts"] = total["ring_counts"] / len(frames)
+    total["ring_counts"] = total["ring_counts"] / len(points)
     total["example"] = example
     return total
+
+
+def dataset_stats(root: Path, max_frames: int = 30, elevation_bins: np.ndarray = ELEVATION_BINS) -> dict:
+    """Summed histograms over up to `max_frames` scans of a root (class counts over the labelled ones)."""
+    frames = (load_kitti_frame(scan, label) for scan, label in _frames(root, max_frames))
+    return frames_stats(((frame.points, frame.semantic, None) for frame in frames), elevation_bins)
 
 
 def _range_hist(scan_path: Path) -> np.ndarray:

@@ -12,12 +12,15 @@ from scipy.spatial.distance import jensenshannon
 
 from tests.tiny_nets import REPO
 from u4d_aug.config import load_config
-from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
+from u4d_aug.data.formats import load_kitti_frame, read_kitti_scan, write_kitti_scan
 from u4d_aug.data.sim.config import SimConfig
 from u4d_aug.data.sim.report import (
+    LABEL_RANGE,
     RANGE_BINS,
     add_sim_report_arguments,
     compare,
+    dataset_stats,
+    frames_stats,
     place_spread,
     rings_from_storage,
     run_sim_report,
@@ -49,6 +52,24 @@ def _ring_major_scan(rings: int, per_ring: int) -> np.ndarray:
 def test_rings_recovered_from_storage_order() -> None:
     scan = _ring_major_scan(rings=5, per_ring=600)
     np.testing.assert_array_equal(rings_from_storage(scan), np.repeat(np.arange(5), 600))
+
+
+def test_frames_stats_sums_scans_as_dataset_stats_does(tiny_world: Path) -> None:
+    scans = sorted(tiny_world.rglob("velodyne/*.bin"))
+    frames = [load_kitti_frame(s, s.parent.parent / "labels" / f"{s.stem}.label") for s in scans]
+    from_root = dataset_stats(tiny_world)
+    given_rings = frames_stats((f.points, f.semantic, rings_from_storage(f.points)) for f in frames)
+    for key in ("range_hist", "elevation_hist", "intensity_all", "intensity_hist", "ring_counts", "roughness_hist"):
+        np.testing.assert_array_equal(given_rings[key], from_root[key])
+    assert given_rings["edges"] == from_root["edges"] and given_rings["points_per_scan"] == from_root["points_per_scan"]
+    # every return's remission, near or far; the per-class histograms hold the labelled returns within LABEL_RANGE
+    assert from_root["intensity_all"].sum() == sum(len(f.points) for f in frames)
+    near = sum(int((np.linalg.norm(f.points[:, :3], axis=1) <= LABEL_RANGE).sum()) for f in frames)
+    assert from_root["intensity_hist"].sum() == near
+    wide = frames_stats(((f.points, None, None) for f in frames), elevation_bins=np.arange(-90.0, 90.01, 0.5))
+    assert wide["elevation_hist"].sum() == sum(len(f.points) for f in frames) and "intensity_hist" not in wide
+    with pytest.raises(InputError, match="no scans"):
+        frames_stats([])
 
 
 def test_identical_roots_have_zero_distance(tiny_world: Path) -> None:
