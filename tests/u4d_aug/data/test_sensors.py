@@ -9,7 +9,15 @@ import numpy as np
 import pytest
 
 from tests.tiny_nets import REPO
-from u4d_aug.data.sensors import Sensor, get_sensor, hdl32, hdl64, measure_ring_elevations
+from u4d_aug.data.sensors import (
+    Sensor,
+    fit_intensity_response,
+    get_sensor,
+    hdl32,
+    hdl64,
+    intensity_response,
+    measure_ring_elevations,
+)
 from u4d_aug.errors import InputError
 
 EXAMPLE_YAML = REPO / "configs" / "sensors" / "example_sensor.yaml"
@@ -132,3 +140,59 @@ def test_sensor_is_frozen() -> None:
     assert isinstance(hash(hdl64()), int)
     with pytest.raises(InputError, match="min_range"):
         Sensor("bad", (1.0, 0.0), 0.0, 10.0, 2, 8, 2.0, -2.0)
+
+
+def test_intensity_response_is_the_identity_by_default(tmp_path: Path) -> None:
+    path = tmp_path / "mini.yaml"
+    path.write_text("elevations_deg: [1.0, 0.0, -1.0]\nmin_range: 0.5\nmax_range: 30\n")
+    remission = np.round(np.linspace(0.0, 0.99, 100), 2).astype(np.float32)  # KITTI's 0.01 steps
+    for sensor in (hdl64(), get_sensor(EXAMPLE_YAML), get_sensor(path)):
+        assert sensor.reports_remission, sensor.name
+        out = intensity_response(sensor, remission)
+        assert out.dtype == np.float32 and np.array_equal(out, remission)
+    assert not hdl32().reports_remission
+
+
+@pytest.mark.parametrize(
+    "sensor", [hdl32(), dataclasses.replace(hdl64(), intensity_floor=0.2, intensity_gain=3.0, intensity_gamma=0.4)]
+)
+def test_intensity_response_is_monotone_into_the_unit_interval(sensor: Sensor) -> None:
+    remission = np.linspace(-0.1, 1.1, 1201, dtype=np.float32)  # out-of-range values are clipped first
+    out = intensity_response(sensor, remission)
+    assert np.all(np.diff(out) >= 0) and out.min() >= 0.0 and out.max() <= 1.0
+    inside = intensity_response(sensor, np.linspace(0.0, 1.0, 101))
+    assert np.all(np.diff(inside[inside < 1.0]) > 0)  # strictly increasing until it saturates
+
+
+def test_hdl32_response_golden_values() -> None:
+    out = intensity_response(hdl32(), np.array([0.0, 0.28, 0.5, 1.0], dtype=np.float32))
+    np.testing.assert_allclose(out, [0.009, 0.0446, 0.1779, 1.0], atol=5e-4)  # floor, median, middle, saturated
+
+
+def test_fit_intensity_response_recovers_a_known_response(rng: np.random.Generator) -> None:
+    remission = rng.beta(4.0, 8.0, 200_000)
+    truth = Sensor("truth", (1.0, 0.0), 1.0, 9.0, 2, 8, 2.0, -2.0, 0.02, 1.3, 2.5)
+    floor, gain, gamma = fit_intensity_response(remission, intensity_response(truth, remission))
+    np.testing.assert_allclose([floor, gain, gamma], [0.02, 1.3, 2.5], rtol=0.02, atol=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "match"),
+    [
+        ("intensity_floor", 1.0, "0 <= intensity_floor < 1"),
+        ("intensity_floor", -0.1, "0 <= intensity_floor < 1"),
+        ("intensity_gain", 0.0, "intensity_gain must be a finite number > 0"),
+        ("intensity_gamma", float("nan"), "intensity_gamma must be a finite number > 0"),
+    ],
+)
+def test_intensity_response_bad_values(key: str, value: float, match: str) -> None:
+    with pytest.raises(InputError, match=match):
+        dataclasses.replace(hdl64(), **{key: value})
+
+
+def test_intensity_response_from_yaml(tmp_path: Path) -> None:
+    path = tmp_path / "dim.yaml"
+    path.write_text("elevations_deg: [1, 0]\nmin_range: 1\nmax_range: 9\nintensity_floor: 0.01\nintensity_gamma: 2\n")
+    sensor = get_sensor(path)
+    assert (sensor.intensity_floor, sensor.intensity_gain, sensor.intensity_gamma) == (0.01, 1.0, 2.0)
+    assert intensity_response(sensor, np.array([0.5]))[0] == pytest.approx(0.26)

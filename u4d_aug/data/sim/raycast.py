@@ -4,7 +4,8 @@ Rays come from the sensor's ring elevation table (top ring first) and `azimuth_s
 stored ring-major in azimuth order like a KITTI velodyne file. The static world is one
 `open3d.t.geometry.RaycastingScene` per sequence; the moving agents get a small scene per frame and the nearer
 hit wins. Intensity = reflectivity x g(|cos incidence|) x range falloff + noise, clipped to [0, 1], with weak
-returns read as 0 and quantised to 0.01 as in KITTI remission. Returns beyond `label_range` keep raw id 0
+returns read as 0 and quantised to 0.01 as in KITTI remission; a sensor with an intensity response (the HDL-32E,
+sensors.intensity_response) then reports that remission on its own scale. Returns beyond `label_range` keep raw id 0
 (unlabeled), as the real SemanticKITTI seq-00 labels do past ~50 m.
 
 The measured model (LidarConfig keys after `label_range`, all off in the default world, which then draws no extra
@@ -21,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from u4d_aug.data.sensors import Sensor
+from u4d_aug.data.sensors import Sensor, intensity_response
 from u4d_aug.data.sim.config import LidarConfig
 from u4d_aug.data.sim.geometry import MATERIALS, TriangleMesh
 from u4d_aug.data.sim.surfaces import material_terms
@@ -57,7 +58,7 @@ class RayPattern:
 class Scan:
     """One simulated frame in the sensor frame, points in ray order."""
 
-    points: np.ndarray  # (N, 4) float32 x, y, z, remission
+    points: np.ndarray  # (N, 4) float32 x, y, z, remission (on the sensor's intensity scale, [0, 1])
     semantic: np.ndarray  # (N,) uint16 raw SemanticKITTI ids
     instance: np.ndarray  # (N,) uint16
     ring: np.ndarray  # (N,) int16
@@ -229,6 +230,8 @@ class LidarSimulator:
         intensity = np.clip(
             np.floor(intensity / np.float32(cfg.intensity_step)) * np.float32(cfg.intensity_step), 0.0, 0.99
         )
+        if not self.sensor.reports_remission:  # the sensor's own intensity scale (HDL-32E: nuScenes')
+            intensity = intensity_response(self.sensor, intensity)
         sel = np.flatnonzero(keep)
         points = np.empty((len(sel), 4), dtype=np.float32)
         d = distance[sel]

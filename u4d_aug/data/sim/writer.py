@@ -5,15 +5,17 @@ convention, relative to frame 0), calib.txt (KITTI odometry seq-00 calibration),
 nuScenes (`--format nuscenes`, HDL-32E by default): sequence k is scene-000k; keyframes every `keyframe_every`
 frames (2 Hz by default) in samples/LIDAR_TOP/*.pcd.bin with their lidarseg/v1.0-trainval/<token>_lidarseg.bin
 (raw lidarseg ids, `labels.semantickitti_to_nuscenes_raw`), the frames between in sweeps/LIDAR_TOP/ (unlabelled, as
-nuScenes), 5 columns x, y, z, intensity 0-255, ring (0 = bottom), points in a nuScenes-like lidar frame (x right,
-y forward); the ego poses of each scene in sim_ego_poses/scene-000k.npy and, once every scene is written, the v1.0
-tables (`u4d_aug.data.nuscenes.write_nuscenes_tables`). Both layouts get manifest.json (seed + resolved config).
+nuScenes), 5 columns x, y, z, intensity 0-255 (on the HDL-32E's scale: sensors.hdl32, its intensity response), ring
+(0 = bottom), points in a nuScenes-like lidar frame (x right, y forward); the ego poses of each scene in
+sim_ego_poses/scene-000k.npy and, once every scene is written, the v1.0 tables
+(`u4d_aug.data.nuscenes.write_nuscenes_tables`). Both layouts get manifest.json (seed + resolved config).
 Sequence k draws its streets and ego route from np.random.default_rng([seed, k, 0, 0]),
 the static world from [seed, k, 0, 1], the agents from [seed, k, 0, 2] and the ray pattern from [seed, k, 0, 3]
 (so a change to, say, vegetation settings keeps the street layout), the ground hills from [seed, k, 0, 4], its street
 type (scenes.py, when several have weight) from [seed, k, 0, 5] and frame f from [seed, k, 1, f]; files do not depend
-on --workers, and a re-run skips frames whose files exist (writes are atomic). manifest.json records the config
-source (`--config` preset or file, and the overrides) beside the resolved config, and each place's street type.
+on --workers, and a re-run skips frames whose files exist (writes are atomic). manifest.json records the sensor's
+intensity response, the config source (`--config` preset or file, and the overrides) beside the resolved config,
+and each place's street type.
 """
 
 from __future__ import annotations
@@ -279,6 +281,7 @@ def _manifest(
         "sequences": sequences,
         "frames": frames,
         "sensor": sensor,
+        "sensor_intensity_response": sensor_response(sensor),
         "layout": layout,
         "config_source": config_source or {"config": None, "overrides": []},
         "config": config_to_dict(cfg),
@@ -289,8 +292,18 @@ def _manifest(
     return manifest
 
 
+def sensor_response(sensor: str) -> list[float]:
+    """[floor, gain, gamma] of the sensor's intensity response (sensors.intensity_response), as in manifest.json."""
+    resolved = get_sensor(sensor)
+    return [resolved.intensity_floor, resolved.intensity_gain, resolved.intensity_gamma]
+
+
+RESUME_KEYS = ("format", "seed", "frames", "sensor", "sensor_intensity_response", "layout", "keyframe_every", "config")
+
+
 def _check_manifest(path: Path, new: dict) -> None:
-    """A re-run must use the same seed, frames, sensor, layout and config (more sequences are fine)."""
+    """A re-run must use the same seed, frames, sensor (and its intensity response), layout and config (more
+    sequences are fine)."""
     import json
 
     try:
@@ -298,11 +311,12 @@ def _check_manifest(path: Path, new: dict) -> None:
     except (OSError, json.JSONDecodeError) as exc:
         raise InputError(f"{path}: unreadable manifest ({exc}); use a new --out folder") from None
     old.setdefault("layout", "semantickitti")  # written before the nuScenes layout existed
+    old.setdefault("sensor_intensity_response", [0.0, 1.0, 1.0])  # written when every sensor reported the remission
     # written before some keys existed: they hold their defaults, which are the old behaviour; a config that no
     # longer reads differs from this run's and is refused below
     with contextlib.suppress(InputError):
         old["config"] = config_to_dict(config_from_dict(SimConfig, old.get("config"), source=str(path)))
-    for key in ("format", "seed", "frames", "sensor", "layout", "keyframe_every", "config"):
+    for key in RESUME_KEYS:
         if old.get(key) != new.get(key):
             raise InputError(
                 f"{path}: '{key}' differs from this run ({old.get(key)!r} vs {new.get(key)!r}); "

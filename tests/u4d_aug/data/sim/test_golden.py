@@ -1,8 +1,10 @@
-"""The default world and configs/sim/seg_rich.yaml stay bit for bit what they were (results depend on them).
+"""The default world, configs/sim/seg_rich.yaml and varied.yaml stay bit for bit what they were (results depend on
+them).
 
 Committed results (segmentation runs, realism figures) were measured on these worlds, so every new behaviour of the
 simulator is off in them. The hashes below were computed before the street types and the sensor-realism model were
-added (branch `world`, from main at 94645f1): 2 places x 2 frames, seed 3, HDL-64E, full resolution.
+added (branch `world`, from main at 94645f1): 2 places x 2 frames, seed 3, HDL-64E, full resolution; those of varied
+at a27b566, before sensors got an intensity response (identity for the HDL-64E, so its worlds keep their bits).
 manifest.json is not compared: it lists the resolved config, which gains the new keys (at their off values).
 """
 
@@ -44,10 +46,22 @@ GOLDEN = {
         "01/velodyne/000000.bin": "0580d476de969fc7c438b5c96963364662c76d8a61d95c8c57d3ed2749ad2dec",
         "01/velodyne/000001.bin": "1484ddf65ce5d529d5dc9852fd2c006a95c36d5adac820485f8219c637bf4d7f",
     },
+    "varied": {
+        "00/labels/000000.label": "9ccad2e03f296f34bed71114a5930fdf296b5d831276900c7f2905013e0734f8",
+        "00/labels/000001.label": "1f26c7a798a03ca6326903c5c34805ac7c1b239f8f3f058ce54acc5c2d89ce3e",
+        "00/poses.txt": "80021c38ce6de506e15fdfc28bc4e71023587e51ce1c97ed4c4c7e18e5cb5fdb",
+        "00/velodyne/000000.bin": "fcc007608e9eef33ec847c4203add41e008b365e5f3a12ee4296f0257f360051",
+        "00/velodyne/000001.bin": "11c11335f512425d39fde0f487048be51ab0b18f745f67543d13c4d82944cfd3",
+        "01/labels/000000.label": "43623dccb426a1944792eff928f0e61737addbb3cf796ab5c27b2be98d1f71b9",
+        "01/labels/000001.label": "f23de8177d5fe1ddccb0d9f5d8f61fbc38d76c0fe22259dc531e80f23dd884dc",
+        "01/poses.txt": "256ef093b5e0e23af3a9e28176b04755cc82c71892f86e30ea8fdf6b7091207b",
+        "01/velodyne/000000.bin": "113ccc9b9fd62f6351f27028ad054ed4aee9229445dcb476bb0c2577c934b2b3",
+        "01/velodyne/000001.bin": "3c57f2159f9ea81abc392c8258c91be315d15a012d0d7b515453f540b6b3e26a",
+    },
 }
 
 
-@pytest.mark.parametrize("preset", ["default", "seg_rich"])
+@pytest.mark.parametrize("preset", ["default", "seg_rich", "varied"])
 def test_world_is_unchanged_bit_for_bit(preset: str, tmp_path: Path) -> None:
     path = None if preset == "default" else REPO / "configs" / "sim" / f"{preset}.yaml"
     root = tmp_path / preset

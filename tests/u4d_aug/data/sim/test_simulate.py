@@ -3,22 +3,32 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
+from scipy.spatial.distance import jensenshannon
 
 from tests.tiny_nets import REPO
 from u4d_aug.config import load_config
-from u4d_aug.data.formats import read_calib, read_kitti_label, read_kitti_scan, read_poses, read_times
+from u4d_aug.data.formats import (
+    read_calib,
+    read_kitti_label,
+    read_kitti_scan,
+    read_nuscenes_scan,
+    read_poses,
+    read_times,
+)
 from u4d_aug.data.labels import SEMANTICKITTI_RAW_NAMES, map_semantickitti
-from u4d_aug.data.sensors import hdl64
+from u4d_aug.data.sensors import hdl32, hdl64, intensity_response
 from u4d_aug.data.sim import objects
 from u4d_aug.data.sim.agents import _EgoLane
 from u4d_aug.data.sim.config import SimConfig
 from u4d_aug.data.sim.geometry import RAW, MeshBuilder, strip
+from u4d_aug.data.sim.report import INTENSITY_BINS
 from u4d_aug.data.sim.scenes import STREET_TYPES
 from u4d_aug.data.sim.streets import Bend, Warp, lane_path, make_hills, make_network
 from u4d_aug.data.sim.world import _add_mesh
@@ -393,3 +403,48 @@ def test_resume_of_a_world_written_before_the_street_types(tmp_path: Path) -> No
     assert simulate(out, 1, 1, seed=2, config=_tiny(), progress=False)["skipped"] == 1
     with pytest.raises(InputError, match="'config' differs"):
         simulate(out, 1, 1, seed=2, config=_tiny("lots.driveway_prob=0.5"), progress=False)
+
+
+def _identity(sensor):
+    return dataclasses.replace(sensor, intensity_floor=0.0, intensity_gain=1.0, intensity_gamma=1.0)
+
+
+def _hdl32_remission(sensor, places: int = 2) -> list:
+    """Scans of `places` tiny places x 1 frame (seed 5) seen by `sensor`."""
+    return [render_frame(build_sequence(5, k, 1, sensor, _tiny()), 0) for k in range(places)]
+
+
+def test_intensity_response_changes_the_intensity_and_nothing_else() -> None:
+    fitted, plain = _hdl32_remission(hdl32(), 1)[0], _hdl32_remission(_identity(hdl32()), 1)[0]
+    np.testing.assert_array_equal(fitted.points[:, :3], plain.points[:, :3])  # same random numbers, same returns
+    np.testing.assert_array_equal(fitted.semantic, plain.semantic)
+    np.testing.assert_array_equal(fitted.points[:, 3], intensity_response(hdl32(), plain.points[:, 3]))
+    assert np.median(fitted.points[:, 3]) < 0.1 < np.median(plain.points[:, 3])
+
+
+def test_hdl32_remission_moves_towards_the_real_nuscenes_keyframe(real_root: Path) -> None:
+    scan = next((real_root / "nuscenes_mmdet3d_demo").glob("**/LIDAR_TOP/*.pcd.bin"))
+
+    def hist(values: np.ndarray) -> np.ndarray:
+        bins = np.clip(np.searchsorted(INTENSITY_BINS, values, side="right") - 1, 0, len(INTENSITY_BINS) - 2)
+        return np.bincount(bins, minlength=len(INTENSITY_BINS) - 1)
+
+    real = hist(read_nuscenes_scan(scan).points[:, 3])
+    js = {
+        name: jensenshannon(hist(np.concatenate([s.points[:, 3] for s in _hdl32_remission(sensor)])), real, base=2)
+        for name, sensor in (("identity", _identity(hdl32())), ("fitted", hdl32()))
+    }
+    assert js["identity"] > 0.6 and js["fitted"] < 0.3, js
+
+
+def test_resume_of_an_hdl32_world_written_before_the_intensity_response_is_refused(tmp_path: Path) -> None:
+    import json
+
+    out = tmp_path / "old32"
+    simulate(out, 1, 1, seed=2, sensor="hdl32", config=_tiny(), progress=False)
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["sensor_intensity_response"] == [0.009, 1.08, 2.68]
+    del manifest["sensor_intensity_response"]  # as main wrote it: the HDL-32E reported the remission
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match="'sensor_intensity_response' differs"):
+        simulate(out, 1, 1, seed=2, sensor="hdl32", config=_tiny(), progress=False)
