@@ -363,7 +363,10 @@ def simulate(
             logger.info("%s: removed %d temp file(s) of a killed run", out_dir, removed)
         manifest_path = out_dir / "manifest.json"
         manifest = _manifest(seed, sequences, frames, sensor, cfg, layout, keyframe_every, config_source)
-        logger.info("%s: config %s", out_dir, manifest["config_source"])
+        source = manifest["config_source"]
+        preset = source["config"] or "the built-in defaults (configs/sim/default.yaml)"
+        extra = f", overrides {' '.join(source['overrides'])}" if source["overrides"] else ""
+        logger.info("%s: world of %s%s (recorded in manifest.json)", out_dir, preset, extra)
         if manifest_path.is_file():
             _check_manifest(manifest_path, manifest)
         atomic_write_json(manifest_path, manifest)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import hashlib
+import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -171,7 +173,8 @@ def test_static_points_align_with_poses(tmp_path: Path) -> None:
     assert np.median(shifted) > np.median(dist) + 0.02
 
 
-def test_cli_arguments(tmp_path: Path, capsys) -> None:
+def test_cli_arguments(tmp_path: Path, capsys, caplog) -> None:
+    caplog.set_level(logging.INFO, logger="u4d_aug.data.sim.writer")
     parser = argparse.ArgumentParser()
     add_simulate_arguments(parser)
     args = parser.parse_args(
@@ -190,6 +193,11 @@ def test_cli_arguments(tmp_path: Path, capsys) -> None:
     )
     assert run_simulate(args) == 0
     assert "wrote 1 frames" in capsys.readouterr().out
+    # it says which preset wrote the world, and records it
+    said = f"world of {TINY}, overrides agents.pedestrians_per_100m=0 (recorded in manifest.json)"
+    assert any(said in message for message in caplog.messages), caplog.messages
+    manifest = json.loads((tmp_path / "cli" / "manifest.json").read_text())
+    assert manifest["config_source"] == {"config": str(TINY), "overrides": ["agents.pedestrians_per_100m=0"]}
     with pytest.raises(InputError, match="unknown config key"):
         load_config(SimConfig, None, ["lidar.nope=1"])
 
