@@ -92,6 +92,7 @@ def read_results(path: Path) -> dict:
         where = f"{path}: arms[{i}]"
         if not isinstance(entry, dict) or not all(isinstance(entry.get(k), str) for k in ("arm", "backbone", "status")):
             raise InputError(f"{where}: expected an object with the strings 'arm', 'backbone' and 'status'")
+        check_plain_name(entry["arm"], f"{where}: the arm name")  # it names the copied reliability figure
         runs = entry.get("runs", [])
         if entry["status"] in FINISHED and (not isinstance(runs, list) or not runs):
             raise InputError(f"{where} ({entry['arm']}): status {entry['status']!r} but no 'runs' list")

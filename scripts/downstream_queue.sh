@@ -127,7 +127,6 @@ else
   exp10 1 "${MAIN[@]}"
   wait_file "$DATA/sim_varied/done"
   transfer 1
-  wait_file "$DATA/sim_seg_probs/done"
   nets_1pct
   wait_bank "$BANKS/u4d_random_hdl64"
   exp10 1 mt+u4d-random

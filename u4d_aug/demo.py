@@ -20,6 +20,8 @@ DEMO_PRESETS = {
     "generate_toy": "u4d/generate_cpu",
     "experiment_base": "seg/tiny_semi",
 }
+SEQUENCES, FRAMES = 3, 6  # the demo world: sequences 00-01 train, 02 is held out
+ARM_STEPS = 12  # training steps of each downstream arm (the mean teacher from step ARM_STEPS // 2)
 BANK_SCANS = 8  # scans per bank: ~1 min of generation per method at 64x1024 on 2 cores
 TOY_BANK_SCANS = 4  # without shipped nets: the seconds-trained nets' 32x256 scans
 METHODS = ("u4d", "baseline")
@@ -29,6 +31,17 @@ FULL_RESULTS = {
     "generation diagnostics": "benchmarks/results/generation_64x1024_diagnostics.md",
     "downstream": "benchmarks/results/downstream/",
 }
+
+
+REPOSITORY = Path(__file__).resolve().parents[1]
+
+
+def full_results(root: Path = REPOSITORY) -> str:
+    """The full-size results as text: each path, marked when it is not measured yet (or not in this install)."""
+    return ", ".join(
+        f"{name} `{path}`" + ("" if (root / path).exists() else " (not measured yet)")
+        for name, path in FULL_RESULTS.items()
+    )
 
 
 @dataclass(frozen=True)
@@ -45,8 +58,9 @@ def demo_steps(out: Path, seed: int, real: Path, weights: dict[str, Path] | None
     world = out / "world"
     frame0 = world / "sequences" / "00" / "velodyne" / "000000.bin"
     steps = [
-        Step("simulate", "simulate a small world (3 sequences x 6 frames, HDL-64E)",
-             ["simulate", "--out", str(world), "--sequences", "3", "--frames", "6", "--seed", str(seed)]),
+        Step("simulate", f"simulate a small world ({SEQUENCES} sequences x {FRAMES} frames, HDL-64E)",
+             ["simulate", "--out", str(world), "--sequences", str(SEQUENCES), "--frames", str(FRAMES),
+              "--seed", str(seed)]),
         Step("info", "summarise it", ["info", str(world)]),
         Step("show", "picture of frame 0: range image + BEV", ["show", str(frame0), "--png", str(out / "frame0.png")]),
     ]  # fmt: skip
@@ -54,7 +68,7 @@ def demo_steps(out: Path, seed: int, real: Path, weights: dict[str, Path] | None
         steps.append(
             Step("sim-report", "realism report against the real scans",
                  ["sim-report", str(world), "--real", str(real), "--png", str(out / "sim_vs_real.png"),
-                  "--max-frames", "6"])
+                  "--max-frames", str(FRAMES)])
         )  # fmt: skip
     seg_dir = out / "seg"
     steps += [
@@ -124,7 +138,8 @@ def demo_experiment(out: Path, seed: int) -> dict:
     """The demo's `u4d experiment` config: the four arms of the comparison on the demo world and its two banks."""
     world = out / "world"
     overrides = [f"data.root={world}", 'data.train_sequences=["00", "01"]', 'data.val_sequences=["02"]']
-    overrides += ["optim.steps=12", "semi.burn_in_steps=6", "eval_every=12", "checkpoint_every=6", "log_every=2"]
+    overrides += [f"optim.steps={ARM_STEPS}", f"semi.burn_in_steps={ARM_STEPS // 2}", f"eval_every={ARM_STEPS}"]
+    overrides += [f"checkpoint_every={ARM_STEPS // 2}", "log_every=2"]
     return {
         "base": DEMO_PRESETS["experiment_base"],
         "overrides": overrides,
@@ -220,9 +235,9 @@ def demo_report(out: Path, timings: list[tuple[Step, float]], weights: dict[str,
     lines = [
         "# u4d demo report",
         "",
-        "**Toy scale.** Every number below comes from a world of 18 scans, nets trained for seconds and one seed of "
-        "12 training steps: it shows that every stage runs and feeds the next, not whether U4D helps. The full-size "
-        "results: " + ", ".join(f"{name} `{path}`" for name, path in FULL_RESULTS.items()) + ".",
+        f"**Toy scale.** Every number below comes from a world of {SEQUENCES * FRAMES} scans, nets trained for seconds "
+        f"and one seed of {ARM_STEPS} training steps per arm: it shows that every stage runs and feeds the next, not "
+        "whether U4D helps. The full-size results: " + full_results() + ".",
         "",
         "## Generation",
         "",

@@ -201,6 +201,7 @@ def test_real_experiment_file_with_renamed_arms(tmp_path):
             "arms.json: expected a `u4d experiment` results.json",
         ),
         (lambda d: ["--setting", f"a/spvcnn={d / 'good.json'}"], "good.json: no arm with backbone 'spvcnn'"),
+        (lambda d: ["--setting", f"a/minkunet={d / 'escape.json'}"], "escape.json: arms[0]: the arm name '../x'"),
         (lambda d: ["--setting", f"a/minkunet={d / 'good.json'}", "--rename", "mt"], "--rename 'mt': expected OLD=NEW"),
         (lambda d: ["--setting", f"a/minkunet={d / 'good.json'}", "--rename", "x=y"], "no setting has an arm 'x'"),
     ],
@@ -209,6 +210,9 @@ def test_bad_input_is_one_line_naming_the_field(tmp_path, capsys, make_args, mes
     (tmp_path / "bad.json").write_text('{"arms": [')
     (tmp_path / "arms.json").write_text('{"runs": []}')
     (tmp_path / "good.json").write_text(json.dumps(ten_percent()))
+    escape = ten_percent()
+    escape["arms"][0]["arm"] = "../x"  # an arm name would name a copied figure outside --out
+    (tmp_path / "escape.json").write_text(json.dumps(escape))
     assert report.main([*make_args(tmp_path), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err and len(err.strip().splitlines()) == 1
