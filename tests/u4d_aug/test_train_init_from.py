@@ -28,11 +28,15 @@ def trained(tmp_path_factory):
     return world, run, base / "single.pt"
 
 
-@pytest.mark.parametrize("source", ["run", "exported"])
-def test_most_net_started_from_a_single_frame_net_computes_the_same(trained, tmp_path, source):
+@pytest.mark.parametrize(
+    ("source", "fusion"),
+    [("run", "gating"), ("exported", "gating"), ("run", "cascade"), ("run", "add"), ("run", "concat")],
+)
+def test_most_net_started_from_a_single_frame_net_computes_the_same(trained, tmp_path, source, fusion):
+    """Every MoST fusion of the ablation starts as the identity, so each fine-tune starts from the same function."""
     world, run, exported = trained
     init = str(run if source == "run" else exported)
-    cfg = tiny_config(world, tmp_path / "most", "baseline", *MOST, f"init_from={init}")
+    cfg = tiny_config(world, tmp_path / "most", "baseline", *MOST, f"net.most_fusion={fusion}", f"init_from={init}")
     net = build_net(cfg).eval()
     added = start_from(net, cfg)
     assert "most_down" in added and "pose_embed" in added and "enc" not in " ".join(added)

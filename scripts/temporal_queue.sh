@@ -1,0 +1,110 @@
+#!/bin/bash
+# The long runs of the temporal table (the paper's Table 2, the MoST fusion ablation, the gate figure) as two queues,
+# one per CPU core, each a list of idempotent steps that resume from their checkpoints: after an interruption run the
+# same command again. From the repository root, after (or between) the downstream queues:
+#   CORE=A nohup bash scripts/temporal_queue.sh > temporal_A.log 2>&1 &
+#   CORE=B nohup bash scripts/temporal_queue.sh > temporal_B.log 2>&1 &
+# Every sequence net is the shipped single-frame net of its stage (weights/) fine-tuned on L = 4 frame windows by
+# configs/u4d/cpu_hdl64_most.yaml (MoST blocks and the ego-motion input start as the identity), STEPS per U4D stage
+# and 2 x STEPS for the baseline, so each method gets the same budget:
+#   u4d_most         U4D stage 1 + stage 2 with MoST (gating fusion), seeds 0 and 1
+#   baseline_most    the R2DM-style net with MoST, seeds 0 and 1
+#   u4d_no_temporal  U4D stage 1 + stage 2 fine-tuned alike without MoST (net.most=false), seeds 0 and 1
+#   fusion_<v>       U4D with net.most_fusion=cascade|add|concat, seed 0 (gating is u4d_most seed 0)
+# Each generates 24 sequences of 5 frames (TTCE k = 4 needs 5 frames; the temporal convolution and the poses relative
+# to frame 0 carry over from L = 4) along ego motions drawn from the training places, scored by `u4d evaluate`
+# against the held-out places 88-99; the floor scores those real held-out sequences themselves. Core A ends with the
+# table (benchmarks/temporal_table.py -> benchmarks/results/temporal.json / .md) and the gate figure.
+# RUNS (default ../runs) says where run folders go, RESULTS (default benchmarks/results) where the table and figure go;
+# the world is DATA/sim_seg (DATA default data) with its probabilities DATA/sim_seg_probs (scripts/downstream_queue.sh
+# writes both).
+set -euo pipefail
+RUNS=${RUNS:-../runs}
+DATA=${DATA:-data}
+RESULTS=${RESULTS:-benchmarks/results}
+STEPS=${STEPS:-2000}
+CORE=${CORE:?set CORE=A or CORE=B}
+export OMP_NUM_THREADS=1
+T=$RUNS/temporal
+PRESET=configs/u4d/cpu_hdl64_most.yaml
+FRD=weights/extractor_frd.pt
+
+resume_flag() { if ls "$1"/checkpoints/step_*.pt > /dev/null 2>&1; then echo --resume; fi; }
+last_step() { tail -n 1 "$1/log.jsonl" 2>/dev/null | python3 -c "import sys,json; print(json.loads(sys.stdin.read() or '{}').get('step', 0))" 2>/dev/null || echo 0; }
+done_bank() { python3 -c "import json,sys; sys.exit(0 if json.load(open('$1/manifest.json')).get('complete') else 1)" 2>/dev/null; }
+wait_file() { while [ ! -f "$1" ]; do sleep 300; done; }
+
+finetune() {  # RUN STAGE STEPS [overrides...]: one sequence net from the shipped net of its stage
+  local run=$1 stage=$2 steps=$3
+  shift 3
+  [ "$(last_step "$run")" = "$steps" ] && return 0
+  u4d train-diffusion "$PRESET" "stage=$stage" "steps=$steps" "init_from=weights/u4d_$stage.pt" \
+    "data_root=$DATA/sim_seg" "probs_root=$DATA/sim_seg_probs" sample_every=0 "$@" --out "$run" --no-progress \
+    $(resume_flag "$run")
+}
+finetune_baseline() {  # RUN SEED
+  local run=$1 seed=$2
+  [ "$(last_step "$run")" = "$((2 * STEPS))" ] && return 0
+  u4d train-diffusion "$PRESET" stage=baseline "steps=$((2 * STEPS))" init_from=weights/baseline.pt \
+    "data_root=$DATA/sim_seg" sample_every=0 "seed=$seed" --out "$run" --no-progress $(resume_flag "$run")
+}
+u4d_pair() {  # NAME SEED [overrides...]: stage 1 and stage 2 of one U4D sequence model
+  local name=$1 seed=$2
+  shift 2
+  finetune "$T/$name/stage1" stage1 "$STEPS" "seed=$seed" "$@"
+  finetune "$T/$name/stage2" stage2 "$STEPS" "seed=$seed" "$@"
+}
+sequences() {  # OUT MODE SEED [overrides...]: 24 sequences of 5 frames along motions of the nets' training places
+  local out=$1 mode=$2 seed=$3
+  shift 3
+  done_bank "$out" || u4d generate configs/u4d/generate_hdl64.yaml --out "$out" "mode=$mode" num=24 frames=5 \
+    "seed=$((1000 * seed))" "$@" --no-progress
+}
+score() {  # BANK OUT: TTCE k = 3, 4, CTC k = 1..4 and FRD against the held-out places
+  [ -f "$2/evaluation.json" ] || u4d evaluate --bank "$1" --real "$DATA/sim_seg" --real-sequences 88-99 \
+    --metrics ttce,ctc,frd --extractor-frd "$FRD" --json --md --out "$2"
+}
+method() {  # NAME SEED: fine-tune, generate, score one U4D-like method (u4d_most, u4d_no_temporal, fusion_*)
+  local name=$1 seed=$2
+  shift 2
+  u4d_pair "${name}_s$seed" "$seed" "$@"
+  sequences "$T/banks/${name}_s$seed" u4d "$seed" "stage1=$T/${name}_s$seed/stage1" "stage2=$T/${name}_s$seed/stage2"
+  score "$T/banks/${name}_s$seed" "$T/eval/${name}_s$seed"
+}
+baseline_method() {  # SEED
+  local seed=$1
+  finetune_baseline "$T/baseline_most_s$seed" "$seed"
+  sequences "$T/banks/baseline_most_s$seed" baseline "$seed" "baseline=$T/baseline_most_s$seed"
+  score "$T/banks/baseline_most_s$seed" "$T/eval/baseline_most_s$seed"
+}
+floor() {  # the held-out real sequences 88-99 as the bank: their own TTCE / CTC
+  mkdir -p "$T/floor/sequences"
+  for s in $(seq 88 99); do ln -sfn "$(realpath "$DATA/sim_seg/sequences/$s")" "$T/floor/sequences/$s"; done
+  [ -f "$T/eval/floor/evaluation.json" ] || u4d evaluate --bank "$T/floor" --real "$DATA/sim_seg" \
+    --real-sequences 88-99 --metrics ttce,ctc --json --md --out "$T/eval/floor"
+}
+
+if [ "$CORE" = "A" ]; then
+  method u4d_most 0
+  method u4d_no_temporal 0 net.most=false
+  baseline_method 1
+  method fusion_cascade 0 net.most_fusion=cascade
+  method fusion_concat 0 net.most_fusion=concat
+  floor
+  for name in u4d_most_s1 u4d_no_temporal_s1 baseline_most_s0 fusion_add_s0; do wait_file "$T/eval/$name/evaluation.json"; done
+  python3 benchmarks/temporal_table.py \
+    --method "u4d_most=$T/eval/u4d_most_s0" --method "u4d_most=$T/eval/u4d_most_s1" \
+    --method "baseline_most=$T/eval/baseline_most_s0" --method "baseline_most=$T/eval/baseline_most_s1" \
+    --method "u4d_no_temporal=$T/eval/u4d_no_temporal_s0" --method "u4d_no_temporal=$T/eval/u4d_no_temporal_s1" \
+    --method "floor=$T/eval/floor" \
+    --fusion "gating=$T/eval/u4d_most_s0" --fusion "cascade=$T/eval/fusion_cascade_s0" \
+    --fusion "add=$T/eval/fusion_add_s0" --fusion "concat=$T/eval/fusion_concat_s0" \
+    --out "$RESULTS/temporal"
+  u4d gates "$T/u4d_most_s0/stage2" --png "$RESULTS/most_gates.png" --json > "$T/gates_u4d_most_s0.json"
+else
+  baseline_method 0
+  method u4d_most 1
+  method u4d_no_temporal 1 net.most=false
+  method fusion_add 0 net.most_fusion=add
+fi
+echo "temporal queue $CORE done"
