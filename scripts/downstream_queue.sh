@@ -8,21 +8,26 @@
 # paths configs/experiment/*.yaml name (make them links to a larger disk if needed). Each queue waits for what the
 # other one writes (the world, the banks, the varied world).
 # Core A: the 10 % seeds 0 and 2, the random-P_u nets and bank, the 1 % seeds 0 and 2, SPVCNN seed 0, transfer seeds 0
-# and 2, the generation table's banks. Core B: the 10 % seeds 1 and 3, the FPD extractor, the 1 % nets and bank, the
+# and 2 and their table, the generation table's banks. Core B: the 10 % seeds 1 and 3, the FPD extractor and the
+# generation table's FRD/FPD scores, the 1 % nets and bank, the
 # 1 % seed 1, SPVCNN seed 1, transfer seed 1.
+# PY (default python3) runs the benchmark scripts; REAL is the labelled real SemanticKITTI root of the transfer test.
 set -euo pipefail
 RUNS=${RUNS:-../runs}
 DATA=data
 BANKS=banks
+PY=${PY:-python3}
+REAL=${REAL:-../shared/data/real/semantickitti}
 CORE=${CORE:?set CORE=A or CORE=B}
 export OMP_NUM_THREADS=1
+WAIT=${WAIT:-300}  # seconds between looks at what the other queue writes
 MAIN=(sup-only mt mt+r2dm mt+u4d)
 
 done_bank() {  # a bank whose `u4d generate` finished
   python3 -c "import json,sys; sys.exit(0 if json.load(open('$1/manifest.json')).get('complete') else 1)" 2>/dev/null
 }
-wait_bank() { while ! done_bank "$1"; do sleep 300; done; }
-wait_file() { while [ ! -f "$1" ]; do sleep 300; done; }
+wait_bank() { while ! done_bank "$1"; do sleep "$WAIT"; done; }
+wait_file() { while [ ! -f "$1" ]; do sleep "$WAIT"; done; }
 resume_flag() { if ls "$1"/checkpoints/step_*.pt > /dev/null 2>&1; then echo --resume; fi; }
 last_step() { tail -n 1 "$1/log.jsonl" 2>/dev/null | python3 -c "import sys,json; print(json.loads(sys.stdin.read() or '{}').get('step', 0))" 2>/dev/null || echo 0; }
 
@@ -84,16 +89,46 @@ nets_1pct() {  # 1 % labels: the uncertainty segmentor is sup-only of the 1 % sp
   bank "$BANKS/u4d_1pct_hdl64" u4d "stage1=$RUNS/gen64_1pct/stage1" "stage2=$RUNS/gen64_1pct/stage2"
 }
 transfer() {  # SEED: sim-to-real before (seg_rich world) / after (varied world), scored on the real labelled scans
-  local seed=$1 real=../shared/data/real/semantickitti
+  local seed=$1
   for w in seg_rich varied; do
     local root=$DATA/sim_seg run=$RUNS/transfer/${w}_s$seed
     [ "$w" = varied ] && root=$DATA/sim_varied
     [ -f "$run/model.pt" ] || u4d seg-train configs/seg/cpu_minkunet.yaml "data.root=$root" optim.steps=1284 \
       optim.anneal_to=steps max_minutes=0 threads=1 "seed=$seed" --out "$run" --no-progress $(resume_flag "$run")
-    [ -f "$run/eval_real.json" ] || { u4d seg-eval "$run/model.pt" "$real" --json --confusion-png \
+    [ -f "$run/eval_real.json" ] || { u4d seg-eval "$run/model.pt" "$REAL" --json --confusion-png \
       "$run/confusion_real.png" --png "$run/reliability_real.png" --no-progress > "$run/eval_real.json.tmp" &&
       mv "$run/eval_real.json.tmp" "$run/eval_real.json"; }
+    [ -f "$run/eval_sim.json" ] || { u4d seg-eval "$run/model.pt" "$root" --sequences 88-99 --json --no-progress \
+      > "$run/eval_sim.json.tmp" && mv "$run/eval_sim.json.tmp" "$run/eval_sim.json"; }
   done
+}
+transfer_table() {  # before / after over the seeds that finished
+  "$PY" benchmarks/transfer_table.py --runs "$RUNS/transfer" --worlds seg_rich varied \
+    --out benchmarks/results/sim_to_real_transfer
+}
+fpd_extractor() {  # the FPD extractor at 64x1024 on the training places (train-extractor resumes from its partial file)
+  [ -f "$RUNS/ext64/fpd.pt" ] || u4d train-extractor fpd configs/extractor/sim_hdl64.yaml "data.root=$DATA/sim_seg" \
+    "out_dir=$RUNS/ext64" train.checkpoint_every=50 --quiet
+}
+bench_generation() {  # OUT METRICS [flags...]: U4D vs baseline vs the held-out floor, 3 seeds, both samplers
+  local out=$1 metrics=$2
+  shift 2
+  [ -f "$out" ] || "$PY" benchmarks/bench_generation.py --root "$DATA/sim_eval" --stage1 weights/u4d_stage1.pt \
+    --stage2 weights/u4d_stage2.pt --baseline weights/baseline.pt --reference 00-11 --floor 12-23 --num 64 \
+    --seeds 0 1 2 --samplers dpmpp2m-sde:20:6 ddpm:32:16 --metrics "$metrics" --mask-fraction 0.1 --device cpu \
+    --work "$RUNS/bench_gen64" "$@" --out "$out"
+}
+generation_banks() {  # the generation table's banks (kept under RUNS/bench_gen64) with the extractor-free metrics
+  if [ ! -f "$DATA/sim_eval/done" ]; then
+    u4d simulate --out "$DATA/sim_eval" --sequences 24 --frames 8 --seed 77 --config configs/sim/seg_rich.yaml
+    touch "$DATA/sim_eval/done"
+  fi
+  bench_generation "$RUNS/bench_gen64/banks.json" jsd,mmd,points,rangejs
+}
+generation_table() {  # the same banks scored with FRD and FPD once the FPD extractor is trained
+  wait_file "$RUNS/bench_gen64/banks.json"
+  bench_generation benchmarks/results/generation_64x1024.json frd,fpd,jsd,mmd,points,rangejs \
+    --extractor-frd weights/extractor_frd.pt --extractor-fpd "$RUNS/ext64/fpd.pt"
 }
 varied_world() {
   if [ ! -f "$DATA/sim_varied/done" ]; then
@@ -111,9 +146,11 @@ if [ "$CORE" = A ]; then
   exp10 0 "${MAIN[@]}"
   varied_world
   transfer 0
+  generation_banks
   random_nets
   exp10 0 mt+u4d-random
   transfer 2
+  transfer_table
   exp10 2 "${MAIN[@]}" mt+u4d-random
   wait_bank "$BANKS/u4d_1pct_hdl64"
   exp1 0 "${MAIN[@]}"
@@ -127,6 +164,8 @@ else
   exp10 1 "${MAIN[@]}"
   wait_file "$DATA/sim_varied/done"
   transfer 1
+  fpd_extractor
+  generation_table
   nets_1pct
   wait_bank "$BANKS/u4d_random_hdl64"
   exp10 1 mt+u4d-random

@@ -15,16 +15,19 @@
 # to frame 0 carry over from L = 4) along ego motions drawn from the training places, scored by `u4d evaluate`
 # against the held-out places 88-99; the floor scores those real held-out sequences themselves. Core A ends with the
 # table (benchmarks/temporal_table.py -> benchmarks/results/temporal.json / .md) and the gate figure.
-# RUNS (default ../runs) says where run folders go, RESULTS (default benchmarks/results) where the table and figure go;
+# RUNS (default ../runs) says where run folders go, RESULTS (default benchmarks/results) where the table and figure go
+# (PY, default python3, runs benchmarks/temporal_table.py);
 # the world is DATA/sim_seg (DATA default data) with its probabilities DATA/sim_seg_probs (scripts/downstream_queue.sh
 # writes both).
 set -euo pipefail
 RUNS=${RUNS:-../runs}
 DATA=${DATA:-data}
 RESULTS=${RESULTS:-benchmarks/results}
+PY=${PY:-python3}
 STEPS=${STEPS:-2000}
 CORE=${CORE:?set CORE=A or CORE=B}
 export OMP_NUM_THREADS=1
+WAIT=${WAIT:-300}  # seconds between looks at what the other queue writes
 T=$RUNS/temporal
 PRESET=configs/u4d/cpu_hdl64_most.yaml
 FRD=weights/extractor_frd.pt
@@ -32,7 +35,7 @@ FRD=weights/extractor_frd.pt
 resume_flag() { if ls "$1"/checkpoints/step_*.pt > /dev/null 2>&1; then echo --resume; fi; }
 last_step() { tail -n 1 "$1/log.jsonl" 2>/dev/null | python3 -c "import sys,json; print(json.loads(sys.stdin.read() or '{}').get('step', 0))" 2>/dev/null || echo 0; }
 done_bank() { python3 -c "import json,sys; sys.exit(0 if json.load(open('$1/manifest.json')).get('complete') else 1)" 2>/dev/null; }
-wait_file() { while [ ! -f "$1" ]; do sleep 300; done; }
+wait_file() { while [ ! -f "$1" ]; do sleep "$WAIT"; done; }
 
 finetune() {  # RUN STAGE STEPS [overrides...]: one sequence net from the shipped net of its stage
   local run=$1 stage=$2 steps=$3
@@ -92,7 +95,7 @@ if [ "$CORE" = "A" ]; then
   method fusion_concat 0 net.most_fusion=concat
   floor
   for name in u4d_most_s1 u4d_no_temporal_s1 baseline_most_s0 fusion_add_s0; do wait_file "$T/eval/$name/evaluation.json"; done
-  python3 benchmarks/temporal_table.py \
+  "$PY" benchmarks/temporal_table.py \
     --method "u4d_most=$T/eval/u4d_most_s0" --method "u4d_most=$T/eval/u4d_most_s1" \
     --method "baseline_most=$T/eval/baseline_most_s0" --method "baseline_most=$T/eval/baseline_most_s1" \
     --method "u4d_no_temporal=$T/eval/u4d_no_temporal_s0" --method "u4d_no_temporal=$T/eval/u4d_no_temporal_s1" \

@@ -95,6 +95,9 @@ class ExperimentConfig:
     overrides: list[str] = field(default_factory=list)
     arms: list[ArmConfig] = field(default_factory=default_arms)
     backbones: list[Literal["minkunet", "spvcnn"]] = field(default_factory=lambda: ["minkunet", "spvcnn"])
+    # key=value overrides of one backbone's runs, after the experiment's and the arm's: a recipe key one backbone
+    # cannot take (spvcnn: [loss.level=point], its head reads points)
+    backbone_overrides: dict[str, list[str]] = field(default_factory=dict)
     seeds: list[int] = field(default_factory=lambda: [0, 1, 2])
     out_dir: Path = Path("runs/experiment")
     # a run whose first semi.burn_in_steps steps equal another run's (same backbone, seed and config but for the mode
@@ -123,6 +126,11 @@ class ExperimentConfig:
                 raise ValueError(f"contrasts[{i}] names {unknown[0]!r}, which is not one of the arms {names}")
         if not self.backbones or not self.seeds:
             raise ValueError("backbones and seeds must not be empty")
+        for name, items in self.backbone_overrides.items():
+            if name not in ("minkunet", "spvcnn"):
+                raise ValueError(f"backbone_overrides: {name!r} is not a backbone (minkunet, spvcnn)")
+            if not isinstance(items, list) or not all(isinstance(item, str) and "=" in item for item in items):
+                raise ValueError(f"backbone_overrides.{name}: expected a list of key=value strings, got {items!r}")
 
 
 def bank_problem(arm: ArmConfig) -> str | None:
@@ -144,9 +152,11 @@ def bank_problem(arm: ArmConfig) -> str | None:
 
 
 def run_config(cfg: ExperimentConfig, arm: ArmConfig, backbone: str, seed: int) -> SegTrainConfig:
-    """The seg-train config of one run: the base preset + the experiment's and the arm's overrides + backbone / seed."""
+    """The seg-train config of one run: the base preset + the experiment's, the arm's and the backbone's overrides +
+    backbone / seed."""
     out = cfg.out_dir / "runs" / arm.name / backbone / f"seed{seed}"
-    overrides = [*cfg.overrides, *arm.overrides, f"model.name={backbone}", f"seed={seed}"]
+    extra = cfg.backbone_overrides.get(backbone, [])
+    overrides = [*cfg.overrides, *arm.overrides, *extra, f"model.name={backbone}", f"seed={seed}"]
     run = load_config(SegTrainConfig, cfg.base, overrides)
     run.mode = arm.mode
     run.out_dir = out

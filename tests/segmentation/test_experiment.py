@@ -125,6 +125,21 @@ def test_arm_overrides_change_only_their_arm():
         run_config(cfg, ArmConfig("typo", "semi", overrides=["semi.pseudo_treshold=0.75"]), "minkunet", 0)
 
 
+def test_backbone_overrides_change_only_their_backbone():
+    cfg = load_config(
+        ExperimentConfig,
+        TINY,
+        [f"base={TINY_SEMI}", "overrides=[loss.level=voxel]", "backbone_overrides={spvcnn: [loss.level=point]}"],
+    )
+    arm = cfg.arms[0]
+    assert run_config(cfg, arm, "spvcnn", 0).loss.level == "point"
+    assert run_config(cfg, arm, "minkunet", 0).loss.level == "voxel"
+    with pytest.raises(ValueError, match="'pointnet' is not a backbone"):
+        replace(cfg, backbone_overrides={"pointnet": ["loss.level=point"]})
+    with pytest.raises(InputError, match="loss.level=voxel needs model.name=minkunet"):
+        run_config(replace(cfg, backbone_overrides={}), arm, "spvcnn", 0)
+
+
 def test_tiny_experiment_with_a_missing_bank_is_resumable(tmp_path):
     root = write_toy_root(tmp_path / "toy")
     out = tmp_path / "exp"
@@ -344,7 +359,7 @@ def test_a_run_saved_before_a_key_was_removed_still_donates_its_burn_in(tmp_path
 def test_experiment_configs_expand_into_valid_runs(path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(REPO)  # base presets are relative to the checkout
     cfg = load_config(ExperimentConfig, path, [])
-    for backbone in cfg.backbones:
+    for backbone in ("minkunet", "spvcnn"):  # `backbones=[spvcnn]` is one override away for every config
         runs = {
             arm.name: run_config(cfg, arm, backbone, cfg.seeds[0]) for arm in cfg.arms
         }  # each arm's overrides parse
