@@ -48,11 +48,19 @@ def test_two_samplers_write_methods_and_ratios(tmp_path):
         points = methods["u4d"]["points"]["mean"] / methods["floor"]["points"]["mean"]
         assert block["ratios"]["u4d points/floor"] == pytest.approx(points)
         assert methods["floor"]["points"]["mean"] == 2000  # real scans keep their points
+        # ... and hold fewer once projected to the nets' range image (at most one point per pixel)
+        cfg = torch.load(nets["baseline"], weights_only=True)["config"]
+        projected = methods["floor"]["points_projected"]
+        assert len(projected["values"]) == 2 and 0 < projected["mean"] <= min(2000, cfg["height"] * cfg["width"])
+        assert block["ratios"]["baseline points/floor projected"] == pytest.approx(
+            methods["baseline"]["points"]["mean"] / projected["mean"]
+        )
     # the floor is the same real scans for both settings; the banks of each setting are their own
     assert result["samplers"]["ddpm_2_1"]["methods"]["floor"] == result["methods"]["floor"]
     assert (tmp_path / "work" / "u4d_ddpm_2_1_s1").is_dir() and (tmp_path / "work" / "baseline_dpmpp2m_2_1_s0").is_dir()
     text = out.with_suffix(".md").read_text()
     assert "## dpmpp2m 2 steps (stage 1: 1)" in text and "u4d points/floor" in text
+    assert "projected to the generators' range image" in text
 
 
 def test_bad_sampler_setting_is_refused(capsys):
