@@ -181,7 +181,7 @@ def ratio(a: dict, b: dict) -> float | None:
 
 
 HEADER = {"frd": "FRD ↓", "fpd": "FPD ↓", "jsd": "JSD ↓", "mmd": "MMD ×10⁴ ↓", "points": "points/scan",
-          "rangejs": "range JS ↓"}  # fmt: skip
+          "rangejs": "range JS ↓", "intensityjs": "intensity JS ↓"}  # fmt: skip
 
 
 def table(methods: dict, metrics: list[str]) -> list[str]:
@@ -292,7 +292,9 @@ def main(argv: list[str] | None = None) -> int:
         help="U4D: stage 1's mask keeps at most this share of pixels (generate's stage1_mask_fraction; none: no cap)",
     )  # fmt: skip
     parser.add_argument("--batch-size", type=int, default=1, help="scans per sampler call (1: fastest per scan on CPU)")
-    parser.add_argument("--metrics", default="jsd,mmd,points,rangejs", help="subset of frd,fpd,jsd,mmd,points,rangejs")
+    parser.add_argument(
+        "--metrics", default="jsd,mmd,points,rangejs", help="subset of frd,fpd,jsd,mmd,points,rangejs,intensityjs"
+    )
     parser.add_argument("--extractor-frd", type=Path, default=WEIGHTS / "extractor_frd.pt", help="(default: shipped)")
     parser.add_argument("--extractor-fpd", type=Path, default=WEIGHTS / "extractor_fpd.pt", help="(default: shipped)")
     parser.add_argument("--device", default="auto")

@@ -123,11 +123,11 @@ generation_banks() {  # the generation table's banks (kept under RUNS/bench_gen6
     u4d simulate --out "$DATA/sim_eval" --sequences 24 --frames 8 --seed 77 --config configs/sim/seg_rich.yaml
     touch "$DATA/sim_eval/done"
   fi
-  bench_generation "$RUNS/bench_gen64/banks.json" jsd,mmd,points,rangejs
+  bench_generation "$RUNS/bench_gen64/banks.json" jsd,mmd,points,rangejs,intensityjs
 }
 generation_table() {  # the same banks scored with FRD and FPD once the FPD extractor is trained
   wait_file "$RUNS/bench_gen64/banks.json"
-  bench_generation benchmarks/results/generation_64x1024.json frd,fpd,jsd,mmd,points,rangejs \
+  bench_generation benchmarks/results/generation_64x1024.json frd,fpd,jsd,mmd,points,rangejs,intensityjs \
     --extractor-frd weights/extractor_frd.pt --extractor-fpd "$RUNS/ext64/fpd.pt"
 }
 varied_world() {

@@ -25,9 +25,13 @@ from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder
 from u4d_aug.metrics import bev, temporal
 
-METRICS = ("frd", "fpd", "jsd", "mmd", "points", "rangejs", "ttce", "ctc")
-TABLE1 = ("frd", "fpd", "jsd", "mmd", "points", "rangejs")
+METRICS = ("frd", "fpd", "jsd", "mmd", "points", "rangejs", "intensityjs", "ttce", "ctc")
+TABLE1 = ("frd", "fpd", "jsd", "mmd", "points", "rangejs", "intensityjs")
+STATISTICS = ("points", "rangejs", "intensityjs")  # Table-1 entries read from the scans' own statistics
 RANGE_BINS = np.arange(0.0, 81.0, 1.0)  # 1 m bins over 0-80 m for the range-histogram JS distance
+# 0.02 bins over the layout's [0, 1] intensity for the intensity-histogram JS distance (a segmentor reads intensity
+# as a feature: a bank whose intensities sit elsewhere is a domain shift that the geometric metrics do not see)
+INTENSITY_BINS = np.linspace(0.0, 1.0, 51)
 TABLE2 = ("ttce", "ctc")
 
 
@@ -111,34 +115,41 @@ def _feature_metric(
     return entry
 
 
-def scan_statistics(entries: list[tuple[str, str, Path]]) -> tuple[np.ndarray, np.ndarray]:
-    """Points per scan (S,) and the pooled histogram of point ranges over `RANGE_BINS` (80,) of the scans."""
-    counts, pooled = [], np.zeros(len(RANGE_BINS) - 1, dtype=np.int64)
+def scan_statistics(entries: list[tuple[str, str, Path]]) -> dict[str, np.ndarray]:
+    """Points per scan "points" (S,), pooled histograms of point ranges over `RANGE_BINS` "rangejs" (80,) and of
+    intensities (clipped to [0, 1]) over `INTENSITY_BINS` "intensityjs" (50,) of the scans."""
+    counts = []
+    ranges = np.zeros(len(RANGE_BINS) - 1, dtype=np.int64)
+    intensities = np.zeros(len(INTENSITY_BINS) - 1, dtype=np.int64)
     for _, _, path in entries:
-        points = read_kitti_scan(path)
+        points = read_kitti_scan(path)  # (N, 4) x, y, z, intensity
         counts.append(points.shape[0])
-        pooled += np.histogram(np.linalg.norm(points[:, :3], axis=1), RANGE_BINS)[0]
-    return np.asarray(counts), pooled
+        ranges += np.histogram(np.linalg.norm(points[:, :3], axis=1), RANGE_BINS)[0]
+        intensities += np.histogram(np.clip(points[:, 3], 0.0, 1.0), INTENSITY_BINS)[0]
+    return {"points": np.asarray(counts), "rangejs": ranges, "intensityjs": intensities}
 
 
-def _statistic_metric(
-    name: str, bank: tuple[np.ndarray, np.ndarray], real: tuple[np.ndarray, np.ndarray]
-) -> dict[str, Any]:
-    """points: mean points per scan of the bank (and of the real scans); rangejs: JS distance of pooled range pmfs.
-
-    `bank`, `real`: `scan_statistics` of each side.
-    """
+def _statistic_metric(name: str, bank: dict[str, np.ndarray], real: dict[str, np.ndarray]) -> dict[str, Any]:
+    """points: mean points per scan of the bank (and of the real scans); rangejs / intensityjs: JS distance of the
+    pooled range / intensity pmfs. `bank`, `real`: `scan_statistics` of each side."""
     from scipy.spatial.distance import jensenshannon
 
-    (counts_bank, hist_bank), (counts_real, hist_real) = bank, real
     if name == "points":
+        counts_bank, counts_real = bank["points"], real["points"]
         value = float(counts_bank.mean())
         return {"value": value, "std": float(counts_bank.std()), "real": float(counts_real.mean()),
                 "ratio_to_real": value / max(float(counts_real.mean()), 1.0)}  # fmt: skip
+    hist_bank, hist_real = bank[name], real[name]
     if hist_bank.sum() == 0 or hist_real.sum() == 0:
         return {"value": None, "missing": "no points on one side"}
     value = float(jensenshannon(hist_real / hist_real.sum(), hist_bank / hist_bank.sum()))
-    return {"value": value, "unit": "JS distance (natural log), 1 m bins over 0-80 m"}
+    bins = "1 m bins over 0-80 m" if name == "rangejs" else "0.02 bins over intensity 0-1"
+    entry: dict[str, Any] = {"value": value, "unit": f"JS distance (natural log), {bins}"}
+    if name == "intensityjs":  # where the mass sits: mean intensity of each side (bin centres)
+        centres = (INTENSITY_BINS[:-1] + INTENSITY_BINS[1:]) / 2
+        entry["mean"] = float(hist_bank @ centres / hist_bank.sum())
+        entry["real_mean"] = float(hist_real @ centres / hist_real.sum())
+    return entry
 
 
 def _temporal_table(root: Path, entries: list[tuple[str, str, Path]], metrics: tuple[str, ...]) -> dict[str, Any]:
@@ -227,7 +238,7 @@ def evaluate(
             hist_bank = bev.bev_histograms(read_kitti_scan(path) for _, _, path in bank_entries)  # (S_b, 100, 100)
             hist_real = bev.bev_histograms(read_kitti_scan(path) for _, _, path in real_entries)  # (S_r, 100, 100)
             result["seconds"]["bev_histograms"] = time.perf_counter() - start
-        if "points" in wanted1 or "rangejs" in wanted1:
+        if any(name in STATISTICS for name in wanted1):
             stats_bank, stats_real = scan_statistics(bank_entries), scan_statistics(real_entries)
         for name in wanted1:
             start = time.perf_counter()
@@ -236,7 +247,7 @@ def evaluate(
             elif name == "mmd":
                 raw = bev.bev_mmd(hist_real, hist_bank)
                 entry = {"value": raw * bev.MMD_REPORT_SCALE, "raw": raw, "unit": "x1e-4"}
-            elif name in ("points", "rangejs"):
+            elif name in STATISTICS:
                 entry = _statistic_metric(name, stats_bank, stats_real)
             else:
                 checkpoint = extractor_frd if name == "frd" else extractor_fpd
@@ -272,7 +283,7 @@ def to_markdown(result: dict[str, Any]) -> str:
     if table1:
         names = list(table1)
         header = {"frd": "FRD ↓", "fpd": "FPD ↓", "jsd": "JSD ↓", "mmd": "MMD ×10⁴ ↓", "points": "points/scan",
-                  "rangejs": "range JS ↓"}  # fmt: skip
+                  "rangejs": "range JS ↓", "intensityjs": "intensity JS ↓"}  # fmt: skip
         lines += ["## Table 1: distribution metrics (bank vs real)", ""]
         lines += ["| | " + " | ".join(header[n] for n in names) + " |", "|---" * (len(names) + 1) + "|"]
         lines += ["| bank | " + " | ".join(_fmt(table1[n].get("value")) for n in names) + " |", ""]

@@ -62,7 +62,7 @@ def test_synthetic_bank_tables_hashes_and_missing_poses(synthetic):
         synthetic["bank"], synthetic["real"], extractor_frd=synthetic["frd0"], extractor_fpd=synthetic["fpd0"]
     )
     table1 = result["table1"]
-    assert set(table1) == {"frd", "fpd", "jsd", "mmd", "points", "rangejs"}
+    assert set(table1) == {"frd", "fpd", "jsd", "mmd", "points", "rangejs", "intensityjs"}
     assert len(table1["frd"]["extractor_hash"]) == 16 and len(table1["fpd"]["extractor_hash"]) == 16
     assert table1["frd"]["feature_dim"] == 4096 and table1["fpd"]["feature_dim"] == 56
     assert table1["frd"]["value"] > 0 and table1["jsd"]["value"] > 0 and table1["mmd"]["value"] > 0
@@ -169,3 +169,28 @@ def test_points_per_scan_and_range_histogram_js(tmp_path):
     kl = lambda a, b: sum(x * math.log(x / y) for x, y in zip(a, b) if x > 0)  # noqa: E731
     expected = math.sqrt((kl(p, m) + kl(q, m)) / 2)
     assert evaluate(mixed, real, ("rangejs",))["table1"]["rangejs"]["value"] == pytest.approx(expected, rel=1e-6)
+
+
+def test_intensity_histogram_js_and_means(tmp_path):
+    """Hand-made intensities: the same pooled pmf scores 0, disjoint bins sqrt(ln 2), and each side's mean is kept."""
+    import math
+
+    def with_intensity(count: int, value: float) -> np.ndarray:
+        scan = ring(count, 10.5)
+        scan[:, 3] = value
+        return scan
+
+    real = write_scans(tmp_path / "real", [with_intensity(100, 0.01), with_intensity(100, 0.99)])  # bins 0 and 49
+    same = write_scans(tmp_path / "same", [np.concatenate([with_intensity(50, 0.01), with_intensity(50, 0.99)])])
+    mid = write_scans(tmp_path / "mid", [with_intensity(80, 0.5)])
+    above = write_scans(tmp_path / "above", [with_intensity(40, 3.0)])  # outside [0, 1]: counted in the last bin
+    assert evaluate(same, real, ("intensityjs",))["table1"]["intensityjs"]["value"] == pytest.approx(0.0, abs=1e-9)
+    entry = evaluate(mid, real, ("intensityjs",))["table1"]["intensityjs"]
+    assert entry["value"] == pytest.approx(math.sqrt(math.log(2)), rel=1e-6)  # disjoint supports
+    assert entry["mean"] == pytest.approx(0.51) and entry["real_mean"] == pytest.approx(0.5)  # bin centres
+    p, q = np.array([0.5, 0.5]), np.array([0.0, 1.0])  # pmfs over bins 0 / 49
+    m = (p + q) / 2
+    kl = lambda a, b: sum(x * math.log(x / y) for x, y in zip(a, b) if x > 0)  # noqa: E731
+    expected = math.sqrt((kl(p, m) + kl(q, m)) / 2)
+    with pytest.warns(UserWarning, match="intensity up to 3"):  # the reader names the odd scale
+        assert evaluate(above, real, ("intensityjs",))["table1"]["intensityjs"]["value"] == pytest.approx(expected)
