@@ -10,14 +10,18 @@ mt+u4d against mt and mt+r2dm) and copies of the reliability diagrams and learni
 (SETTING_reliability_ARM.png, SETTING_learning_curves.png). Nothing is recomputed from predictions: the arm figures
 are results.json's (`experiment.aggregate`), the paired ones `experiment.paired_arms` on its runs.
 `--rename OLD=NEW` renames an arm in every file (to report an experiment whose arms carry other names); an unfinished
-arm already called NEW gives way to it.
+arm already called NEW gives way to it. `--bank-eval BANK=DIR` (repeatable; the same BANK may name several folders)
+adds what `u4d evaluate --json --out DIR` measured of the bank an arm reads (BANK as the arm's `bank` in results.json,
+e.g. banks/u4d_hdl64) to that arm: how close its scans are to the real ones, beside what they did downstream.
 
 summary.json is {SETTING: ...}; metrics are in percent (fractions x 100), wall-clock in seconds; every `per_seed` is
 a list aligned with the `seeds` list beside it (null where a run lacks the metric):
     source, backbone, final_eval, seeds (finished in some arm), config_seeds, renamed {OLD: NEW}, units
     arms.ARM: status, mode, bank; unfinished arms add reason and no number; finished (done | partial) arms add
         seeds, miou / ece (per scan, Calib3D) / ece_pooled / wall_clock_s: {mean, std, n, per_seed},
-        iou.CLASS and bands.BAND: {mean, std, n}
+        iou.CLASS and bands.BAND: {mean, std, n}; bank_fidelity (with --bank-eval): {METRIC: value (jsd, mmd x1e4,
+        rangejs, intensityjs, points, frd, fpd as `u4d evaluate` reports them), real_points, intensity_mean,
+        real_intensity_mean, real (the reference root and sequences), sources}
     paired.A_vs_B (A - B on the seeds both finished): arm, reference, miou / ece: {seeds, per_seed, mean, std, n,
         above, ci95 [lo, hi] (t distribution), p (two-sided paired t-test), seeds_needed}, iou.CLASS / bands.BAND alike
     unpaired.A_vs_B: why the pair has no numbers
@@ -74,6 +78,39 @@ def parse_renames(texts: list[str]) -> dict[str, str]:
             raise InputError(f"--rename {text!r}: expected OLD=NEW, once per OLD, e.g. sup-only-1500=sup-only")
         renames[old] = check_plain_name(new, f"--rename {text!r}: the new name")
     return renames
+
+
+def read_bank_evals(texts: list[str]) -> dict[str, dict]:
+    """['BANK=DIR', ...] -> {BANK: bank_fidelity}: the table-1 values of each DIR/evaluation.json, merged per BANK."""
+    fidelity: dict[str, dict] = {}
+    for text in texts:
+        bank, sep, folder = text.partition("=")
+        if not sep or not bank.strip() or not folder.strip():
+            raise InputError(f"--bank-eval {text!r}: expected BANK=DIR, e.g. banks/u4d_hdl64=runs/eval_u4d")
+        path = Path(folder) / "evaluation.json" if Path(folder).suffix != ".json" else Path(folder)
+        try:
+            result = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise InputError(
+                f"--bank-eval {text!r}: {path} not found (`u4d evaluate --json --out DIR` writes it)"
+            ) from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise InputError(f"{path}: cannot read as json ({exc})") from None
+        table = result.get("table1") if isinstance(result, dict) else None
+        if not isinstance(table, dict) or not table:
+            raise InputError(f"{path}: no 'table1' object (expected the evaluation.json of `u4d evaluate`)")
+        entry = fidelity.setdefault(bank.strip().rstrip("/"), {"sources": []})
+        entry["sources"].append(str(path))
+        entry["real"] = {"root": result.get("real"), "sequences": result.get("real_sequences")}
+        for metric, value in table.items():
+            if isinstance(value, dict) and isinstance(value.get("value"), (int, float)):
+                entry[metric] = float(value["value"])
+        points, intensity = table.get("points") or {}, table.get("intensityjs") or {}
+        for key, source, field in (("real_points", points, "real"), ("intensity_mean", intensity, "mean"),
+                                   ("real_intensity_mean", intensity, "real_mean")):  # fmt: skip
+            if isinstance(source.get(field), (int, float)):
+                entry[key] = float(source[field])
+    return fidelity
 
 
 def read_results(path: Path) -> dict:
@@ -215,9 +252,16 @@ def paired_summary(entries: list[dict]) -> tuple[dict, dict]:
     return paired, unpaired
 
 
-def setting_summary(results: dict, backbone: str, entries: list[dict], source: Path, renamed: dict) -> dict:
-    """One setting's block of summary.json (without its figures)."""
+def setting_summary(
+    results: dict, backbone: str, entries: list[dict], source: Path, renamed: dict, fidelity: dict | None = None
+) -> dict:
+    """One setting's block of summary.json (without its figures); `fidelity` {bank: ...} of `read_bank_evals`."""
     paired, unpaired = paired_summary(entries)
+    arms = {e["arm"]: arm_summary(e) for e in entries}
+    for arm in arms.values():
+        bank = str(arm.get("bank") or "").rstrip("/")
+        if bank and bank in (fidelity or {}):
+            arm["bank_fidelity"] = fidelity[bank]
     return {
         "source": str(source),
         "backbone": backbone,
@@ -226,7 +270,7 @@ def setting_summary(results: dict, backbone: str, entries: list[dict], source: P
         "config_seeds": (results.get("config") or {}).get("seeds"),
         "renamed": renamed,
         "units": "percent (points for differences); wall_clock_s in seconds",
-        "arms": {e["arm"]: arm_summary(e) for e in entries},
+        "arms": arms,
         "paired": paired,
         "unpaired": unpaired,
     }
@@ -339,12 +383,41 @@ def difference_table(paired: dict, keys: list[str], field: str) -> list[str]:
     return lines
 
 
+BANK_COLUMNS = (("jsd", "BEV JSD", 3), ("mmd", "BEV MMD x1e4", 1), ("rangejs", "range JS", 3),
+                ("intensityjs", "intensity JS", 3), ("frd", "FRD", 0), ("fpd", "FPD", 1))  # fmt: skip
+
+
+def bank_table(arms: dict) -> list[str]:
+    """The banks the arms read, as `u4d evaluate` scored them against real scans (empty without --bank-eval)."""
+    rows = [(name, arm["bank"], arm["bank_fidelity"]) for name, arm in arms.items() if "bank_fidelity" in arm]
+    if not rows:
+        return []
+    columns = [c for c in BANK_COLUMNS if any(c[0] in f for _, _, f in rows)]
+    lines = [
+        "### The banks against real scans (`u4d evaluate`; lower = closer)",
+        "",
+        "| arm | bank | "
+        + " | ".join(label for _, label, _ in columns)
+        + " | points / scan (real) | intensity mean (real) |",
+        "|---|---|" + "---|" * (len(columns) + 2),
+    ]
+    for name, bank, f in rows:
+        cells = [f"{f[key]:.{digits}f}" if key in f else "-" for key, _, digits in columns]
+        points = f"{f['points']:,.0f} ({f['real_points']:,.0f})" if "points" in f and "real_points" in f else "-"
+        mean = f"{f['intensity_mean']:.3f} ({f['real_intensity_mean']:.3f})" if "intensity_mean" in f else "-"
+        lines.append(f"| {name} | {bank} | " + " | ".join(cells) + f" | {points} | {mean} |")
+    real = rows[0][2].get("real") or {}
+    lines += ["", f"Real reference: `{real.get('root')}` sequences {', '.join(real.get('sequences') or [])}.", ""]
+    return lines
+
+
 def setting_markdown(name: str, s: dict) -> list[str]:
     """report.md's section of one setting."""
     evaluated = "full evaluation of each model.pt" if s["final_eval"] else "the runs' last periodic evaluation"
     renamed = "".join(f"; {old} reported as {new}" for old, new in s["renamed"].items())
     lines = [f"## {name}", "", f"`{s['source']}`, backbone {s['backbone']}, {evaluated}{renamed}.", ""]
     lines += ["### Arms (%, mean ± std over seeds)", "", *arms_table(s["arms"]), ""]
+    lines += bank_table(s["arms"])
     paired, figures = s["paired"], s["figures"]
     lines += ["### Paired by seed (points, arm − reference on the seeds both finished)", ""]
     if paired:
@@ -508,8 +581,13 @@ def run(argv: list[str] | None = None) -> int:
     parser.add_argument("--setting", action="append", required=True, metavar="NAME=PATH", help=f"e.g. {EXAMPLE}")
     parser.add_argument("--rename", action="append", default=[], metavar="OLD=NEW", help="rename an arm in every file")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output folder")
+    parser.add_argument(
+        "--bank-eval", action="append", default=[], metavar="BANK=DIR",
+        help="a bank's `u4d evaluate --json` folder, e.g. banks/u4d_hdl64=runs/eval_u4d (repeatable)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     renames = parse_renames(args.rename)
+    fidelity = read_bank_evals(args.bank_eval)
     settings = [parse_setting(text) for text in args.setting]
     names = [name for name, _, _ in settings]
     if len(set(names)) != len(names):
@@ -524,10 +602,15 @@ def run(argv: list[str] | None = None) -> int:
     unused = [old for old in renames if old not in used]
     if unused:
         raise InputError(f"--rename {unused[0]}={renames[unused[0]]}: no setting has an arm {unused[0]!r}")
+    read_banks = {str(e.get("bank") or "").rstrip("/") for *_, entries, _ in loaded for e in entries}
+    stray = [bank for bank in fidelity if bank not in read_banks]
+    if stray:
+        known = ", ".join(sorted(b for b in read_banks if b)) or "none"
+        raise InputError(f"--bank-eval {stray[0]}=...: no arm reads that bank (the arms' banks: {known})")
     out = make_folder(args.out)
     summary = {}
     for name, backbone, path, results, entries, renamed in loaded:
-        setting = setting_summary(results, backbone, entries, path, renamed)
+        setting = setting_summary(results, backbone, entries, path, renamed, fidelity)
         setting["figures"] = write_figures(setting, results, entries, path.parent, out, name)
         summary[name] = setting
     command = shlex.join(["python", "benchmarks/downstream_report.py", *(sys.argv[1:] if argv is None else argv)])

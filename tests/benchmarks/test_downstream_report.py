@@ -234,3 +234,38 @@ def test_pairs_skip_reverses_and_percent_scales_fractions():
     assert (scaled["mean"], scaled["std"], scaled["n"], scaled["p"]) == (2.0, 1.0, 2, 0.3)  # p and n unscaled
     assert scaled["per_seed"] == [1.0, None] and scaled["ci95"] == pytest.approx([-10.0, 14.0])
     assert stat["mean"] == 0.02  # the input is left as it was
+
+
+def test_bank_fidelity_joins_the_arm_that_reads_the_bank(tmp_path):
+    """--bank-eval: the evaluation.json values of a bank reach the arm whose `bank` it is, merged over folders."""
+    results = ten_percent()
+    results["arms"][3]["bank"] = "banks/u4d_hdl64"  # mt+u4d
+    (tmp_path / "results.json").write_text(json.dumps(results))
+    geometry = {
+        "table1": {"jsd": {"value": 0.25}, "mmd": {"value": 43.6}, "points": {"value": 55758.0, "real": 121486.0}}
+    }
+    intensity = {"table1": {"intensityjs": {"value": 0.338, "mean": 0.287, "real_mean": 0.298}, "frd": {"value": None}}}
+    for name, table in (("geo", geometry), ("int", intensity)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "evaluation.json").write_text(
+            json.dumps({**table, "real": "data/sim", "real_sequences": ["88"]})
+        )
+    argv = ["--setting", f"10pct/minkunet={tmp_path / 'results.json'}", "--out", str(tmp_path / "out")]
+    argv += [
+        "--bank-eval",
+        f"banks/u4d_hdl64={tmp_path / 'geo'}",
+        "--bank-eval",
+        f"banks/u4d_hdl64/={tmp_path / 'int'}",
+    ]
+    assert report.main(argv) == 0
+    arms = json.loads((tmp_path / "out" / "summary.json").read_text())["10pct/minkunet"]["arms"]
+    fidelity = arms["mt+u4d"]["bank_fidelity"]
+    assert (fidelity["jsd"], fidelity["mmd"], fidelity["intensityjs"]) == (0.25, 43.6, 0.338)
+    assert (fidelity["points"], fidelity["real_points"]) == (55758.0, 121486.0)
+    assert (fidelity["intensity_mean"], fidelity["real_intensity_mean"]) == (0.287, 0.298)
+    assert "frd" not in fidelity and len(fidelity["sources"]) == 2  # a null value is no number
+    assert all("bank_fidelity" not in arm for name, arm in arms.items() if name != "mt+u4d")
+    text = (tmp_path / "out" / "report.md").read_text()
+    assert "| mt+u4d | banks/u4d_hdl64 | 0.250 | 43.6 | 0.338 | 55,758 (121,486) | 0.287 (0.298) |" in text
+    argv[-1] = f"banks/other={tmp_path / 'int'}"
+    assert report.main(argv) == 2  # a bank no arm reads is a mistake, not a silent no-op
