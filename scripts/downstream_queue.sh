@@ -7,10 +7,10 @@
 # RUNS (default ../runs) says where the run folders go; the simulated worlds go to data/ and the banks to banks/, the
 # paths configs/experiment/*.yaml name (make them links to a larger disk if needed). Each queue waits for what the
 # other one writes (the world, the banks, the varied world).
-# Core A: the 10 % seeds 0 and 2, the random-P_u nets and bank, the 1 % seeds 0 and 2, SPVCNN seed 0, transfer seeds 0
-# and 2 and their table, the generation table's banks. Core B: the 10 % seeds 1 and 3, the FPD extractor and the
-# generation table's FRD/FPD scores, the 1 % nets and bank, the
-# 1 % seed 1, SPVCNN seed 1, transfer seed 1.
+# Core A: the 10 % seeds 0 and 2, transfer seeds 0 and 2 and the transfer table, the generation table's banks, the
+# random-P_u nets and bank (and that arm's seeds 0, 2), the 1 % seeds 0 and 2, SPVCNN seed 0. Core B: the 10 % seeds
+# 1 and 3, transfer seed 1, the FPD extractor and the generation table's FRD/FPD scores, the 1 % nets and bank, the
+# random-P_u arm's seed 1, the 1 % seed 1, SPVCNN seed 1. The 10 % table (4 seeds x 4 arms) comes first.
 # PY (default python3) runs the benchmark scripts; REAL is the labelled real SemanticKITTI root of the transfer test.
 set -euo pipefail
 RUNS=${RUNS:-../runs}
@@ -144,14 +144,16 @@ if [ "$CORE" = A ]; then
   exp10 0 sup-only mt
   wait_bank "$BANKS/u4d_hdl64"
   exp10 0 "${MAIN[@]}"
+  exp10 2 "${MAIN[@]}"  # the 10 % table first: the comparison the project exists for
   varied_world
   transfer 0
+  transfer 2
+  wait_file "$RUNS/transfer/varied_s1/eval_sim.json"
+  transfer_table
   generation_banks
   random_nets
   exp10 0 mt+u4d-random
-  transfer 2
-  transfer_table
-  exp10 2 "${MAIN[@]}" mt+u4d-random
+  exp10 2 mt+u4d-random
   wait_bank "$BANKS/u4d_1pct_hdl64"
   exp1 0 "${MAIN[@]}"
   exp1 2 "${MAIN[@]}"
@@ -162,6 +164,7 @@ else
   exp10 1 sup-only mt
   wait_bank "$BANKS/r2dm_hdl64"
   exp10 1 "${MAIN[@]}"
+  exp10 3 "${MAIN[@]}"
   wait_file "$DATA/sim_varied/done"
   transfer 1
   fpd_extractor
@@ -169,7 +172,6 @@ else
   nets_1pct
   wait_bank "$BANKS/u4d_random_hdl64"
   exp10 1 mt+u4d-random
-  exp10 3 "${MAIN[@]}"
   exp1 1 "${MAIN[@]}"
   spv 1 "${MAIN[@]}"
 fi
