@@ -9,9 +9,9 @@ At the first step (log-SNR -15) an eps-parametrised net's data estimate x0 = (x_
 alpha = 5e-4: it is clamped noise whose mean sits at the encoding's 0 (intensity 0.5, mid range), and the samplers keep
 that low-frequency error. Below `--below` this wraps the denoise function so that it returns the eps of x0 = mu, the
 mean of the training range images per row (the MMSE estimate at vanishing SNR), for the baseline and U4D stage 2 (mu
-of the full scans) and, with --stage1, U4D stage 1 (mu of the x0_u images). A diagnostic: it patches
-`u4d_aug.pipeline.sample_named` and then runs `u4d generate configs/u4d/generate_hdl64.yaml` (samples seeded from
-5000); without --below it is plain `u4d generate`.
+of the full scans) and, with --stage1, U4D stage 1 (mu of the x0_u images). A diagnostic: it wraps the denoise
+function with `u4d_aug.sampling.mean_start` by patching `u4d_aug.pipeline.sample_named`, then runs
+`u4d generate configs/u4d/generate_hdl64.yaml` (samples seeded from 5000); without --below it is plain `u4d generate`.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import torch
 import u4d_aug.pipeline as pipeline
 from u4d_aug import cli
 from u4d_aug.batches import RangeImages
-from u4d_aug.diffusion import alpha_sigma
+from u4d_aug.sampling import mean_start
 
 
 def row_mean(net_path: str, data_root: str, probs_root: str, key: str, count: int = 32) -> torch.Tensor:
@@ -53,15 +53,11 @@ def main() -> int:
     original = pipeline.sample_named
 
     def patched(name, denoise, shape, steps, generator, **kw):
-        def wrapped(x, lam, cond):
-            eps, mask = denoise(x, lam, cond)
-            target = mu if mask is None else mu_u  # the baseline / stage 2, or stage 1 (its mask head)
-            if args.below is not None and target is not None and float(lam.reshape(-1)[0]) < args.below:
-                alpha, sigma = alpha_sigma(lam.view(-1, *([1] * (x.dim() - 1))))
-                eps = (x - alpha * target.to(x.dtype)) / sigma
-            return eps, mask
-
-        return original(name, wrapped, shape, steps, generator, **kw)
+        # the baseline and stage 2 (conditional) start from the scans' mean, stage 1 (u4d, unconditional) from x0_u's
+        target = mu if args.mode == "baseline" or kw.get("cond") is not None else mu_u
+        if args.below is not None and target is not None:
+            denoise = mean_start(denoise, target, args.below)
+        return original(name, denoise, shape, steps, generator, **kw)
 
     pipeline.sample_named = patched
     argv = ["generate", "configs/u4d/generate_hdl64.yaml", "--out", args.out, f"mode={args.mode}"]

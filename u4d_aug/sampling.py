@@ -41,6 +41,29 @@ GRID_NAMES: tuple[str, ...] = get_args(Grid)
 GRID_SAMPLERS: tuple[str, ...] = ("dpmpp2m", "dpmpp2m-sde")  # the samplers that also run on the "logsnr" grid
 
 
+def mean_start(denoise_fn: DenoiseFn, mean: Tensor, below: float) -> DenoiseFn:
+    """`denoise_fn` whose x̂0 is `mean` (broadcast to each sample, e.g. a (C, H, 1) per-row mean image) for the
+    samples with log-SNR < `below`, and unchanged above.
+
+    At vanishing SNR the MMSE estimate of x0 is the data mean, while an ε-network's x̂0 = (x_t − σ ε̂)/α divides its
+    error by α (5e-4 at log-SNR −15): clamped noise that the samplers' first steps keep
+    (benchmarks/results/mean_start_diagnostic.md). There the returned ε is (x_t − α μ)/σ, the ε of x̂0 = μ; the
+    `extra` of the wrapped function (stage-1 mask logits) is passed through.
+    """
+
+    def wrapped(x_t: Tensor, lam: Tensor, cond: Tensor | None) -> Tensor | tuple[Tensor, Any]:
+        out = denoise_fn(x_t, lam, cond)
+        eps, extra = out if isinstance(out, tuple) else (out, None)
+        low = lam < below  # (B,)
+        if bool(low.any()):
+            alpha, sigma = alpha_sigma(lam.view(-1, *([1] * (x_t.dim() - 1))))
+            eps_mean = (x_t - alpha * mean.to(x_t.device, x_t.dtype)) / sigma
+            eps = torch.where(low.view(-1, *([1] * (x_t.dim() - 1))), eps_mean.to(eps.dtype), eps)
+        return (eps, extra) if isinstance(out, tuple) else eps
+
+    return wrapped
+
+
 def sample(
     name: SamplerName,
     denoise_fn: DenoiseFn,
