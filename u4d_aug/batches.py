@@ -8,6 +8,9 @@ run draws what an uninterrupted one would; `crop_batch` cuts azimuth crops for t
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -110,6 +113,18 @@ class RangeImages:
         if cfg.cache_images and cfg.uncertainty.strategy != "random":
             self.cache[(seq, frame)] = out
         return out
+
+
+def row_mean(cfg: DiffusionTrainConfig, key: str = "x0", count: int = 32) -> Tensor:
+    """(C, H, 1) mean of the `key` images (x0, or x0_u for stage 1) of `count` evenly spaced training items, over
+    items, frames and columns: the MMSE estimate of a range image at vanishing SNR, per row (`sampling.mean_start`)."""
+    cfg = copy.deepcopy(cfg)  # a config's checks may adjust its sub-configs, which a loaded net may share
+    if key == "x0":  # full scans: no uncertainty (and no probability files) needed
+        cfg = dataclasses.replace(cfg, diffusion=dataclasses.replace(cfg.diffusion, stage="baseline"))
+    images = RangeImages(cfg)
+    step = max(1, len(images) // count)
+    stacked = torch.stack([images[i][key] for i in range(0, len(images), step)][:count])  # (K, [L,] C, H, W)
+    return stacked.reshape(-1, *stacked.shape[-3:]).mean(dim=(0, 3)).unsqueeze(-1)
 
 
 def batch_indices(step: int, rank: int, num_scans: int, batch_size: int, seed: int) -> list[int]:

@@ -16,6 +16,7 @@ the real frames' own motion.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +24,7 @@ from typing import Literal
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from u4d_aug.bank import (
     BankLayout,
@@ -36,6 +38,7 @@ from u4d_aug.bank import (
     write_sample,
     write_sequence_poses,
 )
+from u4d_aug.batches import row_mean
 from u4d_aug.config import config_to_dict, load_config
 from u4d_aug.data.beams import check_beams
 from u4d_aug.data.datasets import (
@@ -52,7 +55,15 @@ from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, sh
 from u4d_aug.errors import InputError
 from u4d_aug.export_bank import export_bank
 from u4d_aug.io import remove_temp_files
-from u4d_aug.pipeline import Sampler, complete, generate_baseline, generate_u4d, load_generator, to_points
+from u4d_aug.pipeline import (
+    MeanStart,
+    Sampler,
+    complete,
+    generate_baseline,
+    generate_u4d,
+    load_generator,
+    to_points,
+)
 from u4d_aug.progress import progress_bar
 from u4d_aug.runlock import run_lock
 from u4d_aug.sampling import Grid, check_grid
@@ -86,6 +97,13 @@ class GenerateConfig:
     # u4d mode: stage 1's mask keeps at most this share of the pixels, those its head is surest of (the share
     # P_u covers in training range images); null = every pixel over the head's calibrated threshold
     stage1_mask_fraction: float | None = None
+    # below this log-SNR the samplers take each net's training mean image (per row; x0_u's for stage 1) as the x0
+    # estimate instead of the net's own, which divides by α ≈ 0 there (benchmarks/results/mean_start_diagnostic.md);
+    # null = the net's own at every step. The mean is read from the nets' training scans (mean_data_root /
+    # mean_probs_root replace the data_root / probs_root their configs name)
+    mean_start_below: float | None = None
+    mean_data_root: str = ""
+    mean_probs_root: str = ""
     num: int = 64
     seed: int = 0  # sample i uses seed + i
     # samples per sampler call (fixed blocks of consecutive indices); each keeps its own seed, so a batch gives
@@ -170,6 +188,12 @@ def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bo
     if cfg.mode == "complete":
         identity["source"] = {k: config[k] for k in ("data_root", "sequences", "probs_root")}
     nets = {name: load_generator(path, info.device) for name, path in paths.items()}
+    mean_sources = {}
+    if cfg.mean_start_below is not None:  # banks written before the mean start stay compatible
+        identity["sampling"]["mean_start_below"] = cfg.mean_start_below
+        for name, (net, net_cfg) in list(nets.items()):
+            mean, mean_sources[name] = training_mean(net_cfg, name, cfg)
+            nets[name] = (MeanStart(net, mean.to(info.device), cfg.mean_start_below), net_cfg)
     main = nets["stage2"] if "stage2" in nets else nets["baseline"]
     sensor = get_sensor(main[1].sensor)
     frames = cfg.frames or main[1].frames  # L: 1 = single scans in sequence 00, > 1 = one sequence per sample
@@ -221,6 +245,7 @@ def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bo
         "width": main[1].width,
         "row_mode": main[1].row_mode,
         "frames": frames,
+        **({"mean_start": mean_sources} if mean_sources else {}),
         "samples": [_sample_entry(cfg, i, scans, frames, motion_sources) for i in range(cfg.num)],
         "complete": False,
     }
@@ -337,6 +362,25 @@ def _real_sample_condition(
     ]
     x0_u, m_u, entropy_image = (torch.stack(parts) for parts in zip(*conditions))
     return x0_u, m_u, entropy_image, (item["poses"] if frames > 1 else None)
+
+
+def training_mean(net_cfg: DiffusionTrainConfig, name: str, cfg: GenerateConfig) -> tuple[Tensor, dict]:
+    """(C, H, 1) per-row mean of a net's training images (`batches.row_mean`: x0_u for stage 1, x0 otherwise) and
+    where it was read; an InputError naming the keys to set when the training scans are not where the net says."""
+    key = "x0_u" if name == "stage1" else "x0"
+    data_root = cfg.mean_data_root or net_cfg.data_root
+    probs_root = cfg.mean_probs_root or net_cfg.probs_root
+    source = {"key": key, "data_root": data_root, "sequences": net_cfg.sequences}
+    if key == "x0_u":
+        source["probs_root"] = probs_root
+    try:
+        mean = row_mean(dataclasses.replace(net_cfg, data_root=data_root, probs_root=probs_root), key)
+    except (InputError, OSError) as exc:
+        raise InputError(
+            f"mean_start_below: the {name} net's mean image is read from its training scans ({exc}); set "
+            "mean_data_root (and mean_probs_root for stage 1) to where they are, or mean_start_below=null"
+        ) from None
+    return mean, source
 
 
 def load_motion_file(path: str | Path, frames: int) -> np.ndarray:

@@ -17,7 +17,7 @@ from typing import Literal
 
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.diffusion import stage_cond
@@ -27,7 +27,7 @@ from u4d_aug.io import load_checkpoint
 from u4d_aug.nn.unet import RangeUNet
 from u4d_aug.range_view import RowMode, unproject
 from u4d_aug.run import newest_checkpoint
-from u4d_aug.sampling import SAMPLER_NAMES, Generators, Grid, Sample, check_grid
+from u4d_aug.sampling import SAMPLER_NAMES, Generators, Grid, Sample, check_grid, mean_start
 from u4d_aug.sampling import sample as sample_named
 from u4d_aug.stage import DiffusionTrainConfig, build_net, config_from_checkpoint
 from u4d_aug.weights import is_exported, load_exported
@@ -53,6 +53,25 @@ def load_generator(ckpt: str | Path, device: torch.device | str = "cpu") -> Load
         ema.load_state_dict(state["ema"])
         ema.copy_to(net)
     return net.requires_grad_(False).to(device).eval(), cfg
+
+
+class MeanStart(nn.Module):
+    """A loaded net whose x̂0 is `mean` (C, H, 1) below log-SNR `below` (`sampling.mean_start`): the samplers' first
+    steps start from the training scans' mean instead of an ε-net's x̂0 at α ≈ 0 (clamped noise)."""
+
+    def __init__(self, net: nn.Module, mean: Tensor, below: float) -> None:
+        super().__init__()
+        self.net = net
+        self.register_buffer("mean", mean.float())
+        self.below = float(below)
+
+    def forward(
+        self, x_t: Tensor, log_snr: Tensor, cond: Tensor | None = None, **kwargs
+    ) -> tuple[Tensor, Tensor | None]:
+        def denoise(x: Tensor, lam: Tensor, c: Tensor | None) -> tuple[Tensor, Tensor | None]:
+            return self.net(x, lam, c, **kwargs)
+
+        return mean_start(denoise, self.mean, self.below)(x_t, log_snr, cond)
 
 
 def _check_stage(loaded: Loaded, stage: str, role: str) -> None:

@@ -54,9 +54,10 @@ def mean_start(denoise_fn: DenoiseFn, mean: Tensor, below: float) -> DenoiseFn:
     def wrapped(x_t: Tensor, lam: Tensor, cond: Tensor | None) -> Tensor | tuple[Tensor, Any]:
         out = denoise_fn(x_t, lam, cond)
         eps, extra = out if isinstance(out, tuple) else (out, None)
-        low = lam < below  # (B,)
+        lam_b = lam.reshape(-1)  # (B,), or (1,) for a log-SNR shared by the batch
+        low = lam_b < below
         if bool(low.any()):
-            alpha, sigma = alpha_sigma(lam.view(-1, *([1] * (x_t.dim() - 1))))
+            alpha, sigma = alpha_sigma(lam_b.view(-1, *([1] * (x_t.dim() - 1))))
             eps_mean = (x_t - alpha * mean.to(x_t.device, x_t.dtype)) / sigma
             eps = torch.where(low.view(-1, *([1] * (x_t.dim() - 1))), eps_mean.to(eps.dtype), eps)
         return (eps, extra) if isinstance(out, tuple) else eps
