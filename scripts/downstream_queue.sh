@@ -50,10 +50,11 @@ stage() {  # RUN STAGE [overrides...]: one 64x1024 diffusion stage, the shipped 
   u4d train-diffusion configs/u4d/cpu_hdl64.yaml "stage=$name" "data_root=$DATA/sim_seg" "$@" sample_every=0 \
     --out "$run" --no-progress $(resume_flag "$run")
 }
-bank() {  # OUT MODE [overrides...]: 512 scans at 64x1024 (configs/u4d/generate_hdl64.yaml)
+bank() {  # OUT MODE [overrides...]: 512 scans at 64x1024 (configs/u4d/generate_hdl64.yaml) with the mean start
   local out=$1 mode=$2
   shift 2
-  done_bank "$out" || u4d generate configs/u4d/generate_hdl64.yaml --out "$out" "mode=$mode" num=512 "$@" --no-progress
+  done_bank "$out" || u4d generate configs/u4d/generate_hdl64.yaml --out "$out" "mode=$mode" num=512 \
+    mean_start_below=-10 "$@" --no-progress
 }
 experiment() {  # CONFIG OUT SEED ARM...: arms of one seed (finished runs are skipped, started ones resume)
   local config=$1 out=$2 seed=$3
@@ -72,7 +73,7 @@ random_nets() {  # the selection ablation: P_u drawn at random, the same recipe 
   for name in stage1 stage2; do
     stage "$RUNS/gen64_random/$name" "$name" uncertainty.strategy=random "probs_root=$DATA/sim_seg_probs"
   done
-  bank "$BANKS/u4d_random_hdl64" u4d "stage1=$RUNS/gen64_random/stage1" "stage2=$RUNS/gen64_random/stage2"
+  bank "$BANKS/u4d_random_hdl64_ms" u4d "stage1=$RUNS/gen64_random/stage1" "stage2=$RUNS/gen64_random/stage2"
 }
 nets_1pct() {  # 1 % labels: the uncertainty segmentor is sup-only of the 1 % split (8 labelled scans)
   local seg=$RUNS/unc_seg_1pct
@@ -86,7 +87,7 @@ nets_1pct() {  # 1 % labels: the uncertainty segmentor is sup-only of the 1 % sp
   for name in stage1 stage2; do
     stage "$RUNS/gen64_1pct/$name" "$name" "probs_root=$DATA/sim_seg_probs_1pct"
   done
-  bank "$BANKS/u4d_1pct_hdl64" u4d "stage1=$RUNS/gen64_1pct/stage1" "stage2=$RUNS/gen64_1pct/stage2"
+  bank "$BANKS/u4d_1pct_hdl64_ms" u4d "stage1=$RUNS/gen64_1pct/stage1" "stage2=$RUNS/gen64_1pct/stage2"
 }
 transfer() {  # SEED: sim-to-real before (seg_rich world) / after (varied world), scored on the real labelled scans
   local seed=$1
@@ -140,9 +141,9 @@ varied_world() {
 if [ "$CORE" = A ]; then
   world
   probs sim_seg_probs weights/uncertainty_segmentor.pt
-  bank "$BANKS/r2dm_hdl64" baseline
+  bank "$BANKS/r2dm_hdl64_ms" baseline
   exp10 0 sup-only mt
-  wait_bank "$BANKS/u4d_hdl64"
+  wait_bank "$BANKS/u4d_hdl64_ms"
   exp10 0 "${MAIN[@]}"
   exp10 2 "${MAIN[@]}"  # the 10 % table first: the comparison the project exists for
   varied_world
@@ -154,15 +155,15 @@ if [ "$CORE" = A ]; then
   random_nets
   exp10 0 mt+u4d-random
   exp10 2 mt+u4d-random
-  wait_bank "$BANKS/u4d_1pct_hdl64"
+  wait_bank "$BANKS/u4d_1pct_hdl64_ms"
   exp1 0 "${MAIN[@]}"
   exp1 2 "${MAIN[@]}"
   spv 0 "${MAIN[@]}"
 else
   wait_file "$DATA/sim_seg/done"
-  bank "$BANKS/u4d_hdl64" u4d
+  bank "$BANKS/u4d_hdl64_ms" u4d
   exp10 1 sup-only mt
-  wait_bank "$BANKS/r2dm_hdl64"
+  wait_bank "$BANKS/r2dm_hdl64_ms"
   exp10 1 "${MAIN[@]}"
   exp10 3 "${MAIN[@]}"
   wait_file "$DATA/sim_varied/done"
@@ -170,7 +171,7 @@ else
   fpd_extractor
   generation_table
   nets_1pct
-  wait_bank "$BANKS/u4d_random_hdl64"
+  wait_bank "$BANKS/u4d_random_hdl64_ms"
   exp10 1 mt+u4d-random
   exp1 1 "${MAIN[@]}"
   spv 1 "${MAIN[@]}"

@@ -99,9 +99,10 @@ def test_the_queues_run_every_run_the_comparison_needs_and_resume_to_nothing(tmp
         assert arms[("10pct", "spvcnn", seed)] >= MAIN, seed
 
     banks = {Path(out).name: cfg for out, cfg in generated.items()}
-    assert banks["r2dm_hdl64"].mode == "baseline" and banks["u4d_hdl64"].mode == "u4d"
-    assert banks["u4d_random_hdl64"].stage1.endswith("gen64_random/stage1")
-    assert banks["u4d_1pct_hdl64"].stage2.endswith("gen64_1pct/stage2")
+    assert banks["r2dm_hdl64_ms"].mode == "baseline" and banks["u4d_hdl64_ms"].mode == "u4d"
+    assert banks["u4d_random_hdl64_ms"].stage1.endswith("gen64_random/stage1")
+    assert banks["u4d_1pct_hdl64_ms"].stage2.endswith("gen64_1pct/stage2")
+    assert all(cfg.mean_start_below == -10 for cfg in banks.values())  # every bank with the mean start
     assert len({cfg.num for cfg in banks.values()}) == 1  # every bank the same size
     for out, cfg in stages.items():  # the shipped nets' recipe for every new pair of nets
         assert cfg.steps == 8000 and cfg.width == 1024 and cfg.height == 64, out
