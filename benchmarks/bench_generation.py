@@ -153,6 +153,10 @@ def generate(method: str, args: argparse.Namespace, spec: SamplerSpec, seed: int
             overrides.append(f"stage1_mask_fraction={args.mask_fraction}")
     else:
         overrides.append(f"baseline={args.baseline}")
+    if args.mean_start_below is not None:  # the nets' training mean image as x0 at vanishing SNR
+        overrides.append(f"mean_start_below={args.mean_start_below}")
+        overrides += [f"mean_data_root={args.mean_data_root}"] if args.mean_data_root else []
+        overrides += [f"mean_probs_root={args.mean_probs_root}"] if args.mean_probs_root else []
     cfg = load_config(GenerateConfig, None, overrides)
     before = len(list((out / "sequences" / "00" / "velodyne").glob("*.bin"))) if out.exists() else 0
     start = time.perf_counter()
@@ -206,6 +210,8 @@ def to_markdown(result: dict) -> str:
         f"Reference: sequences {' '.join(result['reference'])} of `{result['root']}`; floor: {result['num']} real "
         f"scans of sequences {' '.join(result['floor_sequences'])} drawn per seed and scored like a generator.",
     ]
+    if result.get("mean_start_below") is not None:
+        lines.append(f"Mean start: the nets' training mean image as x0 below log-SNR {result['mean_start_below']:g}.")
     for block in result["samplers"].values():
         spec = block["sampler"]
         lines += ["", f"## {spec['name']} {spec['steps']} steps (stage 1: {spec['stage1_steps']}), grid "
@@ -293,6 +299,12 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     parser.add_argument("--batch-size", type=int, default=1, help="scans per sampler call (1: fastest per scan on CPU)")
     parser.add_argument(
+        "--mean-start-below", type=float, default=None,
+        help="log-SNR under which the samplers take the nets' training mean image as x0 (generate's mean_start_below)",
+    )  # fmt: skip
+    parser.add_argument("--mean-data-root", default="", help="where the nets' training scans are (mean_data_root)")
+    parser.add_argument("--mean-probs-root", default="", help="their probabilities, for stage 1 (mean_probs_root)")
+    parser.add_argument(
         "--metrics", default="jsd,mmd,points,rangejs", help="subset of frd,fpd,jsd,mmd,points,rangejs,intensityjs"
     )
     parser.add_argument("--extractor-frd", type=Path, default=WEIGHTS / "extractor_frd.pt", help="(default: shipped)")
@@ -318,7 +330,8 @@ def main(argv: list[str] | None = None) -> int:
             rows: dict[str, dict[str, list]] = {name: {m: [] for m in metrics} for name in METHODS}
             speed: dict[str, list[float]] = {name: [] for name in METHODS}
             for seed in args.seeds:
-                banks = {name: args.work / f"{name}_{spec.tag}_s{seed}" for name in METHODS}
+                start = "" if args.mean_start_below is None else f"_ms{args.mean_start_below:g}"  # other banks
+                banks = {name: args.work / f"{name}_{spec.tag}{start}_s{seed}" for name in METHODS}
                 for name in METHODS:
                     print(f"{spec.tag} seed {seed}: generating {args.num} scans with {name}", flush=True)
                     speed[name].append(generate(name, args, spec, seed, banks[name]))
@@ -351,6 +364,7 @@ def main(argv: list[str] | None = None) -> int:
         "num": args.num,
         "seeds": args.seeds,
         "metrics": list(metrics),
+        "mean_start_below": args.mean_start_below,
         "training": training,
         "headline_sampler": headline["sampler"],
         "methods": headline["methods"],

@@ -111,12 +111,13 @@ fpd_extractor() {  # the FPD extractor at 64x1024 on the training places (train-
   [ -f "$RUNS/ext64/fpd.pt" ] || u4d train-extractor fpd configs/extractor/sim_hdl64.yaml "data.root=$DATA/sim_seg" \
     "out_dir=$RUNS/ext64" train.checkpoint_every=50 --quiet
 }
-bench_generation() {  # OUT METRICS [flags...]: U4D vs baseline vs the held-out floor, 3 seeds, both samplers
+bench_generation() {  # OUT METRICS [flags...]: U4D vs baseline vs the held-out floor, 3 seeds, both samplers, mean start
   local out=$1 metrics=$2
   shift 2
   [ -f "$out" ] || "$PY" benchmarks/bench_generation.py --root "$DATA/sim_eval" --stage1 weights/u4d_stage1.pt \
     --stage2 weights/u4d_stage2.pt --baseline weights/baseline.pt --reference 00-11 --floor 12-23 --num 64 \
     --seeds 0 1 2 --samplers dpmpp2m-sde:20:6 ddpm:32:16 --metrics "$metrics" --mask-fraction 0.1 --device cpu \
+    --mean-start-below -10 \
     --work "$RUNS/bench_gen64" "$@" --out "$out"
 }
 generation_banks() {  # the generation table's banks (kept under RUNS/bench_gen64) with the extractor-free metrics

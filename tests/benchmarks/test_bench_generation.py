@@ -67,3 +67,39 @@ def test_bad_sampler_setting_is_refused(capsys):
     with pytest.raises(SystemExit):
         bench.main(["--root", "x", "--stage1", "a", "--stage2", "b", "--baseline", "c", "--samplers", "ddpm:x"])
     assert "expected NAME:STEPS:STAGE1_STEPS" in capsys.readouterr().err
+
+
+def test_mean_start_banks_are_their_own_and_recorded(tmp_path):
+    """--mean-start-below: the banks carry it in their manifest, sit beside (not over) the plain ones, json says so."""
+    from tests.tiny_worlds import write_tiny_world
+
+    world, probs = tmp_path / "world", tmp_path / "probs"
+    write_tiny_world(world, probs, num_scans=4, num_points=2000)
+    for i in range(2):  # the floor's and reference's real scans: sequences 01 and 02 of the same tiny world
+        for seq in ("01", "02"):
+            source = world / "sequences" / "00" / "velodyne" / f"{i:06d}.bin"
+            target = world / "sequences" / seq / "velodyne" / f"{i:06d}.bin"
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(source.read_bytes())
+            prob = probs / "sequences" / seq / "probs" / f"{i:06d}.npy"
+            prob.parent.mkdir(parents=True, exist_ok=True)
+            prob.write_bytes((probs / "sequences" / "00" / "probs" / f"{i:06d}.npy").read_bytes())
+    nets = {s: save_checkpoint(tmp_path / f"{s}.pt", overrides=(f"diffusion.stage={s}",)) for s in ("stage1", "stage2")}
+    nets["baseline"] = save_checkpoint(tmp_path / "baseline.pt", overrides=("diffusion.stage=baseline",))
+    out = tmp_path / "gen.json"
+    argv = ["--root", str(world), "--stage1", str(nets["stage1"]), "--stage2", str(nets["stage2"])]
+    argv += ["--baseline", str(nets["baseline"]), "--reference", "01", "--floor", "02", "--num", "1", "--seeds", "0"]
+    argv += ["--samplers", "ddpm:2:1", "--metrics", "points", "--work", str(tmp_path / "work"), "--out", str(out)]
+    argv += ["--device", "cpu", "--mean-start-below", "-10", "--mean-data-root", str(world)]
+    argv += ["--mean-probs-root", str(probs)]
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        assert bench.main(argv) == 0
+    finally:
+        torch.set_num_threads(threads)
+    assert json.loads(out.read_text())["mean_start_below"] == -10.0
+    for method in ("u4d", "baseline"):
+        manifest = json.loads((tmp_path / "work" / f"{method}_ddpm_2_1_ms-10_s0" / "manifest.json").read_text())
+        assert manifest["sampling"]["mean_start_below"] == -10.0 and manifest["complete"]
+    assert "Mean start: the nets' training mean image as x0 below log-SNR -10." in out.with_suffix(".md").read_text()
