@@ -14,6 +14,16 @@ from u4d_aug.data.formats import write_kitti_scan
 bench = load_script("bench_generation")
 
 
+def run_one_thread(argv: list[str]) -> int:
+    """bench.main on one torch thread (the setting the benchmark is run with), restoring the count after."""
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        return bench.main(argv)
+    finally:
+        torch.set_num_threads(threads)
+
+
 def test_two_samplers_write_methods_and_ratios(tmp_path):
     rng = np.random.default_rng(0)
     for seq in ("00", "01"):
@@ -29,12 +39,7 @@ def test_two_samplers_write_methods_and_ratios(tmp_path):
     argv += ["--baseline", str(nets["baseline"]), "--reference", "00", "--floor", "01", "--num", "2"]
     argv += ["--seeds", "0", "1", "--samplers", "dpmpp2m:2:1", "ddpm:2:1", "--metrics", "points,rangejs"]
     argv += ["--work", str(tmp_path / "work"), "--out", str(out), "--device", "cpu"]
-    threads = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        assert bench.main(argv) == 0
-    finally:
-        torch.set_num_threads(threads)
+    assert run_one_thread(argv) == 0
     result = json.loads(out.read_text())
     assert list(result["samplers"]) == ["dpmpp2m_2_1", "ddpm_2_1"]
     assert result["methods"] == result["samplers"]["dpmpp2m_2_1"]["methods"]  # the first setting is the headline
@@ -92,12 +97,7 @@ def test_mean_start_banks_are_their_own_and_recorded(tmp_path):
     argv += ["--samplers", "ddpm:2:1", "--metrics", "points", "--work", str(tmp_path / "work"), "--out", str(out)]
     argv += ["--device", "cpu", "--mean-start-below", "-10", "--mean-data-root", str(world)]
     argv += ["--mean-probs-root", str(probs)]
-    threads = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        assert bench.main(argv) == 0
-    finally:
-        torch.set_num_threads(threads)
+    assert run_one_thread(argv) == 0
     assert json.loads(out.read_text())["mean_start_below"] == -10.0
     for method in ("u4d", "baseline"):
         manifest = json.loads((tmp_path / "work" / f"{method}_ddpm_2_1_ms-10_s0" / "manifest.json").read_text())
