@@ -16,7 +16,6 @@ machine to itself (`alone_on_machine: false` in the json; its steps in the budge
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 from pathlib import Path
@@ -25,7 +24,7 @@ import yaml
 
 from segmentation.plots import plot_learning_curve
 from u4d_aug.errors import InputError, exit_code_of
-from u4d_aug.io import atomic_write_json, read_jsonl
+from u4d_aug.io import atomic_write_json, read_json_file, read_jsonl
 
 EVAL_COMMAND = (
     "OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m u4d_aug.cli seg-eval RUN/model.pt data/sim_seg "
@@ -40,12 +39,7 @@ REAL_KEYS = ("num_scans", "classes_present", "miou_present", "miou", "ece_per_sc
 
 def read_json(path: Path, needed: tuple[str, ...]) -> dict:
     """A json file that must hold `needed` keys, or an InputError naming the file and the missing key."""
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"{path}: not found") from None
-    except json.JSONDecodeError as err:
-        raise InputError(f"{path}: not valid json ({err.msg}, line {err.lineno})") from None
+    data = read_json_file(path, "a `u4d seg-eval --json` output")
     missing = [k for k in needed if k not in data]
     if missing:
         raise InputError(f"{path}: expected the keys {', '.join(missing)} (a `u4d seg-eval --json` output)")

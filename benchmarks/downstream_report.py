@@ -31,7 +31,6 @@ a list aligned with the `seeds` list beside it (null where a run lacks the metri
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import sys
 from pathlib import Path
@@ -42,7 +41,14 @@ from matplotlib.figure import Figure
 
 from segmentation.experiment import MAX_SEEDS_ESTIMATE, mean_std, paired_arms
 from u4d_aug.errors import InputError, exit_code_of
-from u4d_aug.io import atomic_open, atomic_write_bytes, atomic_write_json, atomic_write_text, make_folder
+from u4d_aug.io import (
+    atomic_open,
+    atomic_write_bytes,
+    atomic_write_json,
+    atomic_write_text,
+    make_folder,
+    read_json_file,
+)
 from u4d_aug.validate import check_plain_name
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "downstream"
@@ -88,14 +94,7 @@ def read_bank_evals(texts: list[str]) -> dict[str, dict]:
         if not sep or not bank.strip() or not folder.strip():
             raise InputError(f"--bank-eval {text!r}: expected BANK=DIR, e.g. banks/u4d_hdl64=runs/eval_u4d")
         path = Path(folder) / "evaluation.json" if Path(folder).suffix != ".json" else Path(folder)
-        try:
-            result = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise InputError(
-                f"--bank-eval {text!r}: {path} not found (`u4d evaluate --json --out DIR` writes it)"
-            ) from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise InputError(f"{path}: cannot read as json ({exc})") from None
+        result = read_json_file(path, "the evaluation.json that `u4d evaluate --json --out DIR` writes")
         table = result.get("table1") if isinstance(result, dict) else None
         if not isinstance(table, dict) or not table:
             raise InputError(f"{path}: no 'table1' object (expected the evaluation.json of `u4d evaluate`)")
@@ -115,14 +114,7 @@ def read_bank_evals(texts: list[str]) -> dict[str, dict]:
 
 def read_results(path: Path) -> dict:
     """A `u4d experiment` results.json, checked for what this report reads; an InputError naming the file else."""
-    try:
-        results = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"{path}: not found (expected the results.json of `u4d experiment`)") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read ({exc})") from None
-    except json.JSONDecodeError as err:
-        raise InputError(f"{path}: not valid json ({err.msg}, line {err.lineno})") from None
+    results = read_json_file(path, "the results.json of `u4d experiment`")
     if not isinstance(results, dict) or not isinstance(results.get("arms"), list):
         raise InputError(f"{path}: expected a `u4d experiment` results.json, an object with an 'arms' list")
     for i, entry in enumerate(results["arms"]):

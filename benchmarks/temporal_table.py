@@ -22,14 +22,13 @@ OUT.json:
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
 
 from segmentation.experiment import mean_std
 from u4d_aug.errors import InputError, exit_code_of
-from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder
+from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder, read_json_file
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "temporal"
 INTERVALS = {"ttce": ("3", "4"), "ctc": ("1", "2", "3", "4")}  # u4d_aug.metrics.temporal TTCE_/CTC_INTERVALS
@@ -64,16 +63,7 @@ def _check_number(value: object, where: str) -> float | None:
 
 def read_evaluation(path: Path) -> dict:
     """An evaluation.json checked for table2.bank (its ttce/ctc numbers or a 'missing' reason); InputError else."""
-    try:
-        result = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(
-            f"{path}: not found (expected the evaluation.json of `u4d evaluate --json --out DIR`)"
-        ) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read ({exc})") from None
-    except json.JSONDecodeError as err:
-        raise InputError(f"{path}: not valid json ({err.msg}, line {err.lineno})") from None
+    result = read_json_file(path, "the evaluation.json of `u4d evaluate --json --out DIR`")
     if not isinstance(result, dict) or not isinstance(result.get("table2"), dict):
         raise InputError(f"{path}: no 'table2' object (run `u4d evaluate` with --metrics ttce,ctc)")
     bank = result["table2"].get("bank")

@@ -29,7 +29,6 @@ OUT.json, every metric in percent (points for differences); `per_seed` lists are
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import re
 import shlex
@@ -43,7 +42,7 @@ from matplotlib.figure import Figure
 from segmentation.experiment import mean_std, paired_differences
 from segmentation.metrics import confusion_shares
 from u4d_aug.errors import InputError, exit_code_of
-from u4d_aug.io import atomic_open, atomic_write_json, atomic_write_text, make_folder
+from u4d_aug.io import atomic_open, atomic_write_json, atomic_write_text, make_folder, read_json_file
 from u4d_aug.validate import check_plain_name
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "sim_to_real_transfer"
@@ -73,12 +72,7 @@ def _number(value: object, where: str) -> float | None:
 
 def read_seg_eval(path: Path, keys: tuple[str, ...]) -> dict:
     """A `u4d seg-eval --json` output holding `keys`; an InputError naming the file and the missing key else."""
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read ({exc})") from None
-    except json.JSONDecodeError as err:
-        raise InputError(f"{path}: not valid json ({err.msg}, line {err.lineno})") from None
+    data = read_json_file(path, "the output of `u4d seg-eval --json`")
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a json object (the output of `u4d seg-eval --json`)")
     absent = [key for key in keys if key not in data]

@@ -8,7 +8,6 @@ run draws what an uninterrupted one would; `crop_batch` cuts azimuth crops for t
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 
 import numpy as np
@@ -118,7 +117,6 @@ class RangeImages:
 def row_mean(cfg: DiffusionTrainConfig, key: str = "x0", count: int = 32) -> Tensor:
     """(C, H, 1) mean of the `key` images (x0, or x0_u for stage 1) of `count` evenly spaced training items, over
     items, frames and columns: the MMSE estimate of a range image at vanishing SNR, per row (`sampling.mean_start`)."""
-    cfg = copy.deepcopy(cfg)  # a config's checks may adjust its sub-configs, which a loaded net may share
     if key == "x0":  # full scans: no uncertainty (and no probability files) needed
         cfg = dataclasses.replace(cfg, diffusion=dataclasses.replace(cfg.diffusion, stage="baseline"))
     images = RangeImages(cfg)

@@ -260,6 +260,19 @@ def append_jsonl(path: str | os.PathLike, record: dict) -> None:
         raise InputError(f"{path}: cannot write ({_reason(exc)})") from None
 
 
+def read_json_file(path: str | os.PathLike, expected: str) -> Any:
+    """The parsed json of `path`, or an InputError naming the file: not found (with `expected`, what should be
+    there and what writes it), unreadable, or not valid json (with the parser's message and line)."""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: not found (expected {expected})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read ({exc})") from None
+    except json.JSONDecodeError as err:
+        raise InputError(f"{path}: not valid json ({err.msg}, line {err.lineno})") from None
+
+
 def read_jsonl(path: str | os.PathLike) -> list[dict]:
     """Read a jsonl log, skipping a torn final line."""
     records = []

@@ -7,6 +7,7 @@ stage 2 learns the full scan given concat(x0_u, m_u) (L_c), the baseline learns 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -94,8 +95,13 @@ class DiffusionTrainConfig:
     init_from: str = ""
 
     def __post_init__(self) -> None:
-        self.net.mask_head = self.diffusion.stage == "stage1"
-        self.net.cond_channels = 3 if self.diffusion.stage == "stage2" else 0
+        # a new net config, not an edit of the given one: a config copied with another stage (dataclasses.replace)
+        # shares its net config with the original, whose net may already be built from it
+        self.net = dataclasses.replace(
+            self.net,
+            mask_head=self.diffusion.stage == "stage1",
+            cond_channels=3 if self.diffusion.stage == "stage2" else 0,
+        )
         if self.data_format not in DATASET_FORMATS:
             raise InputError(f"data_format must be one of {', '.join(DATASET_FORMATS)}, got {self.data_format!r}")
         if self.steps < 1 or self.batch_size < 1:

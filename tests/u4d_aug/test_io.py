@@ -25,6 +25,7 @@ from u4d_aug.io import (
     json_safe,
     load_npy,
     make_folder,
+    read_json_file,
     remove_temp_files,
 )
 
@@ -176,3 +177,20 @@ def test_json_has_null_where_a_number_is_not_finite(tmp_path):
     assert "NaN" not in text and "Infinity" not in text and json.loads(text)["b"][2] == 2
     atomic_write_json(tmp_path / "x.json", {"miou": math.nan, "path": Path("p")})
     assert json.loads((tmp_path / "x.json").read_text()) == {"miou": None, "path": "p"}
+
+
+def test_read_json_file_names_the_file_and_what_went_wrong(tmp_path):
+    good = tmp_path / "good.json"
+    good.write_text('{"a": [1, 2]}')
+    assert read_json_file(good, "x") == {"a": [1, 2]}
+    (tmp_path / "bad.json").write_text('{"a": [1,')
+    (tmp_path / "latin.json").write_bytes(b'{"a": "\xe9"}')
+    cases = [
+        ("missing.json", "missing.json: not found (expected the results.json of `u4d experiment`)"),
+        ("bad.json", "bad.json: not valid json (Expecting value, line 1)"),
+        ("latin.json", "latin.json: cannot read ("),
+    ]
+    for name, message in cases:
+        with pytest.raises(InputError) as err:
+            read_json_file(tmp_path / name, "the results.json of `u4d experiment`")
+        assert message in str(err.value) and "\n" not in str(err.value), name
