@@ -254,7 +254,9 @@ def sampler_block(spec: SamplerSpec, rows: dict, speed: dict, metrics: tuple[str
     if "points" in metrics:
         for name in METHODS:
             ratios[f"{name} points/floor"] = ratio(methods[name]["points"], methods["floor"]["points"])
-        if "points_projected" in rows["floor"]:  # the issue's goal: within 15 % of the real scans' projections
+        if (
+            "points_projected" in rows["floor"]
+        ):  # the reference of points per scan: what a real scan holds at the generators' H x W
             methods["floor"]["points_projected"] = summarise(rows["floor"]["points_projected"])
             for name in METHODS:
                 ratios[f"{name} points/floor projected"] = ratio(

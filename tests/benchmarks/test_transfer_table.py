@@ -1,5 +1,5 @@
 """benchmarks/transfer_table.py: the sim-to-real transfer table (real mIoU over present classes, ECE, sim mIoU per
-world over seeds, seed-paired after - before with 95 % CI and p, the issue's goals, per-class IoU, the summed real
+world over seeds, seed-paired after - before with 95 % CI and p, the goals, per-class IoU, the summed real
 confusion) from `u4d seg-eval --json` outputs; a world/seed without its json is listed, bad files in one line."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """scripts/downstream_queue.sh run end to end, both cores at once, with the stand-in `u4d` and interpreter
-(tests/scripts/stand_in.py) in a scratch checkout: every call is one the real commands accept, the runs the issue
+(tests/scripts/stand_in.py) in a scratch checkout: every call is one the real commands accept, the runs the comparison
 asks for are all there (seeds per arm and setting, banks from the right nets, the selection ablation, the 1 % nets,
 the transfer seeds, the generation table), each queue's waits are met by the other, and a re-run trains nothing."""
 
@@ -89,7 +89,7 @@ def test_the_queues_run_every_run_the_comparison_needs_and_resume_to_nothing(tmp
         elif argv[0] == "seg-train":
             seg_runs[str(args.out)] = cfg
 
-    # the issue's seeds: 10 % >= 4 for every arm (>= 2 for the ablation), 1 % >= 3, SPVCNN at 10 % >= 2
+    # the comparison's seeds: 10 % >= 4 for every arm (>= 2 for the ablation), 1 % >= 3, SPVCNN at 10 % >= 2
     for seed in range(4):
         assert arms[("10pct", "minkunet", seed)] >= MAIN, seed
     assert sum("mt+u4d-random" in arms[("10pct", "minkunet", s)] for s in range(4)) >= 2
