@@ -40,7 +40,7 @@ def main() -> int:
         return original(name, denoise, shape, steps, generator, **kw)
 
     pipeline.sample_named = patched
-    argv = ["generate", "configs/u4d/generate_hdl64.yaml", "--out", args.out, "mode=u4d"]
+    argv = ["generate", "configs/u4d/generate_hdl64.yaml", "--out", args.out, "mode=u4d", "mean_start_below=null"]
     return cli.main([*argv, f"num={args.num}", "seed=5000", "--no-progress"])
 
 

@@ -7,12 +7,16 @@ checkpoint kinds and is the only one that knows their loaders (an extractor's ha
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import logging
 from pathlib import Path
 
+from u4d_aug.batches import row_mean
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_torch_save, file_sha256, load_checkpoint
 from u4d_aug.metrics.extractors import load_extractor
 from u4d_aug.run import newest_checkpoint
+from u4d_aug.stage import config_from_checkpoint
 from u4d_aug.weights import (
     DIFFUSION_KIND,
     EXTRACTOR_KINDS,
@@ -25,6 +29,8 @@ from u4d_aug.weights import (
     quantize_int8,
     weights_digest,
 )
+
+logger = logging.getLogger(__name__)
 
 
 def trained_info(state: dict, kind: str, source: Path) -> dict:
@@ -41,9 +47,30 @@ def checkpoint_file(path: Path) -> Path:
     return newest_checkpoint(path) if path.is_dir() else path
 
 
-def export_weights(checkpoint_path: str | Path, out_path: str | Path, int8: bool = False) -> dict:
+def training_row_mean(state: dict, source: Path, data_root: str = "", probs_root: str = "") -> dict | None:
+    """A diffusion stage's `row_mean` entry (`u4d_aug.weights`): the per-row mean of its training images (x0_u for
+    stage 1), read from the training scans its config names or from `data_root` / `probs_root`; None (and a warning)
+    when they cannot be read, as then `u4d generate mean_start_below=...` reads them itself."""
+    cfg = config_from_checkpoint(state, str(source))
+    key = "x0_u" if cfg.diffusion.stage == "stage1" else "x0"
+    cfg = dataclasses.replace(cfg, data_root=data_root or cfg.data_root, probs_root=probs_root or cfg.probs_root)
+    try:
+        mean = row_mean(cfg, key)
+    except (InputError, OSError) as exc:
+        logger.warning("%s: no row_mean stored, its training scans cannot be read (%s); see --data-root", source, exc)
+        return None
+    found = {"data_root": cfg.data_root, "sequences": cfg.sequences}
+    if key == "x0_u":
+        found["probs_root"] = cfg.probs_root
+    return {"key": key, "mean": mean.float().contiguous(), "source": found}
+
+
+def export_weights(
+    checkpoint_path: str | Path, out_path: str | Path, int8: bool = False, data_root: str = "", probs_root: str = ""
+) -> dict:
     """Write the float16 (`int8`: large tensors as int8 groups) inference weights of a training checkpoint to
-    `out_path` atomically; returns what it wrote. A run folder stands for its newest checkpoint."""
+    `out_path` atomically; returns what it wrote. A run folder stands for its newest checkpoint. A diffusion stage
+    also gets the row mean of its training images (`training_row_mean`; `data_root` / `probs_root` say where)."""
     source, out = checkpoint_file(Path(checkpoint_path)), Path(out_path)
     state = load_checkpoint(source, "training checkpoint")
     if is_exported(state):
@@ -75,6 +102,10 @@ def export_weights(checkpoint_path: str | Path, out_path: str | Path, int8: bool
     }
     if shapes is not None:
         exported["int8"] = shapes
+    if kind == DIFFUSION_KIND:
+        mean = training_row_mean(state, source, data_root, probs_root)
+        if mean is not None:
+            exported["row_mean"] = mean
     atomic_torch_save(out, exported)
     return exported
 
@@ -93,14 +124,20 @@ def add_export_weights_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="store tensors of >= 4096 values as int8 with a float16 scale per 64 (half the float16 size)",
     )
+    parser.add_argument(
+        "--data-root", default="",
+        help="diffusion stages: their training scans, if not where the checkpoint's config says (for the row mean)",
+    )  # fmt: skip
+    parser.add_argument("--probs-root", default="", help="stage 1: their seg-predict probabilities, likewise")
 
 
 def run_export_weights(args: argparse.Namespace) -> int:
     """`u4d export-weights`: float16 inference weights + config + hash of a training checkpoint."""
-    exported = export_weights(args.checkpoint, args.out, int8=args.int8)
+    exported = export_weights(args.checkpoint, args.out, args.int8, args.data_root, args.probs_root)
     size, before = args.out.stat().st_size, checkpoint_file(args.checkpoint).stat().st_size
     print(
         f"{exported['kind']} weights: {args.out} ({size / 1e6:.2f} MB; checkpoint {before / 1e6:.2f} MB), "
         f"hash {exported['hash']}, step {exported['trained']['step']}"
+        + (f", row mean of {exported['row_mean']['key']}" if "row_mean" in exported else "")
     )
     return 0

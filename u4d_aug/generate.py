@@ -54,7 +54,7 @@ from u4d_aug.data.sensors import get_sensor
 from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError
 from u4d_aug.export_bank import export_bank
-from u4d_aug.io import remove_temp_files
+from u4d_aug.io import load_checkpoint, remove_temp_files
 from u4d_aug.pipeline import (
     MeanStart,
     Sampler,
@@ -70,6 +70,7 @@ from u4d_aug.sampling import Grid, check_grid
 from u4d_aug.stage import DiffusionTrainConfig
 from u4d_aug.trajectory import POSE_DIM, poses_from_motion, relative_motion
 from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
+from u4d_aug.weights import stored_row_mean
 
 logger = logging.getLogger(__name__)
 
@@ -99,8 +100,9 @@ class GenerateConfig:
     stage1_mask_fraction: float | None = None
     # below this log-SNR the samplers take each net's training mean image (per row; x0_u's for stage 1) as the x0
     # estimate instead of the net's own, which divides by α ≈ 0 there (benchmarks/results/mean_start_diagnostic.md);
-    # null = the net's own at every step. The mean is read from the nets' training scans (mean_data_root /
-    # mean_probs_root replace the data_root / probs_root their configs name)
+    # null = the net's own at every step. The mean: read from mean_data_root / mean_probs_root when set, else the
+    # one `u4d export-weights` stored in the weights file (the shipped nets have it), else read from the training
+    # scans the nets' configs name
     mean_start_below: float | None = None
     mean_data_root: str = ""
     mean_probs_root: str = ""
@@ -192,7 +194,7 @@ def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bo
     if cfg.mean_start_below is not None:  # banks written before the mean start stay compatible
         identity["sampling"]["mean_start_below"] = cfg.mean_start_below
         for name, (net, net_cfg) in list(nets.items()):
-            mean, mean_sources[name] = training_mean(net_cfg, name, cfg)
+            mean, mean_sources[name] = training_mean(net_cfg, name, cfg, paths[name])
             nets[name] = (MeanStart(net, mean.to(info.device), cfg.mean_start_below), net_cfg)
     main = nets["stage2"] if "stage2" in nets else nets["baseline"]
     sensor = get_sensor(main[1].sensor)
@@ -364,10 +366,25 @@ def _real_sample_condition(
     return x0_u, m_u, entropy_image, (item["poses"] if frames > 1 else None)
 
 
-def training_mean(net_cfg: DiffusionTrainConfig, name: str, cfg: GenerateConfig) -> tuple[Tensor, dict]:
+def training_mean(
+    net_cfg: DiffusionTrainConfig, name: str, cfg: GenerateConfig, path: Path | None = None
+) -> tuple[Tensor, dict]:
     """(C, H, 1) per-row mean of a net's training images (`batches.row_mean`: x0_u for stage 1, x0 otherwise) and
-    where it was read; an InputError naming the keys to set when the training scans are not where the net says."""
+    where it came from: read from mean_data_root when set, else the one stored in its weights file `path` (`u4d
+    export-weights`), else read from the training scans its config names; an InputError naming the keys to set
+    when none of these is there."""
     key = "x0_u" if name == "stage1" else "x0"
+    stored = None
+    if not cfg.mean_data_root and path is not None and not Path(path).is_dir():
+        stored = stored_row_mean(load_checkpoint(Path(path), "diffusion checkpoint"), str(path))
+    if stored is not None:
+        mean, source = stored
+        if source.get("key") != key or mean.shape[1] != net_cfg.height:
+            raise InputError(
+                f"{path}: row_mean: expected the {key} mean of {net_cfg.height} rows, got {source.get('key')} "
+                f"of shape {tuple(mean.shape)}"
+            )
+        return mean, {**source, "stored_in": str(path)}
     data_root = cfg.mean_data_root or net_cfg.data_root
     probs_root = cfg.mean_probs_root or net_cfg.probs_root
     source = {"key": key, "data_root": data_root, "sequences": net_cfg.sequences}
@@ -378,7 +395,8 @@ def training_mean(net_cfg: DiffusionTrainConfig, name: str, cfg: GenerateConfig)
     except (InputError, OSError) as exc:
         raise InputError(
             f"mean_start_below: the {name} net's mean image is read from its training scans ({exc}); set "
-            "mean_data_root (and mean_probs_root for stage 1) to where they are, or mean_start_below=null"
+            "mean_data_root (and mean_probs_root for stage 1) to where they are, export the net with "
+            "`u4d export-weights --data-root` to store it, or set mean_start_below=null"
         ) from None
     return mean, source
 

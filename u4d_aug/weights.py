@@ -11,6 +11,9 @@ The loaders of the three kinds read either file and cast the weights back to flo
 With `--int8` (`quantize_int8`) the large weight tensors are stored as int8 in groups of `INT8_GROUP` values with
 one float16 scale per group (absmax, as GGML's Q8_0 blocks), about a quarter of float32; the file then carries
 `int8: {name: shape}` and the loaders expand those tensors back before use.
+A diffusion stage's file may also carry `row_mean` = {key, mean (C, H, 1) float32, source}: the per-row mean of its
+training images (`batches.row_mean`) that `u4d generate mean_start_below=...` starts from, so that the mean start
+needs no training scans where the weights are used (`stored_row_mean`).
 """
 
 from __future__ import annotations
@@ -179,6 +182,18 @@ def load_exported(net: torch.nn.Module, state: dict, source: str) -> None:
             f"{source}: exported weights do not fit the net of their config (missing "
             f"{sorted(set(missing) - set(RECOMPUTED_BUFFERS))[:3]}, unexpected {sorted(unexpected)[:3]})"
         )
+
+
+def stored_row_mean(state: dict, source: str) -> tuple[Tensor, dict] | None:
+    """(mean (C, H, 1) float32, {key, source...}) of an exported diffusion stage's `row_mean`, or None without one."""
+    if not is_exported(state) or "row_mean" not in state:
+        return None
+    entry = state["row_mean"]
+    mean = entry.get("mean") if isinstance(entry, dict) else None
+    if not isinstance(mean, Tensor) or mean.ndim != 3 or mean.shape[-1] != 1 or not mean.is_floating_point():
+        raise InputError(f"{source}: row_mean: expected {{key, mean: a (C, H, 1) float tensor, source}}")
+    info = {"key": entry.get("key"), **(entry.get("source") or {})}
+    return mean.float(), info
 
 
 # The nets committed under the checkout's weights/ (weights/README.md), by role. A wheel does not carry them.

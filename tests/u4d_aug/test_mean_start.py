@@ -11,6 +11,7 @@ from tests.tiny_worlds import write_tiny_world
 from u4d_aug.batches import RangeImages, row_mean
 from u4d_aug.diffusion import alpha_sigma
 from u4d_aug.errors import InputError
+from u4d_aug.export_weights import export_weights
 from u4d_aug.generate import generate_bank
 from u4d_aug.pipeline import MeanStart, load_generator
 
@@ -79,5 +80,26 @@ def test_bank_with_mean_start_records_it_and_differs(setup, tmp_path):
 def test_missing_training_scans_name_the_keys_to_set(setup, tmp_path):
     _, nets = setup
     cfg = gen_config(nets, "num=1", "mode=baseline", "mean_start_below=-10", f"mean_data_root={tmp_path / 'nowhere'}")
-    with pytest.raises(InputError, match="mean_data_root .* or mean_start_below=null"):
+    with pytest.raises(InputError, match="set mean_data_root .*export-weights --data-root.* or set mean_start_below=null"):
         generate_bank(cfg, tmp_path / "bank", progress=False)
+
+
+def test_mean_stored_in_exported_weights_needs_no_training_scans(setup, tmp_path):
+    world, nets = setup
+    exported = {name: tmp_path / f"{name}.pt" for name in nets}
+    for name, path in nets.items():  # the random nets' configs name data/sim, which is not there
+        export_weights(path, exported[name], data_root=str(world[0]), probs_root=str(world[1]))
+    stored = generate_bank(gen_config(exported, "num=2", "mean_start_below=-10"), tmp_path / "stored", progress=False)
+    assert stored["mean_start"]["stage1"]["stored_in"] == str(exported["stage1"])
+    assert stored["mean_start"]["stage1"]["key"] == "x0_u" and stored["mean_start"]["stage2"]["key"] == "x0"
+    # mean_data_root wins over the stored mean; both are the same mean here, so the scans are the same bytes
+    read_cfg = gen_config(exported, "num=2", "mean_start_below=-10", *world_overrides(world))
+    read = generate_bank(read_cfg, tmp_path / "read", progress=False)
+    assert "stored_in" not in read["mean_start"]["stage2"]
+    first = [p.read_bytes() for p in sorted((tmp_path / "stored").rglob("*.bin"))]
+    assert len(first) == 2 and first == [p.read_bytes() for p in sorted((tmp_path / "read").rglob("*.bin"))]
+    state = torch.load(exported["stage2"], weights_only=True)
+    state["row_mean"]["key"] = "x0_u"  # stage 2 starts from full scans, not from their uncertain part
+    torch.save(state, exported["stage2"])
+    with pytest.raises(InputError, match="row_mean: expected the x0 mean of 16 rows, got x0_u"):
+        generate_bank(gen_config(exported, "num=1", "mean_start_below=-10"), tmp_path / "bad", progress=False)

@@ -24,6 +24,7 @@ from segmentation.train import train as train_segmentor
 from tests.tiny_nets import SEG_TINY, diffusion_config, extractor_config
 from tests.tiny_worlds import read_scans, write_tiny_root, write_tiny_world, write_toy_root
 from u4d_aug import weights
+from u4d_aug.batches import row_mean
 from u4d_aug.cli import main as cli_main
 from u4d_aug.config import load_config
 from u4d_aug.data.formats import read_kitti_scan
@@ -212,6 +213,38 @@ def test_bad_input_is_a_one_line_error(diffusion, tmp_path):
     state["model"][name] = state["model"][name] + 1
     torch.save(state, tmp_path / "tampered.pt")
     _one_line_error(load_generator, tmp_path / "tampered.pt", match="does not match")
+
+
+def test_diffusion_export_stores_the_row_mean_of_its_training_images(diffusion, tmp_path, caplog):
+    world = diffusion["world"]
+    for stage in STAGES:
+        checkpoint, exported, path = diffusion[stage]
+        key = "x0_u" if stage == "stage1" else "x0"
+        cfg = diffusion_config(world, tmp_path / stage, stage)
+        assert exported["row_mean"]["key"] == key
+        assert torch.equal(exported["row_mean"]["mean"], row_mean(cfg, key))  # the mean generate would read
+        assert exported["row_mean"]["source"]["data_root"] == str(world[0])
+        assert ("probs_root" in exported["row_mean"]["source"]) == (stage == "stage1")
+        mean, info = weights.stored_row_mean(torch.load(path, weights_only=True), str(path))
+        assert torch.equal(mean, exported["row_mean"]["mean"]) and info["key"] == key
+    # training scans that cannot be read: the weights are still written, without the mean, and a warning says why
+    checkpoint = diffusion["baseline"][0]
+    gone = export_weights(checkpoint, tmp_path / "gone.pt", data_root=str(tmp_path / "nowhere"))
+    assert "row_mean" not in gone and "no row_mean stored" in caplog.text
+    assert weights.stored_row_mean(torch.load(tmp_path / "gone.pt", weights_only=True), "gone.pt") is None
+    state = torch.load(diffusion["baseline"][2], weights_only=True)
+    state["row_mean"]["mean"] = state["row_mean"]["mean"][..., 0]  # (C, H): not a per-row image
+    _one_line_error(weights.stored_row_mean, state, "bad.pt", match="bad.pt: row_mean: expected")
+
+
+def test_shipped_generators_carry_their_row_mean():
+    shipped = shipped_weights(SHIPPED_DIR)
+    assert shipped is not None
+    for name, key in (("u4d_stage1", "x0_u"), ("u4d_stage2", "x0"), ("baseline", "x0")):
+        state = torch.load(shipped[name], weights_only=True)
+        mean, info = weights.stored_row_mean(state, name)
+        assert info["key"] == key and mean.shape == (2, state["config"]["height"], 1), name
+        assert torch.isfinite(mean).all() and float(mean.abs().max()) <= 1.0, name  # range-encoded images
 
 
 def test_shipped_weights_are_found_by_role(tmp_path):
