@@ -75,6 +75,8 @@ def export_weights(
     state = load_checkpoint(source, "training checkpoint")
     if is_exported(state):
         raise InputError(f"{source}: already exported weights; export from the training checkpoint")
+    if out.is_dir():  # before the row mean is read (seconds at 64x1024) and its warning printed
+        raise InputError(f"{out}: is a folder; expected a file path to write")
     if out.exists() and out.resolve() == source.resolve():
         raise InputError(f"{out}: --out would overwrite the training checkpoint itself")
     kind = checkpoint_kind(state, str(source))

@@ -80,7 +80,8 @@ def test_bank_with_mean_start_records_it_and_differs(setup, tmp_path):
 def test_missing_training_scans_name_the_keys_to_set(setup, tmp_path):
     _, nets = setup
     cfg = gen_config(nets, "num=1", "mode=baseline", "mean_start_below=-10", f"mean_data_root={tmp_path / 'nowhere'}")
-    with pytest.raises(InputError, match="set mean_data_root .*export-weights --data-root.* or set mean_start_below=null"):
+    hint = "set mean_data_root .*export-weights --data-root.* or set mean_start_below=null"
+    with pytest.raises(InputError, match=hint):
         generate_bank(cfg, tmp_path / "bank", progress=False)
 
 
