@@ -1,5 +1,6 @@
 """Tiny made-up data shared by tests: a labelled toy SemanticKITTI root, a toy bank, a static posed world for the
-feature extractors, random-ray scans with class probabilities for the diffusion stages; the real-scan folder."""
+feature extractors, a posed driving sequence, random-ray scans with class probabilities for the diffusion stages;
+the real-scan folder."""
 
 from __future__ import annotations
 
@@ -102,6 +103,27 @@ def write_tiny_root(root: Path, num_frames: int = 5, labels: bool = True, poses:
 def read_scans(root: Path) -> list[np.ndarray]:
     """The scans of sequence 00 of `root`, in frame order."""
     return [read_kitti_scan(p) for p in sorted((root / "sequences" / "00" / "velodyne").glob("*.bin"))]
+
+
+def write_posed_world(root: Path, probs_root: Path, num_scans: int = 3) -> np.ndarray:
+    """Scans of one sequence driving along x (2 m per frame) with poses.txt, calib.txt and class probabilities;
+    returns the LiDAR poses."""
+    rng = np.random.default_rng(1)
+    poses = np.tile(np.eye(4), (num_scans, 1, 1))
+    poses[:, 0, 3] = 5.0 + 2.0 * np.arange(num_scans)
+    tr = np.array([[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, -0.1], [1.0, 0.0, 0.0, -0.3]])  # KITTI-like Tr
+    folder = root / "sequences" / "00"
+    for i in range(num_scans):
+        direction = rng.normal(size=(3000, 3))
+        direction[:, 2] = np.abs(direction[:, 2]) * -0.2
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        xyz = direction * rng.uniform(3, 50, (3000, 1))
+        points = np.concatenate([xyz, rng.uniform(0, 1, (3000, 1))], axis=1).astype(np.float32)
+        write_kitti_scan(folder / "velodyne" / f"{i:06d}.bin", points)
+        atomic_save_npy(probs_root / "sequences" / "00" / "probs" / f"{i:06d}.npy", rng.dirichlet(np.ones(5), 3000))
+    write_calib(folder / "calib.txt", {"P0": np.eye(4)[:3], "Tr": tr})
+    write_poses(folder / "poses.txt", poses, calib={"Tr": tr})
+    return poses
 
 
 def write_tiny_world(root: Path, probs_root: Path, num_scans: int = 3, num_points: int = 4000) -> None:

@@ -11,6 +11,7 @@ import torch
 import yaml
 
 from tests.tiny_nets import TINY, gen_config
+from tests.tiny_worlds import write_posed_world
 from u4d_aug.bank import BankLayout, file_sha256, read_manifest, write_sample
 from u4d_aug.config import load_config
 from u4d_aug.data.datasets import ScanDataset
@@ -178,28 +179,6 @@ def test_empty_sample_gets_a_marker_not_a_bin(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------- sequence banks
-
-
-def write_posed_world(root: Path, probs_root: Path, num_scans: int = 3) -> np.ndarray:
-    """Scans of one sequence driving along x (2 m per frame) with poses.txt, calib.txt; returns the LiDAR poses."""
-    from u4d_aug.data.formats import write_calib, write_poses
-
-    rng = np.random.default_rng(1)
-    poses = np.tile(np.eye(4), (num_scans, 1, 1))
-    poses[:, 0, 3] = 5.0 + 2.0 * np.arange(num_scans)
-    tr = np.array([[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, -0.1], [1.0, 0.0, 0.0, -0.3]])  # KITTI-like Tr
-    folder = root / "sequences" / "00"
-    for i in range(num_scans):
-        direction = rng.normal(size=(3000, 3))
-        direction[:, 2] = np.abs(direction[:, 2]) * -0.2
-        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-        xyz = direction * rng.uniform(3, 50, (3000, 1))
-        points = np.concatenate([xyz, rng.uniform(0, 1, (3000, 1))], axis=1).astype(np.float32)
-        write_kitti_scan(folder / "velodyne" / f"{i:06d}.bin", points)
-        atomic_save_npy(probs_root / "sequences" / "00" / "probs" / f"{i:06d}.npy", rng.dirichlet(np.ones(5), 3000))
-    write_calib(folder / "calib.txt", {"P0": np.eye(4)[:3], "Tr": tr})
-    write_poses(folder / "poses.txt", poses, calib={"Tr": tr})
-    return poses
 
 
 def test_layout_of_single_frame_and_sequence_banks(tmp_path):

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from tests.tiny_nets import gen_config, save_random_checkpoint
-from tests.tiny_worlds import write_tiny_world
+from tests.tiny_worlds import write_posed_world, write_tiny_world
 from u4d_aug.batches import RangeImages, row_mean
 from u4d_aug.diffusion import alpha_sigma
 from u4d_aug.errors import InputError
@@ -104,3 +104,20 @@ def test_mean_stored_in_exported_weights_needs_no_training_scans(setup, tmp_path
     torch.save(state, exported["stage2"])
     with pytest.raises(InputError, match="row_mean: expected the x0 mean of 16 rows, got x0_u"):
         generate_bank(gen_config(exported, "num=1", "mean_start_below=-10"), tmp_path / "bad", progress=False)
+
+
+def test_sequence_generators_start_from_the_mean_over_frames(untrained_sequence_checkpoints, tmp_path):
+    world = (tmp_path / "world", tmp_path / "probs")
+    write_posed_world(*world, num_scans=3)
+    _, cfg = load_generator(untrained_sequence_checkpoints["stage2"])
+    cfg.data_root, cfg.probs_root = str(world[0]), str(world[1])
+    images = RangeImages(cfg)  # 2-frame windows (L, C, H, W)
+    frames = torch.cat([images[i]["x0"] for i in range(len(images))])
+    assert torch.allclose(row_mean(cfg, "x0"), frames.mean(dim=(0, 3)).unsqueeze(-1), atol=1e-6)
+    manifest = generate_bank(
+        gen_config(untrained_sequence_checkpoints, "num=1", "mean_start_below=-10", *world_overrides(world)),
+        tmp_path / "bank",
+        progress=False,
+    )
+    assert manifest["frames"] == 2 and manifest["mean_start"]["stage1"]["key"] == "x0_u"
+    assert len(list((tmp_path / "bank" / "sequences").rglob("*.bin"))) == 2
