@@ -114,14 +114,17 @@ class RangeImages:
         return out
 
 
-def row_mean(cfg: DiffusionTrainConfig, key: str = "x0", count: int = 32) -> Tensor:
+def row_mean(cfg: DiffusionTrainConfig, key: str = "x0", count: int = 32, seed: int = 0) -> Tensor:
     """(C, H, 1) mean of the `key` images (x0, or x0_u for stage 1) of `count` evenly spaced training items, over
-    items, frames and columns: the MMSE estimate of a range image at vanishing SNR, per row (`sampling.mean_start`)."""
+    items, frames and columns: the MMSE estimate of a range image at vanishing SNR, per row (`sampling.mean_start`).
+    `seed` draws P_u where the net's uncertainty strategy is random (the selection ablation)."""
     if key == "x0":  # full scans: no uncertainty (and no probability files) needed
         cfg = dataclasses.replace(cfg, diffusion=dataclasses.replace(cfg.diffusion, stage="baseline"))
     images = RangeImages(cfg)
     step = max(1, len(images) // count)
-    stacked = torch.stack([images[i][key] for i in range(0, len(images), step)][:count])  # (K, [L,] C, H, W)
+    generator = torch.Generator().manual_seed(seed)
+    picked = [images.__getitem__(i, generator)[key] for i in range(0, len(images), step)[:count]]
+    stacked = torch.stack(picked)  # (K, [L,] C, H, W)
     return stacked.reshape(-1, *stacked.shape[-3:]).mean(dim=(0, 3)).unsqueeze(-1)
 
 

@@ -42,6 +42,17 @@ def test_row_mean_is_the_mean_over_scans_and_columns(setup):
     assert not torch.allclose(row_mean(cfg, "x0"), row_mean(cfg, "x0_u"))  # x0_u holds only the uncertain points
 
 
+def test_row_mean_of_a_random_selection_net_is_drawn_from_its_seed(setup):
+    (data, probs), nets = setup
+    _, cfg = load_generator(nets["stage1"])
+    cfg.data_root, cfg.probs_root = str(data), str(probs)
+    cfg.uncertainty.strategy = "random"  # the selection ablation's nets: P_u drawn at random, not by entropy
+    first = row_mean(cfg, "x0_u", seed=0)
+    assert torch.equal(first, row_mean(cfg, "x0_u", seed=0)) and not torch.equal(first, row_mean(cfg, "x0_u", seed=1))
+    cfg.uncertainty.strategy = "entropy"
+    assert not torch.equal(first, row_mean(cfg, "x0_u"))
+
+
 def test_a_loaded_net_with_mean_start_gives_the_mean_as_x0_and_keeps_its_config(setup):
     (data, probs), nets = setup
     net, cfg = load_generator(nets["stage2"])
