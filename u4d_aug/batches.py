@@ -128,6 +128,22 @@ def row_mean(cfg: DiffusionTrainConfig, key: str = "x0", count: int = 32, seed: 
     return stacked.reshape(-1, *stacked.shape[-3:]).mean(dim=(0, 3)).unsqueeze(-1)
 
 
+def row_mean_key(cfg: DiffusionTrainConfig) -> str:
+    """The images a net's mean start is the mean of: x0_u (the uncertain region) for stage 1, x0 otherwise."""
+    return "x0_u" if cfg.diffusion.stage == "stage1" else "x0"
+
+
+def net_row_mean(cfg: DiffusionTrainConfig, data_root: str = "", probs_root: str = "") -> tuple[Tensor, dict]:
+    """`row_mean` of the images a net learns (x0_u for stage 1, x0 otherwise) from its training scans, or from
+    `data_root` / `probs_root` when set, and where it was read: {key, data_root, sequences[, probs_root]}."""
+    key = row_mean_key(cfg)
+    cfg = dataclasses.replace(cfg, data_root=data_root or cfg.data_root, probs_root=probs_root or cfg.probs_root)
+    source = {"key": key, "data_root": cfg.data_root, "sequences": cfg.sequences}
+    if key == "x0_u":
+        source["probs_root"] = cfg.probs_root
+    return row_mean(cfg, key), source
+
+
 def batch_indices(step: int, rank: int, num_scans: int, batch_size: int, seed: int) -> list[int]:
     """This rank's scan indices of `step`: uniform with replacement from a (seed, step, rank) stream."""
     rng = np.random.default_rng(derived_seed(seed, _BATCH, step, rank))

@@ -7,11 +7,10 @@ checkpoint kinds and is the only one that knows their loaders (an extractor's ha
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
 from pathlib import Path
 
-from u4d_aug.batches import row_mean
+from u4d_aug.batches import net_row_mean
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_torch_save, file_sha256, load_checkpoint
 from u4d_aug.metrics.extractors import load_extractor
@@ -48,20 +47,15 @@ def checkpoint_file(path: Path) -> Path:
 
 
 def training_row_mean(state: dict, source: Path, data_root: str = "", probs_root: str = "") -> dict | None:
-    """A diffusion stage's `row_mean` entry (`u4d_aug.weights`): the per-row mean of its training images (x0_u for
-    stage 1), read from the training scans its config names or from `data_root` / `probs_root`; None (and a warning)
-    when they cannot be read, as then `u4d generate mean_start_below=...` reads them itself."""
-    cfg = config_from_checkpoint(state, str(source))
-    key = "x0_u" if cfg.diffusion.stage == "stage1" else "x0"
-    cfg = dataclasses.replace(cfg, data_root=data_root or cfg.data_root, probs_root=probs_root or cfg.probs_root)
+    """A diffusion stage's `row_mean` entry (`u4d_aug.weights`): `batches.net_row_mean` of its training checkpoint;
+    None (and a warning) when its training scans cannot be read, as then `u4d generate mean_start_below=...` reads
+    them itself."""
     try:
-        mean = row_mean(cfg, key)
+        mean, found = net_row_mean(config_from_checkpoint(state, str(source)), data_root, probs_root)
     except (InputError, OSError) as exc:
         logger.warning("%s: no row_mean stored, its training scans cannot be read (%s); see --data-root", source, exc)
         return None
-    found = {"data_root": cfg.data_root, "sequences": cfg.sequences}
-    if key == "x0_u":
-        found["probs_root"] = cfg.probs_root
+    key = found.pop("key")
     return {"key": key, "mean": mean.float().contiguous(), "source": found}
 
 

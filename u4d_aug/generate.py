@@ -16,7 +16,6 @@ the real frames' own motion.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +37,7 @@ from u4d_aug.bank import (
     write_sample,
     write_sequence_poses,
 )
-from u4d_aug.batches import row_mean
+from u4d_aug.batches import net_row_mean, row_mean_key
 from u4d_aug.config import config_to_dict, load_config
 from u4d_aug.data.beams import check_beams
 from u4d_aug.data.datasets import (
@@ -366,39 +365,29 @@ def _real_sample_condition(
     return x0_u, m_u, entropy_image, (item["poses"] if frames > 1 else None)
 
 
-def training_mean(
-    net_cfg: DiffusionTrainConfig, name: str, cfg: GenerateConfig, path: Path | None = None
-) -> tuple[Tensor, dict]:
-    """(C, H, 1) per-row mean of a net's training images (`batches.row_mean`: x0_u for stage 1, x0 otherwise) and
-    where it came from: read from mean_data_root when set, else the one stored in its weights file `path` (`u4d
-    export-weights`), else read from the training scans its config names; an InputError naming the keys to set
-    when none of these is there."""
-    key = "x0_u" if name == "stage1" else "x0"
-    stored = None
-    if not cfg.mean_data_root and path is not None and not Path(path).is_dir():
+def training_mean(net_cfg: DiffusionTrainConfig, name: str, cfg: GenerateConfig, path: Path) -> tuple[Tensor, dict]:
+    """(C, H, 1) per-row mean of a net's training images (`batches.net_row_mean`) and where it came from: read from
+    mean_data_root when set, else the one stored in its weights file `path` (`u4d export-weights`), else read from
+    the training scans its config names; an InputError naming the keys to set when none of these is there."""
+    if not cfg.mean_data_root and not Path(path).is_dir():
         stored = stored_row_mean(load_checkpoint(Path(path), "diffusion checkpoint"), str(path))
-    if stored is not None:
-        mean, source = stored
-        if source.get("key") != key or mean.shape[1] != net_cfg.height:
-            raise InputError(
-                f"{path}: row_mean: expected the {key} mean of {net_cfg.height} rows, got {source.get('key')} "
-                f"of shape {tuple(mean.shape)}"
-            )
-        return mean, {**source, "stored_in": str(path)}
-    data_root = cfg.mean_data_root or net_cfg.data_root
-    probs_root = cfg.mean_probs_root or net_cfg.probs_root
-    source = {"key": key, "data_root": data_root, "sequences": net_cfg.sequences}
-    if key == "x0_u":
-        source["probs_root"] = probs_root
+        if stored is not None:
+            mean, source = stored
+            key = row_mean_key(net_cfg)
+            if source.get("key") != key or mean.shape[1] != net_cfg.height:
+                raise InputError(
+                    f"{path}: row_mean: expected the {key} mean of {net_cfg.height} rows, got {source.get('key')} "
+                    f"of shape {tuple(mean.shape)}"
+                )
+            return mean, {**source, "stored_in": str(path)}
     try:
-        mean = row_mean(dataclasses.replace(net_cfg, data_root=data_root, probs_root=probs_root), key)
+        return net_row_mean(net_cfg, cfg.mean_data_root, cfg.mean_probs_root)
     except (InputError, OSError) as exc:
         raise InputError(
             f"mean_start_below: the {name} net's mean image is read from its training scans ({exc}); set "
             "mean_data_root (and mean_probs_root for stage 1) to where they are, export the net with "
             "`u4d export-weights --data-root` to store it, or set mean_start_below=null"
         ) from None
-    return mean, source
 
 
 def load_motion_file(path: str | Path, frames: int) -> np.ndarray:
