@@ -5,8 +5,8 @@
 
 For a baseline or stage-1 net (unconditional), each NAME:STEPS[:GRID] setting draws `--num` range images (sample i
 seeded i, the same for every setting) and reports, against real scans projected the same way:
-- roughness: mean |depth difference| of horizontally adjacent pixels that both hold a return (encoded depth in
-  [-1, 1]); the noise a deterministic solver keeps from x_1 shows up here first,
+- roughness (`range_view.image_roughness`): mean |depth difference| of horizontally adjacent pixels that both hold a
+  return (encoded depth in [-1, 1]); the noise a deterministic solver keeps from x_1 shows up here first,
 - returns: the share of pixels holding a return (real scans: ~85 % at 64x1024),
 - seconds per scan (wall clock of the sampling call / num).
 These are fast proxies to choose a sampler before the Table-1 benchmark (`bench_generation.py`), not its metrics.
@@ -24,19 +24,9 @@ import torch
 from u4d_aug.errors import InputError
 from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json, atomic_write_text
+from u4d_aug.range_view import image_roughness
 
 REPO = Path(__file__).resolve().parents[1]
-NO_RETURN = -0.99  # encoded depth below this is an empty pixel (the range view writes -1 there)
-
-
-def roughness_and_returns(x0: torch.Tensor) -> tuple[float, float]:
-    """(mean |horizontal depth step| between adjacent returns, share of pixels with a return) of (N, 2, H, W)."""
-    depth = x0[:, 0]
-    valid = depth > NO_RETURN
-    both = valid[..., 1:] & valid[..., :-1]
-    steps = (depth[..., 1:] - depth[..., :-1]).abs()
-    rough = float(steps[both].mean()) if both.any() else float("nan")
-    return rough, float(valid.float().mean())
 
 
 def real_images(root: Path, cfg, num: int) -> torch.Tensor:
@@ -74,7 +64,7 @@ def run_setting(loaded, spec: str, num: int) -> dict:
     else:
         raise InputError(f"bench_samplers: needs an unconditional net (baseline or stage1), got {stage}")
     seconds = (time.perf_counter() - start) / num
-    rough, returns = roughness_and_returns(x0.reshape(-1, *x0.shape[-3:]))
+    rough, returns = image_roughness(x0)
     return {
         "sampler": name,
         "steps": steps,
@@ -126,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         path = newest_checkpoint(args.checkpoint) if args.checkpoint.is_dir() else args.checkpoint
         state = load_checkpoint(path, "diffusion checkpoint")
         step = state.get("step", state.get("trained", {}).get("step"))
-        rough, returns = roughness_and_returns(real_images(args.real, loaded[1], args.num))
+        rough, returns = image_roughness(real_images(args.real, loaded[1], args.num))
         settings = [run_setting(loaded, spec, args.num) for spec in args.samplers]
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -61,6 +61,9 @@ class DiffusionConfig:
     # per sample in [0, cond_noise], so stage 2 learns to read an imperfect, generated P_u (conditioning
     # augmentation of cascaded diffusion models, Ho et al. 2022); 0 = the exact x0_u
     cond_noise: float = 0.0
+    # training draws t ~ U(0, train_t_max): 1 is the whole schedule (R2DM); below 1 a fine-tune of the low-noise end,
+    # where a few-step sampler's last x̂0 is made (0.1: log-SNR >= 3.7)
+    train_t_max: float = 1.0
 
     def __post_init__(self) -> None:
         if self.stage not in ("stage1", "stage2", "baseline"):
@@ -73,6 +76,8 @@ class DiffusionConfig:
             raise InputError(f"diffusion.most_cv_weight must be >= 0, got {self.most_cv_weight}")
         if self.cond_noise < 0 or (self.cond_noise > 0 and self.stage != "stage2"):
             raise InputError(f"diffusion.cond_noise must be >= 0, and 0 unless stage=stage2, got {self.cond_noise}")
+        if not 0.0 < self.train_t_max <= 1.0:
+            raise InputError(f"diffusion.train_t_max must be in (0, 1], got {self.train_t_max}")
 
 
 def noisy_condition(x0_u: Tensor, m_u: Tensor, max_std: float, generator: torch.Generator | None) -> Tensor:
@@ -147,7 +152,7 @@ class GaussianDiffusion(nn.Module):
 
         batch = x0.shape[0]
         draw_device = generator.device if generator is not None else x0.device
-        t = torch.rand(batch, generator=generator, device=draw_device).to(x0.device)  # (B,)
+        t = torch.rand(batch, generator=generator, device=draw_device).to(x0.device) * self.cfg.train_t_max  # (B,)
         eps = torch.randn(x0.shape, generator=generator, device=draw_device).to(x0.device, x0.dtype)
         lam = log_snr(t)  # (B,)
         alpha, sigma = alpha_sigma(lam.view(batch, *([1] * (x0.dim() - 1))))

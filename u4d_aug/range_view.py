@@ -26,6 +26,7 @@ __all__ = [
     "RowMode",
     "decode_depth",
     "encode_depth",
+    "image_roughness",
     "project",
     "project_batch",
     "ray_angles",
@@ -39,6 +40,7 @@ RowMode = Literal["beam", "linear"]
 ROW_MODES: tuple[str, ...] = ("beam", "linear")
 
 _LOW_32_BITS = 0xFFFFFFFF
+NO_RETURN = -0.99  # encoded depth below this is an empty pixel (`to_image` writes -1 there)
 _RANGE_TOLERANCE = 1e-3  # relative slack on [min_range, max_range] when decoding: float32 log/exp round trip
 
 
@@ -263,6 +265,17 @@ def to_image(projection: Projection, sensor: Sensor) -> Tensor:
     depth = encode_depth(projection.depth, sensor.max_range)
     reflectance = projection.reflectance.clamp(0.0, 1.0) * 2.0 - 1.0
     return torch.stack([depth, reflectance], dim=-3)
+
+
+def image_roughness(images: Tensor) -> tuple[float, float]:
+    """(mean |encoded depth step| between horizontally adjacent returns, share of pixels with a return) of images
+    (..., 2, H, W): the surface noise of a range image (real 64x1024 scans of the simulated world: ~0.007, ~0.87)."""
+    depth = images[..., 0, :, :]
+    valid = depth > NO_RETURN
+    both = valid[..., 1:] & valid[..., :-1]
+    steps = (depth[..., 1:] - depth[..., :-1]).abs()
+    rough = float(steps[both].mean()) if both.any() else float("nan")
+    return rough, float(valid.float().mean())
 
 
 def unproject(

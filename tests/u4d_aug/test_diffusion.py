@@ -141,6 +141,25 @@ def test_stage_checks():
         DiffusionConfig(stage="stage1", cond_noise=0.1)
     with pytest.raises(InputError, match="cond_noise"):
         DiffusionConfig(stage="stage2", cond_noise=-0.1)
+    for bad in (0.0, 1.5):
+        with pytest.raises(InputError, match="train_t_max"):
+            DiffusionConfig(train_t_max=bad)
+
+
+def test_train_t_max_draws_only_the_low_noise_end_and_1_changes_nothing():
+    net = tiny_net()
+    seen: list[torch.Tensor] = []
+    forward = net.forward
+    net.forward = lambda x_t, lam, cond: seen.append(lam) or forward(x_t, lam, cond)  # type: ignore[method-assign]
+    x0 = toy_scan().expand(64, -1, -1, -1)
+    losses = {}
+    for t_max in (1.0, 0.1):
+        diffusion = GaussianDiffusion(net, DiffusionConfig(train_t_max=t_max))
+        losses[t_max] = float(diffusion(x0, generator=torch.Generator().manual_seed(0))["eps_mse"])
+    assert seen[0].min() < 0.0 < seen[0].max()  # the whole schedule
+    assert float(seen[1].min()) >= float(log_snr(torch.tensor(0.1))) - 1e-5  # log-SNR >= 3.7 only
+    assert torch.allclose(log_snr(torch.rand(64, generator=torch.Generator().manual_seed(0))), seen[0])  # as before
+    assert losses[0.1] < losses[1.0]  # Min-SNR weights are small at high SNR
 
 
 def test_noisy_condition_touches_only_the_uncertain_region():

@@ -16,6 +16,7 @@ from u4d_aug.errors import InputError
 from u4d_aug.range_view import (
     decode_depth,
     encode_depth,
+    image_roughness,
     project,
     project_batch,
     ray_angles,
@@ -304,3 +305,13 @@ def test_real_frame0_labels_project(kitti_root: Path) -> None:
     assert bool((image[projection.mask] >= 0).all()) and bool((image[~projection.mask] == -1).all())
     road_rows = torch.nonzero(image == 40)[:, 0].float()  # raw id 40 = road: seen below the horizon
     assert float(road_rows.median()) > 32
+
+
+def test_image_roughness_counts_only_steps_between_returns() -> None:
+    x0 = torch.full((1, 2, 2, 4), -1.0)  # no returns
+    x0[0, 0, 0] = torch.tensor([0.0, 0.5, -1.0, 0.2])  # steps 0.5 (both returns), then two steps touching a hole
+    x0[0, 0, 1] = torch.tensor([0.1, 0.1, 0.4, -1.0])  # steps 0.0 and 0.3
+    rough, returns = image_roughness(x0)
+    assert rough == pytest.approx((0.5 + 0.0 + 0.3) / 3) and returns == pytest.approx(6 / 8)
+    assert image_roughness(x0[0]) == (rough, returns)  # any leading shape
+    assert math.isnan(image_roughness(torch.full((2, 3, 3), -1.0))[0])  # no returns: no steps to average

@@ -1,0 +1,156 @@
+"""How much noise each generator removes in one call, by log-SNR: the precision of a few-step sampler's last x̂0.
+
+    python benchmarks/diag_denoise.py --root data/sim_eval --probs data/sim_eval_probs --sequences 00 --num 4 \
+        --out benchmarks/results/denoise_64x1024.json
+
+Each net (`--nets NAME=WEIGHTS ...`; default the shipped baseline, U4D stage 2 and stage 1) reads the first `--num`
+scans of ROOT's SEQUENCES as its training target: the scan's range image x0 (the baseline; stage 2, conditioned on
+the scan's own P_u from --probs) or x0_u, the P_u pixels (stage 1). The target is noised to x_t = α x0 + σ ε at each
+log-SNR of --log-snr (ε drawn from --seed, the same for every net) and the net called once: x̂0 = clamp((x_t − σ ε̂)/α).
+Reported on the pixels holding a return: the mean |x̂0 − x0| beside the noise it started from, mean |x_t/α − x0| (a
+net that removes nothing scores the same), and the roughness (`range_view.image_roughness`) of x̂0 against x0's.
+The samplers hand back the x̂0 of their last call, whose log-SNR the table states for 20 and 32 steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+import torch
+
+from u4d_aug.batches import RangeImages, stage_inputs
+from u4d_aug.diffusion import alpha_sigma, log_snr, stage_cond
+from u4d_aug.errors import InputError
+from u4d_aug.host import host_info
+from u4d_aug.io import atomic_write_json, atomic_write_text
+from u4d_aug.pipeline import load_generator
+from u4d_aug.range_view import NO_RETURN, image_roughness
+
+REPO = Path(__file__).resolve().parents[1]
+SHIPPED = [
+    f"{name}={REPO / 'weights' / file}"
+    for name, file in (("baseline", "baseline.pt"), ("u4d stage 2", "u4d_stage2.pt"), ("u4d stage 1", "u4d_stage1.pt"))
+]
+LOG_SNRS = [0.0, 2.0, 5.0, 8.0, 11.0, 14.0]
+
+
+def targets(cfg, root: Path, probs: Path | None, sequences: list[str], num: int) -> tuple[torch.Tensor, ...]:
+    """(target (N, 2, H, W), net condition or None) of the first `num` scans, as the net's stage trains on them."""
+    stage = cfg.diffusion.stage
+    probs_root = str(probs) if probs is not None else ""
+    view = dataclasses.replace(
+        cfg, data_root=str(root), probs_root=probs_root, sequences=sequences, frames=1, cache_images=False
+    )
+    images = RangeImages(view)
+    items = [images[i] for i in range(min(num, len(images)))]
+    batch = {key: torch.stack([item[key] for item in items]) for key in items[0]}
+    target, cond, m_u = stage_inputs(stage, batch)
+    return target, stage_cond(cond, m_u) if stage == "stage2" else None
+
+
+def denoise_rows(net, target: torch.Tensor, cond, lams: list[float], seed: int) -> list[dict]:
+    """One ε̂ call per log-SNR on the noised target: x̂0's error and roughness against the noise it started from."""
+    valid = target[:, 0] > NO_RETURN
+    generator = torch.Generator().manual_seed(seed)
+    rows = []
+    for lam in lams:
+        alpha, sigma = (float(v) for v in alpha_sigma(torch.tensor(lam, dtype=torch.float64)))
+        eps = torch.randn(target.shape, generator=generator)
+        x_t = alpha * target + sigma * eps
+        with torch.no_grad():
+            eps_hat = net(x_t, torch.full((target.shape[0],), lam), cond)[0]
+        x0_hat = ((x_t - sigma * eps_hat) / alpha).clamp(-1.0, 1.0)
+        rows.append(
+            {
+                "log_snr": lam,
+                "sigma_over_alpha": sigma / alpha,
+                "noise": float((x_t / alpha - target)[:, 0].abs()[valid].mean()),
+                "error": float((x0_hat - target)[:, 0].abs()[valid].mean()),
+                "roughness": image_roughness(torch.where(valid[:, None], x0_hat, -1.0))[0],
+            }
+        )
+    return rows
+
+
+def to_markdown(result: dict) -> str:
+    """One row per log-SNR: each net's |x̂0 − x0| / noise and x̂0's roughness."""
+    names = list(result["nets"])
+    last = result["last_call_log_snr"]
+    lines = [
+        f"# One denoising call by log-SNR ({result['num']} scans of {result['root']} {' '.join(result['sequences'])})",
+        "",
+        f"The samplers' last call (time grid): log-SNR {last['20']:.2f} at 20 steps, {last['32']:.2f} at 32 steps. "
+        "error = mean |x̂0 − x0| on returns (encoded depth, [-1, 1]); noise = the same for x_t/α (no denoising); "
+        "rough = x̂0's horizontal roughness.",
+        "",
+        "| log-SNR | σ/α | " + " | ".join(f"{n}: error / noise | {n}: rough" for n in names) + " |",
+        "|---|---|" + "---|---|" * len(names),
+        "| real target | — | " + " | ".join(f"— | {result['nets'][n]['real_roughness']:.4f}" for n in names) + " |",
+    ]
+    for i, lam in enumerate(result["log_snrs"]):
+        cells = []
+        for name in names:
+            row = result["nets"][name]["rows"][i]
+            cells.append(f"{row['error']:.4f} / {row['noise']:.4f} | {row['roughness']:.4f}")
+        sigma = result["nets"][names[0]]["rows"][i]["sigma_over_alpha"]
+        lines.append(f"| {lam:g} | {sigma:.4f} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--nets", nargs="+", default=SHIPPED, metavar="NAME=WEIGHTS", help="generators to probe")
+    parser.add_argument("--root", type=Path, required=True, help="SemanticKITTI root of real (held-out) scans")
+    parser.add_argument("--probs", type=Path, default=None, help="seg-predict probabilities of ROOT (U4D stages)")
+    parser.add_argument("--sequences", nargs="+", default=["00"], help="sequences of ROOT to read")
+    parser.add_argument("--num", type=int, default=4, help="scans")
+    parser.add_argument("--log-snr", type=float, nargs="+", default=LOG_SNRS, help="noise levels")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the noise")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "denoise.json")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    nets = {}
+    try:
+        if args.num < 1:
+            raise InputError(f"--num must be >= 1, got {args.num}")
+        for spec in args.nets:
+            name, sep, path = spec.rpartition("=")
+            if not sep or not name or not path:
+                raise InputError(f"--nets {spec!r}: expected NAME=WEIGHTS")
+            net, cfg = load_generator(path)
+            target, cond = targets(cfg, args.root, args.probs, args.sequences, args.num)
+            nets[name] = {
+                "weights": path,
+                "stage": cfg.diffusion.stage,
+                "real_roughness": image_roughness(target)[0],
+                "rows": denoise_rows(net, target, cond, args.log_snr, args.seed),
+            }
+            print(f"{name}: probed at {len(args.log_snr)} log-SNRs", flush=True)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    result = {
+        "benchmark": "denoise",
+        "command": " ".join(sys.argv),
+        "machine": host_info(),
+        "root": str(args.root),
+        "sequences": args.sequences,
+        "num": args.num,
+        "seed": args.seed,
+        "log_snrs": args.log_snr,
+        "last_call_log_snr": {str(n): float(log_snr(torch.tensor(1.0 / n, dtype=torch.float64))) for n in (20, 32)},
+        "nets": nets,
+    }
+    text = to_markdown(result)
+    print(text)
+    atomic_write_json(args.out, result)
+    atomic_write_text(args.out.with_suffix(".md"), text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
