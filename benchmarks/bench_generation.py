@@ -15,7 +15,9 @@ the floor draws `--num` real scans of the `--floor` sequences (disjoint from the
 scores them the same way, so it is the value a perfect generator would get at this sample size. The json has
 `methods.<u4d|baseline|floor>.<metric>.{mean,std,values}` of the first (headline) sampler (the floor also has
 `points_projected`: its scans' occupied pixels at the generators' H x W), `ratios` (U4D over the baseline and over
-the floor, points per scan over the floor's raw and projected points) and the same per sampler under `samplers`.
+the floor, points per scan over the floor's raw and projected points) and the same per sampler under `samplers`;
+`sampler_ratios.<method> <metric> <headline tag>/<tag>`: each method's headline score over its score with every other
+setting (the fast sampler against the same nets' 32-step DDPM).
 """
 
 from __future__ import annotations
@@ -226,6 +228,15 @@ def to_markdown(result: dict) -> str:
             ]
         lines += ["", "| ratio | " + " | ".join(block["ratios"]) + " |", "|---" * (len(block["ratios"]) + 1) + "|"]
         lines.append("| value | " + " | ".join(_fmt_ratio(v) for v in block["ratios"].values()) + " |")
+    if result.get("sampler_ratios"):
+        lines += [
+            "",
+            "## Headline sampler over the others (same nets, same seeds)",
+            "",
+            "| ratio | value |",
+            "|---|---|",
+        ]
+        lines += [f"| {key} | {_fmt_ratio(value)} |" for key, value in result["sampler_ratios"].items()]
     lines += ["", "Training budgets:", ""]
     for name, budget in result["training"].items():
         lines.append(
@@ -233,6 +244,21 @@ def to_markdown(result: dict) -> str:
             f"{budget['params']:,} params, {budget['size'][0]}x{budget['size'][1]}"
         )
     return "\n".join(lines) + "\n"
+
+
+def sampler_ratios_of(blocks: dict, headline: str, metrics: tuple[str, ...]) -> dict[str, float | None]:
+    """Each method's headline-setting score over its score with every other setting, for FRD/FPD/JSD/MMD."""
+    ratios = {}
+    for tag, block in blocks.items():
+        if tag == headline:
+            continue
+        for name in METHODS:
+            for metric in ("frd", "fpd", "jsd", "mmd"):
+                if metric in metrics:
+                    ratios[f"{name} {metric} {headline}/{tag}"] = ratio(
+                        blocks[headline]["methods"][name][metric], block["methods"][name][metric]
+                    )
+    return ratios
 
 
 def _fmt_ratio(value: float | None) -> str:
@@ -356,6 +382,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     headline = blocks[args.samplers[0].tag]
+    sampler_ratios = sampler_ratios_of(blocks, args.samplers[0].tag, metrics)
     result = {
         "benchmark": "generation",
         "command": " ".join(sys.argv),
@@ -371,6 +398,7 @@ def main(argv: list[str] | None = None) -> int:
         "headline_sampler": headline["sampler"],
         "methods": headline["methods"],
         "ratios": headline["ratios"],
+        "sampler_ratios": sampler_ratios,
         "samplers": blocks,
     }
     text = to_markdown(result)

@@ -63,6 +63,8 @@ def test_two_samplers_write_methods_and_ratios(tmp_path):
     # the floor is the same real scans for both settings; the banks of each setting are their own
     assert result["samplers"]["ddpm_2_1"]["methods"]["floor"] == result["methods"]["floor"]
     assert (tmp_path / "work" / "u4d_ddpm_2_1_s1").is_dir() and (tmp_path / "work" / "baseline_dpmpp2m_2_1_s0").is_dir()
+    # neither FRD/FPD/JSD/MMD was asked for: no headline-over-DDPM ratios (`sampler_ratios_of` is tested alone)
+    assert result["sampler_ratios"] == {}
     text = out.with_suffix(".md").read_text()
     assert "## dpmpp2m 2 steps (stage 1: 1)" in text and "u4d points/floor" in text
     assert "projected to the generators' range image" in text
@@ -103,3 +105,17 @@ def test_mean_start_banks_are_their_own_and_recorded(tmp_path):
         manifest = json.loads((tmp_path / "work" / f"{method}_ddpm_2_1_ms-10_s0" / "manifest.json").read_text())
         assert manifest["sampling"]["mean_start_below"] == -10.0 and manifest["complete"]
     assert "Mean start: the nets' training mean image as x0 below log-SNR -10." in out.with_suffix(".md").read_text()
+
+
+def test_sampler_ratios_divide_the_headline_by_each_other_setting():
+    def block(u4d, baseline):
+        return {"methods": {"u4d": {"frd": {"mean": u4d}}, "baseline": {"frd": {"mean": baseline}}}}
+
+    blocks = {"fast": block(110.0, 90.0), "ddpm": block(100.0, 100.0), "ddim": block(None, 45.0)}
+    ratios = bench.sampler_ratios_of(blocks, "fast", ("frd", "points"))
+    assert ratios == {
+        "u4d frd fast/ddpm": pytest.approx(1.1),
+        "baseline frd fast/ddpm": pytest.approx(0.9),
+        "u4d frd fast/ddim": None,  # a missing score gives no ratio
+        "baseline frd fast/ddim": pytest.approx(2.0),
+    }
