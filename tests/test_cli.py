@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import shlex
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -173,6 +174,16 @@ def test_overrides_after_flags_reach_the_config(tmp_path, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"error: {missing}: baseline checkpoint not found"
+
+
+def test_a_shipped_weights_path_from_another_folder_says_where_the_file_is(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # configs/u4d/generate_hdl64.yaml names weights/*.pt relative to the repository
+    argv = ["generate", "u4d/generate_hdl64", "--out", str(tmp_path / "bank"), "mode=baseline", "num=1"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    repo = Path(__file__).resolve().parents[1]
+    assert err.startswith("error: weights/baseline.pt: baseline checkpoint not found (relative to ")
+    assert f"name {repo / 'weights' / 'baseline.pt'})" in err and not (tmp_path / "bank").exists()
 
 
 def test_unknown_flag_is_still_refused_in_one_line(capsys):

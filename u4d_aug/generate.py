@@ -69,7 +69,7 @@ from u4d_aug.sampling import Grid, check_grid
 from u4d_aug.stage import DiffusionTrainConfig
 from u4d_aug.trajectory import POSE_DIM, poses_from_motion, relative_motion
 from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
-from u4d_aug.weights import stored_row_mean
+from u4d_aug.weights import SHIPPED_DIR, stored_row_mean
 
 logger = logging.getLogger(__name__)
 
@@ -156,7 +156,10 @@ def _checkpoint_paths(cfg: GenerateConfig) -> dict[str, Path]:
                 raise InputError(f"{path}: no checkpoints/step_*.pt in this run folder")
             path = found[-1]
         if not path.is_file():
-            raise InputError(f"{path}: {name} checkpoint not found")
+            hint = ""
+            if not path.is_absolute() and (SHIPPED_DIR.parent / path).is_file():  # a repository path, another folder
+                hint = f" (relative to {Path.cwd()}; run from {SHIPPED_DIR.parent} or name {SHIPPED_DIR.parent / path})"
+            raise InputError(f"{path}: {name} checkpoint not found{hint}")
         paths[name] = path
     return paths
 
@@ -167,6 +170,7 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
     Rank 0 holds the bank's run lock (`u4d_aug.runlock`), removes temp files of killed writes and checks the finished
     samples against the digests of the manifest (a changed one is generated again) before any rank writes.
     """
+    _checkpoint_paths(cfg)  # a missing net is one error line, before the bank folder exists
     info = init_distributed(cfg.device)
     with run_lock(out, enabled=info.is_main):
         manifest = generate_locked(cfg, Path(out), info, progress)
