@@ -37,7 +37,9 @@ SHIPPED = [
 LOG_SNRS = [0.0, 2.0, 5.0, 8.0, 11.0, 14.0]
 
 
-def targets(cfg, root: Path, probs: Path | None, sequences: list[str], num: int) -> tuple[torch.Tensor, ...]:
+def targets(
+    cfg, root: Path, probs: Path | None, sequences: list[str], num: int
+) -> tuple[torch.Tensor, torch.Tensor | None]:
     """(target (N, 2, H, W), net condition or None) of the first `num` scans, as the net's stage trains on them."""
     stage = cfg.diffusion.stage
     probs_root = str(probs) if probs is not None else ""

@@ -170,18 +170,17 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
     Rank 0 holds the bank's run lock (`u4d_aug.runlock`), removes temp files of killed writes and checks the finished
     samples against the digests of the manifest (a changed one is generated again) before any rank writes.
     """
-    _checkpoint_paths(cfg)  # a missing net is one error line, before the bank folder exists
+    paths = _checkpoint_paths(cfg)  # a missing net is one error line, before the bank folder exists
     info = init_distributed(cfg.device)
     with run_lock(out, enabled=info.is_main):
-        manifest = generate_locked(cfg, Path(out), info, progress)
+        manifest = generate_locked(cfg, paths, Path(out), info, progress)
     if info.is_main and (cfg.labels or cfg.mmdet3d_infos):
         manifest = {**manifest, "export": export_bank(out, cfg.labels, cfg.mmdet3d_infos)}
     return manifest
 
 
-def generate_locked(cfg: GenerateConfig, out: Path, info: DistInfo, progress: bool) -> dict:
-    """The work of `generate_bank` once the bank is locked."""
-    paths = _checkpoint_paths(cfg)
+def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info: DistInfo, progress: bool) -> dict:
+    """The work of `generate_bank` once the bank is locked; `paths`: {net role: checkpoint file}."""
     hashes = {name: file_sha256(path) for name, path in paths.items()}
     config = config_to_dict(cfg)
     identity = {"mode": cfg.mode, "checkpoints": hashes, "seed": cfg.seed,
