@@ -89,6 +89,7 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
         table = json.loads((out / f"eval_{method}" / "evaluation.json").read_text())["table1"]
         assert 0.1 < table["jsd"]["value"] < 0.55 * disjoint, (method, table["jsd"])
         assert table["frd"]["value"] > 0 and table["frd"]["extractor_hash"] == "8952f78731a3fb61"
+        assert table["fpd"]["value"] > 0 and table["fpd"]["extractor_hash"] == "ea1993e763a7ffc3"
     # the same command on identical inputs (a bank against itself) gives 0
     same = out / "eval_same"
     assert main(["evaluate", "--bank", str(out / "bank_u4d"), "--real", str(out / "bank_u4d"), "--metrics", "jsd",

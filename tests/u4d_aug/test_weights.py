@@ -260,3 +260,22 @@ def test_shipped_weights_are_found_by_role(tmp_path):
     # the checkout's own weights/ folder holds the three generators and the FRD extractor
     shipped = shipped_weights(SHIPPED_DIR)
     assert shipped is not None and {"u4d_stage1", "u4d_stage2", "baseline", "extractor_frd"} <= set(shipped)
+
+
+def test_shipped_files_match_the_hashes_and_sizes_their_readme_records():
+    shipped = shipped_weights(SHIPPED_DIR)
+    assert shipped is not None
+    rows = {}
+    for line in (SHIPPED_DIR / "README.md").read_text().splitlines():
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if line.startswith("| `") and cells[0].endswith(".pt`"):
+            rows[cells[0].strip("`")[: -len(".pt")]] = (cells[-2].strip("`"), float(cells[-1]))
+    assert set(rows) == set(shipped)  # every shipped file has its row, and no row names an absent file
+    for name, path in shipped.items():
+        state = torch.load(path, weights_only=True)
+        assert state["hash"] == rows[name][0], name
+        assert abs(path.stat().st_size / 1e6 - rows[name][1]) < 0.1, name
+    assert sum(p.stat().st_size for p in shipped.values()) <= 25e6
+    for kind in ("frd", "fpd"):
+        extractor = load_extractor(shipped[f"extractor_{kind}"])
+        assert extractor.kind == kind and (extractor.height, extractor.width) == (64, 1024)
