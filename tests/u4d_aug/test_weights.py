@@ -257,9 +257,10 @@ def test_shipped_weights_are_found_by_role(tmp_path):
     assert found == {
         name: tmp_path / f"{name}.pt" for name in ("u4d_stage1", "u4d_stage2", "baseline", "extractor_frd")
     }
-    # the checkout's own weights/ folder holds the three generators and the FRD extractor
+    # the checkout's own weights/ folder holds the three generators and both extractors
     shipped = shipped_weights(SHIPPED_DIR)
-    assert shipped is not None and {"u4d_stage1", "u4d_stage2", "baseline", "extractor_frd"} <= set(shipped)
+    roles = {"u4d_stage1", "u4d_stage2", "baseline", "extractor_frd", "extractor_fpd"}
+    assert shipped is not None and roles <= set(shipped)
 
 
 def test_shipped_files_match_the_hashes_and_sizes_their_readme_records():
