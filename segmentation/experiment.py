@@ -12,7 +12,8 @@ with every arm's mIoU and ECE paired by seed against a reference arm
 (sup-only by default): the difference per seed, its mean ± std, the seeds where it is above 0 and a paired t-test;
 `contrasts` adds the same comparison for any [arm, reference] pair (an ablation against its parent arm).
 `--report-only` trains nothing and reports the finished runs, so arms with different numbers of finished seeds
-share one table.
+share one table. With `records_dir`, every finished run also leaves a record (segmentation/records.py) that counts
+as that run on a machine without its folder.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from segmentation.config import BankConfig, SegTrainConfig
 from segmentation.evaluate import evaluate
 from segmentation.metrics import ReliabilityBins
 from segmentation.plots import plot_arm_curves, plot_paired, plot_reliability
+from segmentation.records import CURVE_KEYS, json_roundtrip, log_curves, read_record, record_path, write_record
 from segmentation.train import train
 from u4d_aug.bank import read_manifest
 from u4d_aug.config import (
@@ -111,6 +113,10 @@ class ExperimentConfig:
     # evaluate each finished run's model.pt once on every labelled scan of its data.val_sequences (RUN/eval_full.json,
     # reused) and report those figures instead of the periodic evaluation's (data.val_max_scans scans)
     final_eval: bool = False
+    # where each finished run's record is kept (segmentation/records.py: its figures, curves and host as json, e.g. a
+    # folder in the repository): a run with a record of the same recipe counts as finished on any machine, and the
+    # tables are built from run folders and records together; None = run folders only
+    records_dir: Path | None = None
 
     def __post_init__(self) -> None:
         names = [arm.name for arm in self.arms]
@@ -426,7 +432,9 @@ def run_experiment_config(
             for seed in cfg.seeds:
                 run = run_config(cfg, arm, backbone, seed)
                 t0 = time.perf_counter()
-                if train:
+                path = None if cfg.records_dir is None else record_path(cfg.records_dir, arm.name, backbone, seed)
+                record = None if path is None else read_record(path, run)
+                if train and record is None:
                     logger.info("%s / %s / seed %d -> %s", arm.name, backbone, seed, run.out_dir)
                     with run_lock(run.out_dir):  # per run folder: other processes may train other arms or seeds
                         donor = start_from_burn_in(run, donors_on_disk(out)) if cfg.share_burn_in else None
@@ -434,9 +442,16 @@ def run_experiment_config(
                             logger.info("  starts at step %d from %s (the same burn-in)", run.semi.burn_in_steps, donor)
                         run_one(run, progress)
                 metrics = run_metrics(run, cfg.final_eval, progress)
-                if metrics is None:  # not trained here and not finished
+                if metrics is not None:
+                    curves = log_curves(Path(run.out_dir) / "log.jsonl")
+                    if path is not None and (record is None or record["metrics"] != json_roundtrip(metrics)):
+                        write_record(path, run, metrics, curves)
+                elif record is not None:
+                    metrics, curves = record["metrics"], record["curves"]
+                else:  # not trained here and not finished
                     continue
-                runs.append({"seed": seed, "out_dir": str(run.out_dir), **metrics})
+                source = str(run.out_dir) if (Path(run.out_dir) / "metrics.json").is_file() else str(path)
+                runs.append({"seed": seed, "out_dir": source, "curves": curves, **metrics})
                 if train:
                     logger.info("  done in %.1f s (mIoU %s)", time.perf_counter() - t0, metrics.get("miou"))
             if not runs:
@@ -485,14 +500,11 @@ def run_experiment_config(
 
 
 def run_curves(runs: list[dict]) -> dict[str, list[list[tuple[float, float]]]]:
-    """Per seed, (step, value) of the training loss and the periodic held-out mIoU from each run's log.jsonl."""
-    curves: dict[str, list[list[tuple[float, float]]]] = {"loss": [], "val_miou": []}
-    for run in runs:
-        log = Path(run["out_dir"]) / "log.jsonl"
-        records = read_jsonl(log) if log.is_file() else []
-        for key in curves:
-            curves[key].append([(float(r["step"]), float(r[key])) for r in records if r.get(key) is not None])
-    return curves
+    """Per seed, (step, value) of the training loss and the periodic held-out mIoU (each run's log or record)."""
+    return {
+        key: [[(float(step), float(value)) for step, value in run["curves"].get(key, [])] for run in runs]
+        for key in CURVE_KEYS
+    }
 
 
 def aggregate(runs: list[dict]) -> dict:

@@ -73,6 +73,7 @@ def test_distance_bands_in_the_report():
 def test_learning_curves_from_the_run_logs(tmp_path):
     from segmentation.experiment import run_curves
     from segmentation.plots import plot_arm_curves
+    from segmentation.records import log_curves
     from u4d_aug.io import append_jsonl
 
     runs = []
@@ -81,7 +82,7 @@ def test_learning_curves_from_the_run_logs(tmp_path):
         for step in (10, 20, 30):
             append_jsonl(out / "log.jsonl", {"step": step, "loss": 3.0 - step / 10 + seed, "lr": 0.01})
         append_jsonl(out / "log.jsonl", {"step": 30, "val_miou": 0.4 + seed / 10})
-        runs.append({"seed": seed, "out_dir": str(out)})
+        runs.append({"seed": seed, "out_dir": str(out), "curves": log_curves(out / "log.jsonl")})
     curves = run_curves(runs)
     assert curves["loss"][1] == [(10.0, 3.0), (20.0, 2.0), (30.0, 1.0)]
     assert curves["val_miou"] == [[(30.0, 0.4)], [(30.0, 0.5)]]

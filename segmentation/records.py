@@ -1,0 +1,119 @@
+"""Run records: one finished experiment run as a small json file that outlives its run folder.
+
+A run folder (checkpoints, model.pt) stays on the machine that trained it; its record — the run's config, the
+figures the tables report (mIoU, ECEs, per-class and per-band IoU, reliability bins, wall-clock), its learning
+curves and the host — is kept where the experiment's `records_dir` says (a folder in the repository), so that a
+table over seeds can be built from runs trained on different machines. A record stands for a finished run only
+while its config equals the run's config of today (bookkeeping keys aside); otherwise it is ignored, with a warning.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import platform
+from datetime import datetime, timezone
+from pathlib import Path
+
+import torch
+
+from segmentation.config import SegTrainConfig
+from u4d_aug.config import config_to_dict
+from u4d_aug.errors import InputError
+from u4d_aug.io import atomic_write_json, dumps_json, read_json_file, read_jsonl
+
+logger = logging.getLogger(__name__)
+
+FORMAT = 1
+# keys that change where and how often a run writes, never what it learns
+BOOKKEEPING = ("out_dir", "checkpoint_every", "keep_checkpoints", "num_workers", "threads")
+CURVE_KEYS = ("loss", "val_miou")
+
+
+def record_path(records_dir: Path, arm: str, backbone: str, seed: int) -> Path:
+    """records_dir/ARM/BACKBONE/seedS.json (arm names are plain names: `ArmConfig` checks them)."""
+    return Path(records_dir) / arm / backbone / f"seed{seed}.json"
+
+
+def recipe(run: SegTrainConfig) -> dict:
+    """What fixes a run's result: its config as plain json without the bookkeeping keys."""
+    data = json_roundtrip(config_to_dict(run))
+    for key in BOOKKEEPING:
+        data.pop(key, None)
+    return data
+
+
+def json_roundtrip(obj: object) -> object:
+    """`obj` as json would give it back (paths as strings, tuples as lists), for comparing with a stored record."""
+    return json.loads(dumps_json(obj))
+
+
+def log_curves(log: Path) -> dict[str, list[list[float]]]:
+    """(step, value) pairs of the training loss and the periodic held-out mIoU from a run's log.jsonl."""
+    records = read_jsonl(log) if log.is_file() else []
+    return {key: [[float(r["step"]), float(r[key])] for r in records if r.get(key) is not None] for key in CURVE_KEYS}
+
+
+def host() -> dict:
+    """The machine a run trained on: cpu model, core count, torch version and threads."""
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpu": model, "cores": os.cpu_count(), "torch": torch.__version__, "threads": torch.get_num_threads()}
+
+
+def write_record(path: Path, run: SegTrainConfig, metrics: dict, curves: dict) -> None:
+    """Save one finished run's record atomically (the figures `run_metrics` gives, bins included)."""
+    record = {
+        "format": FORMAT,
+        "seed": run.seed,
+        "recipe": recipe(run),
+        "metrics": metrics,
+        "curves": curves,
+        "host": host(),
+        "trained_in": str(run.out_dir),
+        "written": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
+    atomic_write_json(path, record)
+
+
+def read_record(path: Path, run: SegTrainConfig) -> dict | None:
+    """The record at `path` when it stands for `run` (same recipe), None when there is none or it is stale.
+
+    A file that is not a record raises an InputError naming it; a record of another recipe is ignored with a
+    warning naming the first key that differs (the run then trains again).
+    """
+    if not path.is_file():
+        return None
+    record = read_json_file(path, "a run record")
+    if not isinstance(record, dict) or record.get("format") != FORMAT:
+        raise InputError(f"{path}: expected a run record (an object with format {FORMAT}), got something else")
+    for key in ("recipe", "metrics", "curves"):
+        if not isinstance(record.get(key), dict):
+            raise InputError(f"{path}: field {key!r} must be an object")
+    if not isinstance(record["metrics"].get("miou"), (int, float)):
+        raise InputError(f"{path}: field 'metrics.miou' must be a number")
+    differs = first_difference(record["recipe"], recipe(run))
+    if differs is not None:
+        logger.warning("%s: ignored, recorded for another recipe (%s)", path, differs)
+        return None
+    return record
+
+
+def first_difference(old: object, new: object, where: str = "") -> str | None:
+    """The first key path at which two json values differ, with both values; None when equal."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        for key in sorted(set(old) | set(new)):
+            if key not in old or key not in new:
+                return f"{where}{key}: only in the {'record' if key in old else 'run'}"
+            found = first_difference(old[key], new[key], f"{where}{key}.")
+            if found is not None:
+                return found
+        return None
+    return None if old == new else f"{where.rstrip('.')}: record {old!r}, run {new!r}"
