@@ -16,9 +16,11 @@
 # against the held-out places 88-99; the floor scores those real held-out sequences themselves. Core A ends with the
 # table (benchmarks/temporal_table.py -> benchmarks/results/temporal.json / .md) and the gate figure.
 # RUNS (default ../runs) says where run folders go, RESULTS (default benchmarks/results) where the table and figure go
-# (PY, default python3, runs benchmarks/temporal_table.py);
-# the world is DATA/sim_seg (DATA default data) with its probabilities DATA/sim_seg_probs (scripts/downstream_queue.sh
-# writes both).
+# (PY, default python3, runs benchmarks/temporal_table.py). Each finished method-seed leaves its evaluation and its
+# training budget in EVALS (default RESULTS/temporal_evals, committed): a method with one there is not run again, so
+# the table grows over sessions on different machines although run folders and checkpoints stay on the machine.
+# The world is DATA/sim_seg (DATA default data) and its probabilities DATA/sim_seg_probs; core A writes what is
+# missing (the same commands as scripts/downstream_queue.sh), core B waits for them.
 set -euo pipefail
 RUNS=${RUNS:-../runs}
 DATA=${DATA:-data}
@@ -29,6 +31,7 @@ CORE=${CORE:?set CORE=A or CORE=B}
 export OMP_NUM_THREADS=1
 WAIT=${WAIT:-300}  # seconds between looks at what the other queue writes
 T=$RUNS/temporal
+E=${EVALS:-$RESULTS/temporal_evals}
 PRESET=configs/u4d/cpu_hdl64_most.yaml
 FRD=weights/extractor_frd.pt
 
@@ -63,48 +66,82 @@ sequences() {  # OUT MODE SEED [overrides...]: 24 sequences of 5 frames along mo
   done_bank "$out" || u4d generate configs/u4d/generate_hdl64.yaml --out "$out" "mode=$mode" num=24 frames=5 \
     "seed=$((1000 * seed))" "$@" --no-progress
 }
+world() {  # the simulated world and the uncertainty segmentor's probabilities of its training places
+  if [ ! -f "$DATA/sim_seg/done" ]; then
+    u4d simulate --out "$DATA/sim_seg" --sequences 100 --frames 8 --seed 10 --config configs/sim/seg_rich.yaml
+    touch "$DATA/sim_seg/done"
+  fi
+  if [ ! -f "$DATA/sim_seg_probs/done" ]; then
+    u4d seg-predict weights/uncertainty_segmentor.pt "$DATA/sim_seg" --out "$DATA/sim_seg_probs" --sequences 00-87 \
+      --no-progress
+    touch "$DATA/sim_seg_probs/done"
+  fi
+}
 score() {  # BANK OUT: TTCE k = 3, 4, CTC k = 1..4 and FRD against the held-out places
   [ -f "$2/evaluation.json" ] || u4d evaluate --bank "$1" --real "$DATA/sim_seg" --real-sequences 88-99 \
     --metrics ttce,ctc,frd --extractor-frd "$FRD" --json --md --out "$2"
 }
+budget() {  # OUT RUN...: each net's steps and training minutes (its log) and the host, beside the evaluation
+  "$PY" - "$@" <<'PYEOF'
+import json, os, sys, torch
+out, runs = sys.argv[1], sys.argv[2:]
+nets = {}
+for run in runs:
+    last = [json.loads(line) for line in open(os.path.join(run, "log.jsonl")) if '"time"' in line][-1]
+    nets[os.path.basename(run.rstrip("/"))] = {"steps": last["step"], "minutes": round(last["time"] / 60, 1)}
+cpu = next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name")), "?")
+host = {"cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__, "threads": int(os.environ.get("OMP_NUM_THREADS", 0))}
+with open(os.path.join(out, "budget.json.tmp"), "w") as f:
+    json.dump({"nets": nets, "host": host}, f, indent=2)
+os.replace(os.path.join(out, "budget.json.tmp"), os.path.join(out, "budget.json"))
+PYEOF
+}
 method() {  # NAME SEED: fine-tune, generate, score one U4D-like method (u4d_most, u4d_no_temporal, fusion_*)
   local name=$1 seed=$2
   shift 2
+  [ -f "$E/${name}_s$seed/budget.json" ] && return 0
   u4d_pair "${name}_s$seed" "$seed" "$@"
   sequences "$T/banks/${name}_s$seed" u4d "$seed" "stage1=$T/${name}_s$seed/stage1" "stage2=$T/${name}_s$seed/stage2"
-  score "$T/banks/${name}_s$seed" "$T/eval/${name}_s$seed"
+  score "$T/banks/${name}_s$seed" "$E/${name}_s$seed"
+  if [ "$name" = u4d_most ] && [ "$seed" = 0 ]; then  # the gate figure of the trained model
+    u4d gates "$T/u4d_most_s0/stage2" --png "$RESULTS/most_gates.png" --json > "$E/gates_u4d_most_s0.json"
+  fi
+  budget "$E/${name}_s$seed" "$T/${name}_s$seed/stage1" "$T/${name}_s$seed/stage2"
 }
 baseline_method() {  # SEED
   local seed=$1
+  [ -f "$E/baseline_most_s$seed/budget.json" ] && return 0
   finetune_baseline "$T/baseline_most_s$seed" "$seed"
   sequences "$T/banks/baseline_most_s$seed" baseline "$seed" "baseline=$T/baseline_most_s$seed"
-  score "$T/banks/baseline_most_s$seed" "$T/eval/baseline_most_s$seed"
+  score "$T/banks/baseline_most_s$seed" "$E/baseline_most_s$seed"
+  budget "$E/baseline_most_s$seed" "$T/baseline_most_s$seed"
 }
 floor() {  # the held-out real sequences 88-99 as the bank: their own TTCE / CTC
   mkdir -p "$T/floor/sequences"
   for s in $(seq 88 99); do ln -sfn "$(realpath "$DATA/sim_seg/sequences/$s")" "$T/floor/sequences/$s"; done
-  [ -f "$T/eval/floor/evaluation.json" ] || u4d evaluate --bank "$T/floor" --real "$DATA/sim_seg" \
-    --real-sequences 88-99 --metrics ttce,ctc --json --md --out "$T/eval/floor"
+  [ -f "$E/floor/evaluation.json" ] || u4d evaluate --bank "$T/floor" --real "$DATA/sim_seg" \
+    --real-sequences 88-99 --metrics ttce,ctc --json --md --out "$E/floor"
 }
 
 if [ "$CORE" = "A" ]; then
+  world
   method u4d_most 0
   method u4d_no_temporal 0 net.most=false
   baseline_method 1
   method fusion_cascade 0 net.most_fusion=cascade
   method fusion_concat 0 net.most_fusion=concat
   floor
-  for name in u4d_most_s1 u4d_no_temporal_s1 baseline_most_s0 fusion_add_s0; do wait_file "$T/eval/$name/evaluation.json"; done
+  for name in u4d_most_s1 u4d_no_temporal_s1 baseline_most_s0 fusion_add_s0; do wait_file "$E/$name/budget.json"; done
   "$PY" benchmarks/temporal_table.py \
-    --method "u4d_most=$T/eval/u4d_most_s0" --method "u4d_most=$T/eval/u4d_most_s1" \
-    --method "baseline_most=$T/eval/baseline_most_s0" --method "baseline_most=$T/eval/baseline_most_s1" \
-    --method "u4d_no_temporal=$T/eval/u4d_no_temporal_s0" --method "u4d_no_temporal=$T/eval/u4d_no_temporal_s1" \
-    --method "floor=$T/eval/floor" \
-    --fusion "gating=$T/eval/u4d_most_s0" --fusion "cascade=$T/eval/fusion_cascade_s0" \
-    --fusion "add=$T/eval/fusion_add_s0" --fusion "concat=$T/eval/fusion_concat_s0" \
+    --method "u4d_most=$E/u4d_most_s0" --method "u4d_most=$E/u4d_most_s1" \
+    --method "baseline_most=$E/baseline_most_s0" --method "baseline_most=$E/baseline_most_s1" \
+    --method "u4d_no_temporal=$E/u4d_no_temporal_s0" --method "u4d_no_temporal=$E/u4d_no_temporal_s1" \
+    --method "floor=$E/floor" \
+    --fusion "gating=$E/u4d_most_s0" --fusion "cascade=$E/fusion_cascade_s0" \
+    --fusion "add=$E/fusion_add_s0" --fusion "concat=$E/fusion_concat_s0" \
     --out "$RESULTS/temporal"
-  u4d gates "$T/u4d_most_s0/stage2" --png "$RESULTS/most_gates.png" --json > "$T/gates_u4d_most_s0.json"
 else
+  wait_file "$DATA/sim_seg_probs/done"
   baseline_method 0
   method u4d_most 1
   method u4d_no_temporal 1 net.most=false
