@@ -1,23 +1,27 @@
 #!/bin/bash
-# The long runs of the downstream comparison (benchmarks/results/README.md, "Downstream comparison") as two queues,
-# one per CPU core, each a list of idempotent steps that resume from their checkpoints: after an interruption run the
-# same command again. From the repository root, on a machine of this kind (2 cores):
+# The runs of the downstream comparison that remain (benchmarks/results/README.md, "Downstream comparison") as two
+# queues, one per CPU core. From the repository root, on a machine of this kind (2 cores):
 #   CORE=A nohup bash scripts/downstream_queue.sh > queue_A.log 2>&1 &
 #   CORE=B nohup bash scripts/downstream_queue.sh > queue_B.log 2>&1 &
-# RUNS (default ../runs) says where the run folders go; the simulated worlds go to data/ and the banks to banks/, the
-# paths configs/experiment/*.yaml name (make them links to a larger disk if needed). Each queue waits for what the
-# other one writes (the world, the banks, the varied world).
-# Core A: the 10 % seeds 0 and 2, transfer seeds 0 and 2 and the transfer table, the generation table's banks, the
-# random-P_u nets and bank (and that arm's seeds 0, 2), the 1 % seeds 0 and 2, SPVCNN seed 0. Core B: the 10 % seeds
-# 1 and 3, transfer seed 1, the FPD extractor and the generation table's FRD/FPD scores, the 1 % nets and bank, the
-# random-P_u arm's seed 1, the 1 % seed 1, SPVCNN seed 1. The 10 % table (4 seeds x 4 arms) comes first.
-# PY (default python3) runs the benchmark scripts; REAL is the labelled real SemanticKITTI root of the transfer test.
+# What survives a session is what is committed: every finished `u4d experiment` run leaves its record in
+# benchmarks/results/downstream/records (configs/experiment/downstream_*.yaml, records_dir) and is not trained again,
+# and a finished diffusion net is exported to weights/ (commit both). Run folders, the simulated world and the banks
+# stay on the machine: a queue on a new machine writes the world again (2 min) and the banks an arm needs (about an
+# hour each, from the nets in weights/), and a run cut off by the end of a session starts again from its last
+# checkpoint only on the same machine. So the steps come in pieces that fit one session (about 2.8 hours per core):
+#   1. the bank arms of the 10 % seeds 2 and 3 (A: the R2DM-style bank, then seed 2; B: the U4D bank, then seed 3),
+#   2. the same for seeds 0 and 1, and any 10 % sup-only / mt seed without a record,
+#   3. the random-P_u nets (A: stage 1, B: stage 2; exported to weights/u4d_random_stage*.pt; 2.5 to 3.5 hours each
+#      on one thread, the length of a session: start them first),
+#   4. the random-P_u bank and its arm's seeds 0 and 1,
+#   5. the 1 % uncertainty segmentor, its probabilities and nets (weights/*_1pct*.pt), then the 1 % seeds,
+#   6. SPVCNN at 10 %, seeds 0 and 1.
+# Each queue waits for what the other one writes (the world, a bank). RUNS (default ../runs) says where run folders go;
+# the world goes to data/ and the banks to banks/, the paths configs/experiment/*.yaml name.
 set -euo pipefail
 RUNS=${RUNS:-../runs}
 DATA=data
 BANKS=banks
-PY=${PY:-python3}
-REAL=${REAL:-../shared/data/real/semantickitti}
 CORE=${CORE:?set CORE=A or CORE=B}
 export OMP_NUM_THREADS=1
 WAIT=${WAIT:-300}  # seconds between looks at what the other queue writes
@@ -69,112 +73,106 @@ spv() {
   u4d experiment configs/experiment/downstream_10pct.yaml "seeds=[$s]" "backbones=[spvcnn]" --arms "$@" \
     --out "$RUNS/downstream_10pct" --no-progress
 }
-random_nets() {  # the selection ablation: P_u drawn at random, the same recipe and budget as the shipped nets
-  for name in stage1 stage2; do
-    stage "$RUNS/gen64_random/$name" "$name" uncertainty.strategy=random "probs_root=$DATA/sim_seg_probs"
-  done
-  bank "$BANKS/u4d_random_hdl64_ms" u4d "stage1=$RUNS/gen64_random/stage1" "stage2=$RUNS/gen64_random/stage2"
+RECORDS=benchmarks/results/downstream/records
+recorded() {  # SETTING SEED ARM...: every named arm of that seed has a record (minkunet unless BACKBONE is set)
+  local setting=$1 seed=$2
+  shift 2
+  for arm in "$@"; do [ -f "$RECORDS/$setting/$arm/${BACKBONE:-minkunet}/seed$seed.json" ] || return 1; done
 }
-nets_1pct() {  # 1 % labels: the uncertainty segmentor is sup-only of the 1 % split (8 labelled scans)
-  local seg=$RUNS/unc_seg_1pct
-  if [ ! -f "$seg/model.pt" ]; then
+export_net() {  # RUN FILE: a finished net's EMA weights into weights/ (then add its row to weights/README.md)
+  [ -f "$2" ] || u4d export-weights "$1" --out "$2"
+}
+bank_arms() {  # SEED MYBANK MYMODE OTHERBANK: the two bank arms of a 10 % seed; this core writes MYBANK
+  local seed=$1
+  recorded 10pct "$seed" mt+r2dm mt+u4d && return 0
+  bank "$2" "$3"
+  wait_bank "$4"
+  exp10 "$seed" mt+r2dm mt+u4d
+}
+main_arms() {  # SEED: sup-only and mt of a 10 % seed
+  recorded 10pct "$1" sup-only mt || exp10 "$1" sup-only mt
+}
+random_net() {  # STAGE: the selection ablation's net, P_u drawn at random, the shipped nets' recipe and budget
+  local file=weights/u4d_random_$1.pt
+  [ -f "$file" ] && return 0
+  if [ "$CORE" = A ]; then probs sim_seg_probs weights/uncertainty_segmentor.pt; fi
+  wait_file "$DATA/sim_seg_probs/done"
+  stage "$RUNS/gen64_random/$1" "$1" uncertainty.strategy=random "probs_root=$DATA/sim_seg_probs"
+  export_net "$RUNS/gen64_random/$1" "$file"
+}
+random_arm() {  # SEED: the random-P_u bank arm of a 10 % seed (the bank from the exported nets)
+  recorded 10pct "$1" mt+u4d-random && return 0
+  wait_file weights/u4d_random_stage1.pt
+  wait_file weights/u4d_random_stage2.pt
+  if [ "$CORE" = A ]; then
+    bank "$BANKS/u4d_random_hdl64_ms" u4d stage1=weights/u4d_random_stage1.pt stage2=weights/u4d_random_stage2.pt
+  fi
+  wait_bank "$BANKS/u4d_random_hdl64_ms"
+  exp10 "$1" mt+u4d-random
+}
+nets_1pct() {  # 1 % labels: the uncertainty segmentor is sup-only of the 1 % split (8 labelled scans); core A
+  local seg=$RUNS/unc_seg_1pct file=weights/uncertainty_segmentor_1pct.pt
+  if [ ! -f "$file" ]; then
     u4d seg-train configs/seg/cpu_semi.yaml mode=supervised "data.root=$DATA/sim_seg" data.split_mode=sequence \
       data.label_fraction=0.01 data.max_points=12000 optim.lr=0.01 loss.level=voxel optim.steps=1000 \
       semi.burn_in_steps=700 eval_every=1000 data.val_max_scans=24 checkpoint_every=100 threads=1 seed=0 \
       --out "$seg" --no-progress $(resume_flag "$seg")
+    u4d export-weights "$seg" --out "$file" --int8
   fi
-  probs sim_seg_probs_1pct "$seg/model.pt"
-  for name in stage1 stage2; do
-    stage "$RUNS/gen64_1pct/$name" "$name" "probs_root=$DATA/sim_seg_probs_1pct"
-  done
-  bank "$BANKS/u4d_1pct_hdl64_ms" u4d "stage1=$RUNS/gen64_1pct/stage1" "stage2=$RUNS/gen64_1pct/stage2"
 }
-transfer() {  # SEED: sim-to-real before (seg_rich world) / after (varied world), scored on the real labelled scans
-  local seed=$1
-  for w in seg_rich varied; do
-    local root=$DATA/sim_seg run=$RUNS/transfer/${w}_s$seed
-    [ "$w" = varied ] && root=$DATA/sim_varied
-    [ -f "$run/model.pt" ] || u4d seg-train configs/seg/cpu_minkunet.yaml "data.root=$root" optim.steps=1284 \
-      optim.anneal_to=steps max_minutes=0 threads=1 "seed=$seed" --out "$run" --no-progress $(resume_flag "$run")
-    [ -f "$run/eval_real.json" ] || { u4d seg-eval "$run/model.pt" "$REAL" --json --confusion-png \
-      "$run/confusion_real.png" --png "$run/reliability_real.png" --no-progress > "$run/eval_real.json.tmp" &&
-      mv "$run/eval_real.json.tmp" "$run/eval_real.json"; }
-    [ -f "$run/eval_sim.json" ] || { u4d seg-eval "$run/model.pt" "$root" --sequences 88-99 --json --no-progress \
-      > "$run/eval_sim.json.tmp" && mv "$run/eval_sim.json.tmp" "$run/eval_sim.json"; }
-  done
+net_1pct() {  # STAGE: a U4D net on the 1 % segmentor's uncertainty
+  local file=weights/u4d_1pct_$1.pt
+  [ -f "$file" ] && return 0
+  wait_file weights/uncertainty_segmentor_1pct.pt
+  if [ "$CORE" = A ]; then probs sim_seg_probs_1pct weights/uncertainty_segmentor_1pct.pt; fi
+  wait_file "$DATA/sim_seg_probs_1pct/done"
+  stage "$RUNS/gen64_1pct/$1" "$1" "probs_root=$DATA/sim_seg_probs_1pct"
+  export_net "$RUNS/gen64_1pct/$1" "$file"
 }
-transfer_table() {  # before / after over the seeds that finished
-  "$PY" benchmarks/transfer_table.py --runs "$RUNS/transfer" --worlds seg_rich varied \
-    --out benchmarks/results/sim_to_real_transfer
-}
-fpd_extractor() {  # the FPD extractor at 64x1024 on the training places (train-extractor resumes from its partial file)
-  [ -f "$RUNS/ext64/fpd.pt" ] || u4d train-extractor fpd configs/extractor/sim_hdl64.yaml "data.root=$DATA/sim_seg" \
-    "out_dir=$RUNS/ext64" train.checkpoint_every=50 --quiet
-}
-bench_generation() {  # OUT METRICS [flags...]: U4D vs baseline vs the held-out floor, 3 seeds, both samplers, mean start
-  local out=$1 metrics=$2
-  shift 2
-  [ -f "$out" ] || "$PY" benchmarks/bench_generation.py --root "$DATA/sim_eval" --stage1 weights/u4d_stage1.pt \
-    --stage2 weights/u4d_stage2.pt --baseline weights/baseline.pt --reference 00-11 --floor 12-23 --num 64 \
-    --seeds 0 1 2 --samplers dpmpp2m-sde:20:6 ddpm:32:16 --metrics "$metrics" --mask-fraction 0.1 --device cpu \
-    --mean-start-below -10 \
-    --work "$RUNS/bench_gen64" "$@" --out "$out"
-}
-generation_banks() {  # the generation table's banks (kept under RUNS/bench_gen64) with the extractor-free metrics
-  if [ ! -f "$DATA/sim_eval/done" ]; then
-    u4d simulate --out "$DATA/sim_eval" --sequences 24 --frames 8 --seed 77 --config configs/sim/seg_rich.yaml
-    touch "$DATA/sim_eval/done"
+arms_1pct() {  # SEED: the four 1 % arms (the U4D bank from the exported 1 % nets; the R2DM-style bank is the 10 % one)
+  recorded 1pct "$1" "${MAIN[@]}" && return 0
+  wait_file weights/u4d_1pct_stage1.pt
+  wait_file weights/u4d_1pct_stage2.pt
+  if [ "$CORE" = A ]; then
+    bank "$BANKS/u4d_1pct_hdl64_ms" u4d stage1=weights/u4d_1pct_stage1.pt stage2=weights/u4d_1pct_stage2.pt
+  else
+    bank "$BANKS/r2dm_hdl64_ms" baseline
   fi
-  bench_generation "$RUNS/bench_gen64/banks.json" jsd,mmd,points,rangejs,intensityjs
+  wait_bank "$BANKS/u4d_1pct_hdl64_ms"
+  wait_bank "$BANKS/r2dm_hdl64_ms"
+  exp1 "$1" "${MAIN[@]}"
 }
-generation_table() {  # the same banks scored with FRD and FPD once the FPD extractor is trained
-  wait_file "$RUNS/bench_gen64/banks.json"
-  bench_generation benchmarks/results/generation_64x1024.json frd,fpd,jsd,mmd,points,rangejs,intensityjs \
-    --extractor-frd weights/extractor_frd.pt --extractor-fpd "$RUNS/ext64/fpd.pt"
-}
-varied_world() {
-  if [ ! -f "$DATA/sim_varied/done" ]; then
-    u4d simulate --out "$DATA/sim_varied" --sequences 100 --frames 8 --seed 10 --config configs/sim/varied.yaml
-    touch "$DATA/sim_varied/done"
-  fi
+spv_arms() {  # SEED: SPVCNN-like at 10 %, the four arms
+  BACKBONE=spvcnn recorded 10pct "$1" "${MAIN[@]}" && return 0
+  if [ "$CORE" = A ]; then bank "$BANKS/r2dm_hdl64_ms" baseline; else bank "$BANKS/u4d_hdl64_ms" u4d; fi
+  wait_bank "$BANKS/r2dm_hdl64_ms"
+  wait_bank "$BANKS/u4d_hdl64_ms"
+  spv "$1" "${MAIN[@]}"
 }
 
 if [ "$CORE" = A ]; then
   world
-  probs sim_seg_probs weights/uncertainty_segmentor.pt
-  bank "$BANKS/r2dm_hdl64_ms" baseline
-  exp10 0 sup-only mt
-  wait_bank "$BANKS/u4d_hdl64_ms"
-  exp10 0 "${MAIN[@]}"
-  exp10 2 "${MAIN[@]}"  # the 10 % table first: the comparison the project exists for
-  varied_world
-  transfer 0
-  transfer 2
-  wait_file "$RUNS/transfer/varied_s1/eval_sim.json"
-  transfer_table
-  generation_banks
-  random_nets
-  exp10 0 mt+u4d-random
-  exp10 2 mt+u4d-random
-  wait_bank "$BANKS/u4d_1pct_hdl64_ms"
-  exp1 0 "${MAIN[@]}"
-  exp1 2 "${MAIN[@]}"
-  spv 0 "${MAIN[@]}"
+  bank_arms 2 "$BANKS/r2dm_hdl64_ms" baseline "$BANKS/u4d_hdl64_ms"
+  bank_arms 0 "$BANKS/r2dm_hdl64_ms" baseline "$BANKS/u4d_hdl64_ms"
+  main_arms 0
+  main_arms 2
+  random_net stage1
+  random_arm 0
+  nets_1pct
+  net_1pct stage1
+  arms_1pct 0
+  arms_1pct 2
+  spv_arms 0
 else
   wait_file "$DATA/sim_seg/done"
-  bank "$BANKS/u4d_hdl64_ms" u4d
-  exp10 1 sup-only mt
-  wait_bank "$BANKS/r2dm_hdl64_ms"
-  exp10 1 "${MAIN[@]}"
-  exp10 3 "${MAIN[@]}"
-  wait_file "$DATA/sim_varied/done"
-  transfer 1
-  fpd_extractor
-  generation_table
-  nets_1pct
-  wait_bank "$BANKS/u4d_random_hdl64_ms"
-  exp10 1 mt+u4d-random
-  exp1 1 "${MAIN[@]}"
-  spv 1 "${MAIN[@]}"
+  bank_arms 3 "$BANKS/u4d_hdl64_ms" u4d "$BANKS/r2dm_hdl64_ms"
+  bank_arms 1 "$BANKS/u4d_hdl64_ms" u4d "$BANKS/r2dm_hdl64_ms"
+  main_arms 1
+  main_arms 3
+  random_net stage2
+  random_arm 1
+  net_1pct stage2
+  arms_1pct 1
+  spv_arms 1
 fi
 echo "queue $CORE done"

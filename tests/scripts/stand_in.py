@@ -42,7 +42,7 @@ elif command == "seg-eval":
 elif command == "train-diffusion":
     steps = int(overrides.get("steps") or yaml.safe_load(open(argv[1]))["steps"])
     out.mkdir(parents=True, exist_ok=True)
-    (out / "log.jsonl").write_text(json.dumps({{"step": steps}}) + "\\n")
+    (out / "log.jsonl").write_text(json.dumps({{"step": steps, "time": 60.0 * steps}}) + "\\n")
 elif command == "generate":
     out.mkdir(parents=True, exist_ok=True)
     (out / "manifest.json").write_text(json.dumps({{"complete": True}}))
@@ -58,8 +58,25 @@ elif command == "evaluate":
     (out / "evaluation.json").write_text(json.dumps(result))
 elif command == "gates":
     print("{{}}")
-elif command == "experiment":
-    pass
+elif command == "export-weights":
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_bytes(b"")
+elif command == "experiment":  # a record per arm, backbone and seed asked for, where the config keeps them
+    config = yaml.safe_load(open(argv[1]))
+    records = overrides.get("records_dir", config.get("records_dir"))
+    seeds = yaml.safe_load(overrides.get("seeds", "null")) or config["seeds"]
+    backbones = yaml.safe_load(overrides.get("backbones", "null")) or config["backbones"]
+    arms = []
+    for a in argv[argv.index("--arms") + 1 :] if "--arms" in argv else []:
+        if a.startswith("-"):
+            break
+        arms.append(a)
+    for arm in arms if records else []:
+        for backbone in backbones:
+            for seed in seeds:
+                path = Path(records) / arm / backbone / f"seed{{seed}}.json"
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_text(json.dumps({{"format": 1}}))
 else:
     sys.exit("stand-in u4d: unknown command " + command)
 """
