@@ -1,14 +1,15 @@
 """Run records: one finished experiment run as a small json file that outlives its run folder.
 
-A run folder (checkpoints, model.pt) stays on the machine that trained it; its record — the run's config, the
-figures the tables report (mIoU, ECEs, per-class and per-band IoU, reliability bins, wall-clock), its learning
-curves and the host — is kept where the experiment's `records_dir` says (a folder in the repository), so that a
-table over seeds can be built from runs trained on different machines. A record stands for a finished run only
+A run folder (checkpoints, model.pt) stays on the machine that trained it; its record (the run's config, the
+figures the tables report: mIoU, ECEs, per-class and per-band IoU, reliability bins, wall-clock; its learning curves,
+the banks it read and the host) is kept where the experiment's `records_dir` says (a folder in the repository), so
+that a table over seeds can be built from runs trained on different machines. A record stands for a finished run only
 while its config equals the run's config of today (bookkeeping keys aside); otherwise it is ignored, with a warning.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -19,6 +20,7 @@ from pathlib import Path
 import torch
 
 from segmentation.config import SegTrainConfig
+from u4d_aug.bank import read_manifest
 from u4d_aug.config import config_to_dict
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_json, dumps_json, read_json_file, read_jsonl
@@ -68,6 +70,23 @@ def host() -> dict:
     return {"cpu": model, "cores": os.cpu_count(), "torch": torch.__version__, "threads": torch.get_num_threads()}
 
 
+def bank_provenance(root: Path) -> dict:
+    """What a bank held when a run read it: its generator (mode, checkpoint hashes, sampling), scan count and a digest
+    of its scans' sha256 (banks are written again on each machine; equal digests = the same scans)."""
+    manifest = read_manifest(root) or {}
+    samples = manifest.get("samples", [])
+    digests = "".join(str(entry.get("sha256", "")) for entry in samples)
+    return {
+        "path": str(root),
+        "complete": bool(manifest.get("complete")),
+        "scans": len(samples),
+        "mode": manifest.get("mode"),
+        "checkpoints": manifest.get("checkpoints"),
+        "sampling": manifest.get("sampling"),
+        "content_sha256": hashlib.sha256(digests.encode()).hexdigest()[:16] if digests else None,
+    }
+
+
 def write_record(path: Path, run: SegTrainConfig, metrics: dict, curves: dict) -> None:
     """Save one finished run's record atomically (the figures `run_metrics` gives, bins included)."""
     record = {
@@ -76,6 +95,7 @@ def write_record(path: Path, run: SegTrainConfig, metrics: dict, curves: dict) -
         "recipe": recipe(run),
         "metrics": metrics,
         "curves": curves,
+        "banks": [bank_provenance(Path(bank.path)) for bank in run.semi.banks] if run.mode == "semi" else [],
         "host": host(),
         "trained_in": str(run.out_dir),
         "written": datetime.now(timezone.utc).isoformat(timespec="seconds"),

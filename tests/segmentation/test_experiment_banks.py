@@ -85,7 +85,8 @@ def test_five_arms_run_on_generated_banks_and_draw_them_into_the_loss(tmp_path, 
     parser = argparse.ArgumentParser()
     add_experiment_arguments(parser)
     overrides = f"overrides=[data.root={root}, optim.steps={STEPS}, eval_every={STEPS}, semi.burn_in_steps={BURN_IN}]"
-    argv = [str(TINY), f"base={TINY_SEMI}", overrides, arms, "--no-progress", "--out", str(tmp_path / "out")]
+    records = f"records_dir={tmp_path / 'records'}"
+    argv = [str(TINY), f"base={TINY_SEMI}", overrides, arms, records, "--no-progress", "--out", str(tmp_path / "out")]
     assert run_experiment(parser.parse_args(argv)) == 0
 
     results = json.loads((tmp_path / "out" / "results.json").read_text())
@@ -109,6 +110,14 @@ def test_five_arms_run_on_generated_banks_and_draw_them_into_the_loss(tmp_path, 
     assert stream.names == [f"{root} (split)", str(banks["u4d"])]
     picks = [stream.pick(run_cfg.seed, step, slot)[0] for step in range(1000) for slot in range(2)]
     assert abs(sum(picks) / len(picks) - 0.5) < 0.04
+    # each bank arm's record names the bank it read: its generator and a digest of its scans
+    record = json.loads((tmp_path / "records" / "mt+u4d" / "minkunet" / "seed0.json").read_text())
+    (bank,) = record["banks"]
+    manifest = json.loads((banks["u4d"] / "manifest.json").read_text())
+    assert bank["path"] == str(banks["u4d"]) and bank["scans"] == BANK_SCANS and bank["complete"]
+    assert bank["checkpoints"] == manifest["checkpoints"] and len(bank["content_sha256"]) == 16
+    sup = json.loads((tmp_path / "records" / "sup-only" / "minkunet" / "seed0.json").read_text())
+    assert sup["banks"] == []
     # the banks changed the training: each bank arm ends with other weights than MT+LaserMix alone
     mt = torch.load(runs / "mt" / "minkunet" / "seed0" / "model.pt", weights_only=True)["model"]
     for arm in ("mt+r2dm", "mt+u4d", "mt+u4d-random"):

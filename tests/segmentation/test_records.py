@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 
 from segmentation.experiment import ExperimentConfig, run_config
-from segmentation.records import first_difference, read_record, recipe, record_path, write_record
+from segmentation.records import bank_provenance, first_difference, read_record, recipe, record_path, write_record
 from tests.segmentation.test_experiment import TINY, TINY_SEMI, tiny_experiment
+from u4d_aug.bank import write_manifest
 from u4d_aug.config import load_config
 from u4d_aug.errors import InputError
 
@@ -91,6 +92,27 @@ def test_a_broken_record_is_an_error_naming_the_file(tmp_path, content, match):
     with pytest.raises(InputError, match=match) as err:
         read_record(path, run_config(cfg, cfg.arms[0], "minkunet", 0))
     assert str(path) in str(err.value)
+
+
+def test_bank_provenance_names_the_generator_and_digests_the_scans(tmp_path):
+    manifest = {
+        "mode": "u4d",
+        "checkpoints": {"stage1": "5cb3d641e3274e45"},
+        "sampling": {"sampler": "dpmpp2m-sde", "steps": 20},
+        "samples": [{"index": i, "sha256": f"{i:064x}"} for i in range(3)],
+        "complete": True,
+    }
+    write_manifest(tmp_path / "bank", manifest)
+    first = bank_provenance(tmp_path / "bank")
+    assert (first["scans"], first["mode"], first["complete"]) == (3, "u4d", True)
+    assert first["checkpoints"] == {"stage1": "5cb3d641e3274e45"} and first["sampling"]["steps"] == 20
+    manifest["samples"][1]["sha256"] = "f" * 64  # one scan differs: another digest
+    write_manifest(tmp_path / "bank", manifest)
+    assert bank_provenance(tmp_path / "bank")["content_sha256"] != first["content_sha256"]
+    assert bank_provenance(tmp_path / "none") == {
+        "path": str(tmp_path / "none"), "complete": False, "scans": 0, "mode": None, "checkpoints": None,
+        "sampling": None, "content_sha256": None,
+    }  # fmt: skip
 
 
 def test_first_difference_names_the_key_path():
