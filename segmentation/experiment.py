@@ -35,7 +35,15 @@ from segmentation.config import BankConfig, SegTrainConfig
 from segmentation.evaluate import evaluate
 from segmentation.metrics import ReliabilityBins
 from segmentation.plots import plot_arm_curves, plot_paired, plot_reliability
-from segmentation.records import CURVE_KEYS, json_roundtrip, log_curves, read_record, record_path, write_record
+from segmentation.records import (
+    CURVE_KEYS,
+    json_roundtrip,
+    log_curves,
+    read_record,
+    record_path,
+    weights_digest,
+    write_record,
+)
 from segmentation.train import train
 from u4d_aug.bank import read_manifest
 from u4d_aug.config import (
@@ -230,6 +238,17 @@ def donors_on_disk(out_dir: Path) -> list[SegTrainConfig]:
             continue
         donors.append(config_from_dict(SegTrainConfig, data, source=str(path)))
     return donors
+
+
+def burn_in_weights(run: SegTrainConfig, out_dir: Path) -> str | None:
+    """Digest of the burn-in a finished run started from: its own OUT/burn_in.pt or its donor's (same signature)."""
+    signature = burn_in_signature(run)
+    if signature is None:
+        return None
+    candidates = [Path(run.out_dir) / "burn_in.pt"]
+    candidates += [Path(d.out_dir) / "burn_in.pt" for d in donors_on_disk(out_dir) if burn_in_signature(d) == signature]
+    found = next((path for path in candidates if path.is_file()), None)
+    return None if found is None else weights_digest(found)
 
 
 def full_evaluation(run: SegTrainConfig, progress: bool) -> dict:
@@ -445,7 +464,7 @@ def run_experiment_config(
                 if metrics is not None:
                     curves = log_curves(Path(run.out_dir) / "log.jsonl")
                     if path is not None and (record is None or record["metrics"] != json_roundtrip(metrics)):
-                        write_record(path, run, metrics, curves)
+                        write_record(path, run, metrics, curves, burn_in_weights(run, out))
                 elif record is not None:
                     metrics, curves = record["metrics"], record["curves"]
                 else:  # not trained here and not finished

@@ -23,7 +23,7 @@ from segmentation.config import SegTrainConfig
 from u4d_aug.bank import read_manifest
 from u4d_aug.config import config_to_dict
 from u4d_aug.errors import InputError
-from u4d_aug.io import atomic_write_json, dumps_json, read_json_file, read_jsonl
+from u4d_aug.io import atomic_write_json, dumps_json, load_checkpoint, read_json_file, read_jsonl
 
 logger = logging.getLogger(__name__)
 
@@ -87,14 +87,28 @@ def bank_provenance(root: Path) -> dict:
     }
 
 
-def write_record(path: Path, run: SegTrainConfig, metrics: dict, curves: dict) -> None:
-    """Save one finished run's record atomically (the figures `run_metrics` gives, bins included)."""
+def weights_digest(checkpoint: Path) -> str:
+    """sha256 (16 hex digits) of a checkpoint's model tensors, names and bytes in name order: equal digests = the
+    same weights bit for bit (the burn-in a mean-teacher arm shares with sup-only, on one machine or two)."""
+    state = load_checkpoint(checkpoint, "checkpoint")
+    digest = hashlib.sha256()
+    for name in sorted(state["model"]):
+        tensor = state["model"][name]
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().view(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()[:16]
+
+
+def write_record(path: Path, run: SegTrainConfig, metrics: dict, curves: dict, burn_in: str | None = None) -> None:
+    """Save one finished run's record atomically (the figures `run_metrics` gives, bins included; burn_in: the
+    weights digest of its step-semi.burn_in_steps state, when known)."""
     record = {
         "format": FORMAT,
         "seed": run.seed,
         "recipe": recipe(run),
         "metrics": metrics,
         "curves": curves,
+        "burn_in_weights": burn_in,
         "banks": [bank_provenance(Path(bank.path)) for bank in run.semi.banks] if run.mode == "semi" else [],
         "host": host(),
         "trained_in": str(run.out_dir),

@@ -10,7 +10,15 @@ from pathlib import Path
 import pytest
 
 from segmentation.experiment import ExperimentConfig, run_config
-from segmentation.records import bank_provenance, first_difference, read_record, recipe, record_path, write_record
+from segmentation.records import (
+    bank_provenance,
+    first_difference,
+    read_record,
+    recipe,
+    record_path,
+    weights_digest,
+    write_record,
+)
 from tests.segmentation.test_experiment import TINY, TINY_SEMI, tiny_experiment
 from u4d_aug.bank import write_manifest
 from u4d_aug.config import load_config
@@ -32,6 +40,11 @@ def test_records_rebuild_the_table_on_a_machine_without_the_run_folders(tmp_path
     assert record["metrics"]["miou"] == first["arms"][1]["runs"][0]["miou"] and record["metrics"]["bins"]
     assert [step for step, _ in record["curves"]["loss"]] == [1.0, 2.0] and record["host"]["cores"] >= 1
     assert record["recipe"]["mode"] == "semi" and "out_dir" not in record["recipe"]
+    # mt started from sup-only's burn-in: both records name the same weights, those of sup-only's burn_in.pt
+    sup = json.loads((records / "sup-only" / "minkunet" / "seed0.json").read_text())
+    donor = out / "runs" / "sup-only" / "minkunet" / "seed0" / "burn_in.pt"
+    assert record["burn_in_weights"] == sup["burn_in_weights"] == weights_digest(donor)
+    assert weights_digest(donor) != weights_digest(out / "runs" / "sup-only" / "minkunet" / "seed0" / "model.pt")
 
     shutil.rmtree(out)  # another machine: only the records came along
     assert run(arms, "seeds=[0]", f"records_dir={records}", "final_eval=true", "--report-only") == 0
