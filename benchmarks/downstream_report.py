@@ -200,7 +200,30 @@ def arm_summary(entry: dict) -> dict:
         summary[key] = stat if key == "wall_clock_s" else percent(stat)
     summary["iou"] = {name: percent(stat) for name, stat in (entry.get("iou") or {}).items()}
     summary["bands"] = {name: percent(stat) for name, stat in (entry.get("bands") or {}).items()}
+    summary["provenance"] = [run_provenance(r) for r in runs]
     return summary
+
+
+def run_provenance(run: dict) -> dict:
+    """Where one run trained, the burn-in it started from and the bank scans it read (from its record; None if
+    unknown: a run folder without a record)."""
+    host = run.get("host") or {}
+    banks = run.get("banks") or []
+    return {
+        "seed": run["seed"],
+        "cpu": host.get("cpu"),
+        "torch": host.get("torch"),
+        "burn_in_weights": run.get("burn_in_weights"),
+        "bank_content": [bank.get("content_sha256") for bank in banks] or None,
+    }
+
+
+def burn_in_mismatches(arm: dict, reference: dict) -> list[int]:
+    """Seeds at which both runs name their burn-in weights and the two differ (trained apart, e.g. on two machines:
+    the pair then shares its label split and seed but not its first steps)."""
+    ours = {p["seed"]: p["burn_in_weights"] for p in arm.get("provenance", [])}
+    theirs = {p["seed"]: p["burn_in_weights"] for p in reference.get("provenance", [])}
+    return sorted(s for s in ours.keys() & theirs.keys() if ours[s] and theirs[s] and ours[s] != theirs[s])
 
 
 def pair_names(names: list[str]) -> list[tuple[str, str]]:
@@ -250,6 +273,8 @@ def setting_summary(
     """One setting's block of summary.json (without its figures); `fidelity` {bank: ...} of `read_bank_evals`."""
     paired, unpaired = paired_summary(entries)
     arms = {e["arm"]: arm_summary(e) for e in entries}
+    for pair in paired.values():
+        pair["burn_in_differs"] = burn_in_mismatches(arms[pair["arm"]], arms[pair["reference"]])
     for arm in arms.values():
         bank = str(arm.get("bank") or "").rstrip("/")
         if bank and bank in (fidelity or {}):
@@ -379,6 +404,19 @@ BANK_COLUMNS = (("jsd", "BEV JSD", 3), ("mmd", "BEV MMD x1e4", 1), ("rangejs", "
                 ("intensityjs", "intensity JS", 3), ("frd", "FRD", 0), ("fpd", "FPD", 1))  # fmt: skip
 
 
+def provenance_table(arms: dict) -> list[str]:
+    """Per seed and arm: the host, the burn-in weights and the bank scans (runs with a record; else empty)."""
+    rows = [(name, p) for name, arm in arms.items() for p in arm.get("provenance", []) if p["cpu"] is not None]
+    if not rows:
+        return []
+    lines = ["", "### Where each run trained (from its record)", "",
+             "| seed | arm | cpu | torch | burn-in weights | bank scans |", "|---|---|---|---|---|---|"]  # fmt: skip
+    for name, p in sorted(rows, key=lambda row: (row[1]["seed"], list(arms).index(row[0]))):
+        bank = ", ".join(str(digest) for digest in p["bank_content"]) if p["bank_content"] else "-"
+        lines.append(f"| {p['seed']} | {name} | {p['cpu']} | {p['torch']} | {p['burn_in_weights'] or '-'} | {bank} |")
+    return lines
+
+
 def bank_table(arms: dict) -> list[str]:
     """The banks the arms read, as `u4d evaluate` scored them against real scans (empty without --bank-eval)."""
     rows = [(name, arm["bank"], arm["bank_fidelity"]) for name, arm in arms.items() if "bank_fidelity" in arm]
@@ -422,6 +460,11 @@ def setting_markdown(name: str, s: dict) -> list[str]:
             f"{noise_text(p['ece'], 'ECE per scan', p['arm'])}."
             for p in paired.values()
         ]
+        apart = [f"{p['arm']} − {p['reference']} (seeds {', '.join(map(str, p['burn_in_differs']))})"
+                 for p in paired.values() if p.get("burn_in_differs")]  # fmt: skip
+        if apart:
+            note = "Pairs whose two runs started from different burn-in weights (trained apart, e.g. on two machines: "
+            lines += ["", note + "same label split and seed, not the same first steps): " + "; ".join(apart) + "."]
     else:
         lines.append("No pair of arms has a seed finished in both.")
     if s["unpaired"]:
@@ -444,6 +487,7 @@ def setting_markdown(name: str, s: dict) -> list[str]:
         lines.append(
             "Absent: the runs carry no distance-band metrics (a full evaluation, `final_eval: true`, adds them)."
         )
+    lines += provenance_table(s["arms"])
     lines += ["", "### Figures", ""]
     for label, key in (("paired differences", "paired"), ("per-class IoU differences", "per_class")):
         lines.append(f"- {label}: " + (f"[{figures[key]}]({figures[key]})" if figures[key] else "not drawn (no data)"))

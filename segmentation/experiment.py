@@ -37,6 +37,7 @@ from segmentation.metrics import ReliabilityBins
 from segmentation.plots import plot_arm_curves, plot_paired, plot_reliability
 from segmentation.records import (
     CURVE_KEYS,
+    PROVENANCE,
     json_roundtrip,
     log_curves,
     read_record,
@@ -465,12 +466,15 @@ def run_experiment_config(
                     curves = log_curves(Path(run.out_dir) / "log.jsonl")
                     if path is not None and (record is None or record["metrics"] != json_roundtrip(metrics)):
                         write_record(path, run, metrics, curves, burn_in_weights(run, out))
+                        record = read_record(path, run)
                 elif record is not None:
                     metrics, curves = record["metrics"], record["curves"]
                 else:  # not trained here and not finished
                     continue
                 source = str(run.out_dir) if (Path(run.out_dir) / "metrics.json").is_file() else str(path)
-                runs.append({"seed": seed, "out_dir": source, "curves": curves, **metrics})
+                # where it ran, from which burn-in, on which bank scans: known for runs with a record
+                provenance = {key: record.get(key) for key in PROVENANCE} if record is not None else {}
+                runs.append({"seed": seed, "out_dir": source, "curves": curves, **provenance, **metrics})
                 if train:
                     logger.info("  done in %.1f s (mIoU %s)", time.perf_counter() - t0, metrics.get("miou"))
             if not runs:

@@ -31,6 +31,7 @@ FORMAT = 1
 # keys that change where and how often a run writes, never what it learns
 BOOKKEEPING = ("out_dir", "checkpoint_every", "keep_checkpoints", "num_workers", "threads")
 CURVE_KEYS = ("loss", "val_miou")
+PROVENANCE = ("host", "burn_in_weights", "banks")  # record keys a table shows beside the figures
 
 
 def record_path(records_dir: Path, arm: str, backbone: str, seed: int) -> Path:

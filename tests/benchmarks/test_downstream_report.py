@@ -269,3 +269,28 @@ def test_bank_fidelity_joins_the_arm_that_reads_the_bank(tmp_path):
     assert "| mt+u4d | banks/u4d_hdl64 | 0.250 | 43.6 | 0.338 | 55,758 (121,486) | 0.287 (0.298) |" in text
     argv[-1] = f"banks/other={tmp_path / 'int'}"
     assert report.main(argv) == 2  # a bank no arm reads is a mistake, not a silent no-op
+
+
+def test_provenance_from_records_and_pairs_on_different_burn_ins(tmp_path):
+    """Runs with records name their host, burn-in and bank scans; a pair whose burn-ins differ is listed."""
+
+    def with_record(run: dict, cpu: str, burn_in: str, bank: str | None = None) -> dict:
+        banks = [{"content_sha256": bank}] if bank else []
+        return {**run, "host": {"cpu": cpu, "torch": "2.13.0+cpu"}, "burn_in_weights": burn_in, "banks": banks}
+
+    mt = [with_record(fake_run(s, 0.45 + s / 100, 0.05, 0.5), "Intel Xeon", f"b{s}") for s in range(2)]
+    bank = [with_record(fake_run(0, 0.47, 0.05, 0.5), "Intel Xeon", "b0", "c0ffee")]
+    bank.append(with_record(fake_run(1, 0.48, 0.05, 0.5), "AMD EPYC", "other", "beef"))
+    arms = [fake_arm("mt", mt), {**fake_arm("mt+u4d", bank), "bank": "banks/u4d"}]
+    (tmp_path / "results.json").write_text(json.dumps({"config": {"seeds": [0, 1]}, "arms": arms}))
+    out = tmp_path / "out"
+    assert report.main(["--setting", f"10pct/minkunet={tmp_path / 'results.json'}", "--out", str(out)]) == 0
+    setting = json.loads((out / "summary.json").read_text())["10pct/minkunet"]
+    assert setting["arms"]["mt+u4d"]["provenance"][1] == {
+        "seed": 1, "cpu": "AMD EPYC", "torch": "2.13.0+cpu", "burn_in_weights": "other", "bank_content": ["beef"],
+    }  # fmt: skip
+    assert setting["paired"]["mt+u4d_vs_mt"]["burn_in_differs"] == [1]
+    text = (out / "report.md").read_text()
+    assert "| 1 | mt+u4d | AMD EPYC | 2.13.0+cpu | other | beef |" in text
+    assert "| 0 | mt | Intel Xeon | 2.13.0+cpu | b0 | - |" in text
+    assert "started from different burn-in weights" in text and "mt+u4d − mt (seeds 1)" in text
