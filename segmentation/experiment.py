@@ -443,18 +443,13 @@ def run_experiment_config(
                 "bank": bank,
                 "overrides": list(arm.overrides),
             }
-            if problem is not None:
-                entry.update(status="missing", reason=problem)
-                results["arms"].append(entry)
-                logger.warning("%s / %s: missing (%s)", arm.name, backbone, problem)
-                continue
             runs = []
             for seed in cfg.seeds:
                 run = run_config(cfg, arm, backbone, seed)
                 t0 = time.perf_counter()
                 path = None if cfg.records_dir is None else record_path(cfg.records_dir, arm.name, backbone, seed)
                 record = None if path is None else read_record(path, run)
-                if train and record is None:
+                if train and record is None and problem is None:
                     logger.info("%s / %s / seed %d -> %s", arm.name, backbone, seed, run.out_dir)
                     with run_lock(run.out_dir):  # per run folder: other processes may train other arms or seeds
                         donor = start_from_burn_in(run, donors_on_disk(out)) if cfg.share_burn_in else None
@@ -477,6 +472,11 @@ def run_experiment_config(
                 runs.append({"seed": seed, "out_dir": source, "curves": curves, **provenance, **metrics})
                 if train:
                     logger.info("  done in %.1f s (mIoU %s)", time.perf_counter() - t0, metrics.get("miou"))
+            if not runs and problem is not None:  # nothing recorded and nothing can run: never numbers
+                entry.update(status="missing", reason=problem)
+                results["arms"].append(entry)
+                logger.warning("%s / %s: missing (%s)", arm.name, backbone, problem)
+                continue
             if not runs:
                 entry.update(status="not run", reason="no finished run")
                 results["arms"].append(entry)

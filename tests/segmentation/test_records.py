@@ -141,3 +141,22 @@ def test_the_recipe_leaves_out_bookkeeping_only():
     assert not {"out_dir", "threads", "checkpoint_every", "keep_checkpoints", "num_workers"} & set(data)
     assert json.loads(json.dumps(data)) == data  # plain json
     assert isinstance(Path(data["data"]["root"]), Path)
+
+
+def test_a_bank_arm_with_a_record_is_reported_where_its_bank_is_absent(tmp_path):
+    """Banks stay on the machine that wrote them: on another one, a bank arm's records still give its numbers."""
+    run, root = tiny_experiment(tmp_path, "optim.steps=2, eval_every=2")
+    arms = f"arms=[{{name: mt+u4d, mode: semi, bank: {tmp_path / 'gone'}}}, "
+    arms += f"{{name: mt+r2dm, mode: semi, bank: {tmp_path / 'gone2'}}}]"
+    overrides = f"overrides=[data.root={root}, optim.steps=2, eval_every=2]"
+    cfg = load_config(ExperimentConfig, TINY, [f"base={TINY_SEMI}", overrides, arms, "seeds=[0]"])
+    records = tmp_path / "records"
+    metrics = {"miou": 0.5, "ece_per_scan": 0.04, "ece_pooled": 0.03, "iou": {"car": 0.7}}
+    write_record(
+        record_path(records, "mt+u4d", "minkunet", 0), run_config(cfg, cfg.arms[0], "minkunet", 0), metrics, {}
+    )
+    assert run(arms, "seeds=[0]", f"records_dir={records}", "--report-only") == 0
+    results = json.loads((tmp_path / "out" / "results.json").read_text())
+    recorded, absent = results["arms"]
+    assert recorded["status"] == "done" and recorded["miou"]["mean"] == 0.5 and recorded["runs"][0]["host"]["cores"]
+    assert absent["status"] == "missing" and "not found" in absent["reason"] and "miou" not in absent
