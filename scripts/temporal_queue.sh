@@ -83,16 +83,15 @@ score() {  # BANK OUT: TTCE k = 3, 4, CTC k = 1..4 and FRD against the held-out 
 }
 budget() {  # OUT RUN...: each net's steps and training minutes (its log) and the host, beside the evaluation
   "$PY" - "$@" <<'PYEOF'
-import json, os, sys, torch
+import json, os, sys
+from u4d_aug.host import host_info
 out, runs = sys.argv[1], sys.argv[2:]
 nets = {}
 for run in runs:
     last = [json.loads(line) for line in open(os.path.join(run, "log.jsonl")) if '"time"' in line][-1]
     nets[os.path.basename(run.rstrip("/"))] = {"steps": last["step"], "minutes": round(last["time"] / 60, 1)}
-cpu = next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name")), "?")
-host = {"cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__, "threads": int(os.environ.get("OMP_NUM_THREADS", 0))}
 with open(os.path.join(out, "budget.json.tmp"), "w") as f:
-    json.dump({"nets": nets, "host": host}, f, indent=2)
+    json.dump({"nets": nets, "host": host_info()}, f, indent=2)
 os.replace(os.path.join(out, "budget.json.tmp"), os.path.join(out, "budget.json"))
 PYEOF
 }

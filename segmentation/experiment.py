@@ -38,11 +38,11 @@ from segmentation.plots import plot_arm_curves, plot_paired, plot_reliability
 from segmentation.records import (
     CURVE_KEYS,
     PROVENANCE,
+    burn_in_digest,
     json_roundtrip,
     log_curves,
     read_record,
     record_path,
-    weights_digest,
     write_record,
 )
 from segmentation.train import train
@@ -249,7 +249,7 @@ def burn_in_weights(run: SegTrainConfig, out_dir: Path) -> str | None:
     candidates = [Path(run.out_dir) / "burn_in.pt"]
     candidates += [Path(d.out_dir) / "burn_in.pt" for d in donors_on_disk(out_dir) if burn_in_signature(d) == signature]
     found = next((path for path in candidates if path.is_file()), None)
-    return None if found is None else weights_digest(found)
+    return None if found is None else burn_in_digest(found)
 
 
 def full_evaluation(run: SegTrainConfig, progress: bool) -> dict:
@@ -449,7 +449,8 @@ def run_experiment_config(
                 t0 = time.perf_counter()
                 path = None if cfg.records_dir is None else record_path(cfg.records_dir, arm.name, backbone, seed)
                 record = None if path is None else read_record(path, run)
-                if train and record is None and problem is None:
+                trained = train and record is None and problem is None
+                if trained:
                     logger.info("%s / %s / seed %d -> %s", arm.name, backbone, seed, run.out_dir)
                     with run_lock(run.out_dir):  # per run folder: other processes may train other arms or seeds
                         donor = start_from_burn_in(run, donors_on_disk(out)) if cfg.share_burn_in else None
@@ -470,7 +471,7 @@ def run_experiment_config(
                 # where it ran, from which burn-in, on which bank scans: known for runs with a record
                 provenance = {key: record.get(key) for key in PROVENANCE} if record is not None else {}
                 runs.append({"seed": seed, "out_dir": source, "curves": curves, **provenance, **metrics})
-                if train:
+                if trained:
                     logger.info("  done in %.1f s (mIoU %s)", time.perf_counter() - t0, metrics.get("miou"))
             if not runs and problem is not None:  # nothing recorded and nothing can run: never numbers
                 entry.update(status="missing", reason=problem)

@@ -12,18 +12,16 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
-import platform
 from datetime import datetime, timezone
 from pathlib import Path
-
-import torch
 
 from segmentation.config import SegTrainConfig
 from u4d_aug.bank import read_manifest
 from u4d_aug.config import config_to_dict
 from u4d_aug.errors import InputError
+from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json, dumps_json, load_checkpoint, read_json_file, read_jsonl
+from u4d_aug.weights import weights_digest
 
 logger = logging.getLogger(__name__)
 
@@ -58,19 +56,6 @@ def log_curves(log: Path) -> dict[str, list[list[float]]]:
     return {key: [[float(r["step"]), float(r[key])] for r in records if r.get(key) is not None] for key in CURVE_KEYS}
 
 
-def host() -> dict:
-    """The machine a run trained on: cpu model, core count, torch version and threads."""
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu": model, "cores": os.cpu_count(), "torch": torch.__version__, "threads": torch.get_num_threads()}
-
-
 def bank_provenance(root: Path) -> dict:
     """What a bank held when a run read it: its generator (mode, checkpoint hashes, sampling), scan count and a digest
     of its scans' sha256 (banks are written again on each machine; equal digests = the same scans)."""
@@ -88,16 +73,10 @@ def bank_provenance(root: Path) -> dict:
     }
 
 
-def weights_digest(checkpoint: Path) -> str:
-    """sha256 (16 hex digits) of a checkpoint's model tensors, names and bytes in name order: equal digests = the
-    same weights bit for bit (the burn-in a mean-teacher arm shares with sup-only, on one machine or two)."""
-    state = load_checkpoint(checkpoint, "checkpoint")
-    digest = hashlib.sha256()
-    for name in sorted(state["model"]):
-        tensor = state["model"][name]
-        digest.update(name.encode())
-        digest.update(tensor.detach().cpu().contiguous().view(-1).view(torch.uint8).numpy().tobytes())
-    return digest.hexdigest()[:16]
+def burn_in_digest(checkpoint: Path) -> str:
+    """`u4d_aug.weights.weights_digest` of a checkpoint's model tensors: equal digests = the same weights bit for bit
+    (the burn-in a mean-teacher arm shares with sup-only, on one machine or two)."""
+    return weights_digest(load_checkpoint(checkpoint, "checkpoint")["model"], {})
 
 
 def write_record(path: Path, run: SegTrainConfig, metrics: dict, curves: dict, burn_in: str | None = None) -> None:
@@ -111,7 +90,7 @@ def write_record(path: Path, run: SegTrainConfig, metrics: dict, curves: dict, b
         "curves": curves,
         "burn_in_weights": burn_in,
         "banks": [bank_provenance(Path(bank.path)) for bank in run.semi.banks] if run.mode == "semi" else [],
-        "host": host(),
+        "host": host_info(),
         "trained_in": str(run.out_dir),
         "written": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }

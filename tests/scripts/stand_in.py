@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import subprocess
 import sys
 from pathlib import Path
 from typing import Any
@@ -118,6 +119,25 @@ def stand_in_env(tmp_path: Path, **extra: str) -> dict[str, str]:
         "PY": str(bin_dir / "py"),
         **extra,
     }
+
+
+def run_both(script: Path, cwd: Path, env: dict) -> None:
+    """A queue script as CORE=A and CORE=B side by side, as on a 2-core machine (each waits for what the other
+    writes); both must exit 0."""
+    procs = [
+        subprocess.Popen(
+            ["bash", str(script)],
+            cwd=cwd,
+            env={**env, "CORE": core},
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )  # fmt: skip
+        for core in ("A", "B")
+    ]
+    for proc in procs:
+        _, err = proc.communicate(timeout=180)
+        assert proc.returncode == 0, err[-3000:]
 
 
 def recorded_calls(tmp_path: Path) -> list[list[str]]:

@@ -7,11 +7,10 @@ banks) the committed records and weights leave nothing to train."""
 from __future__ import annotations
 
 import shutil
-import subprocess
 from collections import defaultdict
 from pathlib import Path
 
-from tests.scripts.stand_in import check_call, recorded_calls, stand_in_env
+from tests.scripts.stand_in import check_call, recorded_calls, run_both, stand_in_env
 from tests.tiny_nets import REPO
 
 SCRIPT = REPO / "scripts" / "downstream_queue.sh"
@@ -32,24 +31,6 @@ def checkout(tmp_path: Path) -> Path:
     return root
 
 
-def run_both(root: Path, env: dict) -> None:
-    """CORE=A and CORE=B side by side, as on a 2-core machine (each waits for what the other writes)."""
-    procs = [
-        subprocess.Popen(
-            ["bash", "scripts/downstream_queue.sh"],
-            cwd=root,
-            env={**env, "CORE": core},
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )  # fmt: skip
-        for core in ("A", "B")
-    ]
-    for proc in procs:
-        _, err = proc.communicate(timeout=180)
-        assert proc.returncode == 0, err[-3000:]
-
-
 def option(argv: list[str], flag: str) -> str:
     return argv[argv.index(flag) + 1]
 
@@ -57,7 +38,7 @@ def option(argv: list[str], flag: str) -> str:
 def test_the_queues_run_every_run_the_comparison_needs_and_resume_to_nothing(tmp_path):
     root = checkout(tmp_path)
     env = stand_in_env(tmp_path, WAIT="0.1")
-    run_both(root, env)
+    run_both(SCRIPT, root, env)
     made = recorded_calls(tmp_path)
 
     arms: dict[tuple[str, str, int], set[str]] = defaultdict(set)  # (setting, backbone, seed) -> arms trained
@@ -112,12 +93,12 @@ def test_the_queues_run_every_run_the_comparison_needs_and_resume_to_nothing(tmp
     assert len(records) == 4 * 4 + 2 + 3 * 4 + 2 * 4  # 10 %, the ablation's 2 seeds, 1 %, SPVCNN
 
     (tmp_path / "calls.jsonl").unlink()
-    run_both(root, env)
+    run_both(SCRIPT, root, env)
     assert recorded_calls(tmp_path) == []  # every run has its record: nothing runs again
 
     # a new machine: the checkout (records, exported nets) without run folders, world or banks
     for name in ("data", "banks"):
         shutil.rmtree(root / name)
     shutil.rmtree(tmp_path / "runs")
-    run_both(root, env)
+    run_both(SCRIPT, root, env)
     assert [argv[0] for argv in recorded_calls(tmp_path)] == ["simulate"]

@@ -12,28 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from tests.scripts.stand_in import check_call, recorded_calls, stand_in_env
+from tests.scripts.stand_in import check_call, recorded_calls, run_both, stand_in_env
 from tests.tiny_nets import REPO
 
 SCRIPT = REPO / "scripts" / "temporal_queue.sh"
-
-
-def run_both(env: dict) -> None:
-    """CORE=A and CORE=B side by side, as on a 2-core machine (each waits for what the other writes)."""
-    procs = [
-        subprocess.Popen(
-            ["bash", str(SCRIPT)],
-            cwd=REPO,
-            env={**env, "CORE": core},
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )  # fmt: skip
-        for core in ("A", "B")
-    ]
-    for proc in procs:
-        _, err = proc.communicate(timeout=180)
-        assert proc.returncode == 0, err[-3000:]
 
 
 @pytest.fixture
@@ -50,7 +32,7 @@ def option(argv: list[str], flag: str) -> str:
 
 
 def test_every_call_is_valid_budgets_are_equal_and_the_table_is_written(queue_env, tmp_path):
-    run_both(queue_env)
+    run_both(SCRIPT, REPO, queue_env)
     made = recorded_calls(tmp_path)
     steps: dict[str, int] = {}
     for argv in made:
@@ -96,17 +78,17 @@ def test_every_call_is_valid_budgets_are_equal_and_the_table_is_written(queue_en
     assert (evals / "gates_u4d_most_s0.json").read_text().strip() == "{}"
     budget = json.loads((evals / "u4d_most_s1" / "budget.json").read_text())
     assert budget["nets"] == {"stage1": {"steps": 20, "minutes": 20.0}, "stage2": {"steps": 20, "minutes": 20.0}}
-    assert budget["host"]["cores"] >= 1 and budget["host"]["threads"] == 1
+    assert budget["host"]["cores"] >= 1 and budget["host"]["torch_threads"] == 1
     assert [a[0] for a in made].count("seg-predict") == 1
 
     (tmp_path / "calls.jsonl").unlink()
-    run_both(queue_env)
+    run_both(SCRIPT, REPO, queue_env)
     assert recorded_calls(tmp_path) == []  # every method has its evaluation: nothing runs again
 
     # a new machine: no run folders, no probabilities, only the committed evaluations: nothing trains again
     shutil.rmtree(tmp_path / "runs")
     shutil.rmtree(tmp_path / "data" / "sim_seg_probs")
-    run_both(queue_env)
+    run_both(SCRIPT, REPO, queue_env)
     assert [a[0] for a in recorded_calls(tmp_path)] == ["seg-predict"]
 
 
