@@ -9,8 +9,9 @@
 # stay on the machine: a queue on a new machine writes the world again (2 min) and the banks an arm needs (about an
 # hour each, from the nets in weights/), and a run cut off by the end of a session starts again from its last
 # checkpoint only on the same machine. So the steps come in pieces that fit one session (about 2.8 hours per core):
-#   1. the bank arms of the 10 % seeds 2 and 3 (A: the R2DM-style bank, then seed 2; B: the U4D bank, then seed 3),
-#   2. the same for seeds 0 and 1, and any 10 % sup-only / mt seed without a record,
+#   1. the bank arms of the 10 % seeds (A: the R2DM-style bank, then mt+r2dm of seeds 2, 3, 0, 1; B: the U4D bank,
+#      then mt+u4d of seeds 3, 2, 1, 0: each core needs only its own bank, so neither waits for the other's),
+#   2. any 10 % sup-only / mt seed without a record,
 #   3. the random-P_u nets (A: stage 1, B: stage 2; exported to weights/u4d_random_stage*.pt; 2.5 to 3.5 hours each
 #      on one thread, the length of a session: start them first),
 #   4. the random-P_u bank and its arm's seeds 0 and 1,
@@ -82,12 +83,14 @@ recorded() {  # SETTING SEED ARM...: every named arm of that seed has a record (
 export_net() {  # RUN FILE: a finished net's EMA weights into weights/ (then add its row to weights/README.md)
   [ -f "$2" ] || u4d export-weights "$1" --out "$2"
 }
-bank_arms() {  # SEED MYBANK MYMODE OTHERBANK: the two bank arms of a 10 % seed; this core writes MYBANK
-  local seed=$1
-  recorded 10pct "$seed" mt+r2dm mt+u4d && return 0
-  bank "$2" "$3"
-  wait_bank "$4"
-  exp10 "$seed" mt+r2dm mt+u4d
+bank_arm() {  # ARM BANK MODE SEED...: one 10 % bank arm over seeds; this core writes its bank when a seed needs it
+  local arm=$1 out=$2 mode=$3 seed
+  shift 3
+  for seed in "$@"; do
+    recorded 10pct "$seed" "$arm" && continue
+    bank "$out" "$mode"
+    exp10 "$seed" "$arm"
+  done
 }
 main_arms() {  # SEED: sup-only and mt of a 10 % seed
   recorded 10pct "$1" sup-only mt || exp10 "$1" sup-only mt
@@ -152,8 +155,7 @@ spv_arms() {  # SEED: SPVCNN-like at 10 %, the four arms
 
 if [ "$CORE" = A ]; then
   world
-  bank_arms 2 "$BANKS/r2dm_hdl64_ms" baseline "$BANKS/u4d_hdl64_ms"
-  bank_arms 0 "$BANKS/r2dm_hdl64_ms" baseline "$BANKS/u4d_hdl64_ms"
+  bank_arm mt+r2dm "$BANKS/r2dm_hdl64_ms" baseline 2 3 0 1
   main_arms 0
   main_arms 2
   random_net stage1
@@ -165,8 +167,7 @@ if [ "$CORE" = A ]; then
   spv_arms 0
 else
   wait_file "$DATA/sim_seg/done"
-  bank_arms 3 "$BANKS/u4d_hdl64_ms" u4d "$BANKS/r2dm_hdl64_ms"
-  bank_arms 1 "$BANKS/u4d_hdl64_ms" u4d "$BANKS/r2dm_hdl64_ms"
+  bank_arm mt+u4d "$BANKS/u4d_hdl64_ms" u4d 3 2 1 0
   main_arms 1
   main_arms 3
   random_net stage2
