@@ -18,7 +18,8 @@
 #   5. the 1 % uncertainty segmentor, its probabilities and nets (weights/*_1pct*.pt), then the 1 % seeds,
 #   6. SPVCNN at 10 %, seeds 0 and 1.
 # Each queue waits for what the other one writes (the world, a bank). RUNS (default ../runs) says where run folders go;
-# the world goes to data/ and the banks to banks/, the paths configs/experiment/*.yaml name.
+# the world goes to data/ and the banks to banks/, the paths configs/experiment/*.yaml name: links to RUNS/data and
+# RUNS/banks where the checkout has neither, so a fresh checkout on the same machine finds them again.
 set -euo pipefail
 RUNS=${RUNS:-../runs}
 DATA=data
@@ -30,6 +31,10 @@ MAIN=(sup-only mt mt+r2dm mt+u4d)
 
 done_bank() {  # a bank whose `u4d generate` finished
   python3 -c "import json,sys; sys.exit(0 if json.load(open('$1/manifest.json')).get('complete') else 1)" 2>/dev/null
+}
+keep() {  # NAME: ./NAME links to RUNS/NAME unless it is there, so the world and banks outlive a new checkout
+  mkdir -p "$RUNS/$1"
+  [ -e "$1" ] || ln -s "$(cd "$RUNS/$1" && pwd)" "$1" 2> /dev/null || [ -e "$1" ]  # the other core may link first
 }
 wait_bank() { while ! done_bank "$1"; do sleep "$WAIT"; done; }
 wait_file() { while [ ! -f "$1" ]; do sleep "$WAIT"; done; }
@@ -153,6 +158,8 @@ spv_arms() {  # SEED: SPVCNN-like at 10 %, the four arms
   spv "$1" "${MAIN[@]}"
 }
 
+keep "$DATA"
+keep "$BANKS"
 if [ "$CORE" = A ]; then
   world
   bank_arm mt+r2dm "$BANKS/r2dm_hdl64_ms" baseline 2 3 0 1

@@ -19,7 +19,7 @@
 # (PY, default python3, runs benchmarks/temporal_table.py). Each finished method-seed leaves its evaluation and its
 # training budget in EVALS (default RESULTS/temporal_evals, committed): a method with one there is not run again, so
 # the table grows over sessions on different machines although run folders and checkpoints stay on the machine.
-# The world is DATA/sim_seg (DATA default data) and its probabilities DATA/sim_seg_probs; core A writes what is
+# The world is DATA/sim_seg (DATA default data, then a link to RUNS/data unless the checkout has one) and its probabilities DATA/sim_seg_probs; core A writes what is
 # missing (the same commands as scripts/downstream_queue.sh), core B waits for them.
 set -euo pipefail
 RUNS=${RUNS:-../runs}
@@ -38,6 +38,10 @@ FRD=weights/extractor_frd.pt
 resume_flag() { if ls "$1"/checkpoints/step_*.pt > /dev/null 2>&1; then echo --resume; fi; }
 last_step() { tail -n 1 "$1/log.jsonl" 2>/dev/null | python3 -c "import sys,json; print(json.loads(sys.stdin.read() or '{}').get('step', 0))" 2>/dev/null || echo 0; }
 done_bank() { python3 -c "import json,sys; sys.exit(0 if json.load(open('$1/manifest.json')).get('complete') else 1)" 2>/dev/null; }
+keep() {  # NAME: ./NAME links to RUNS/NAME unless it is there, so the world and banks outlive a new checkout
+  mkdir -p "$RUNS/$1"
+  [ -e "$1" ] || ln -s "$(cd "$RUNS/$1" && pwd)" "$1" 2> /dev/null || [ -e "$1" ]  # the other core may link first
+}
 wait_file() { while [ ! -f "$1" ]; do sleep "$WAIT"; done; }
 
 finetune() {  # RUN STAGE STEPS [overrides...]: one sequence net from the shipped net of its stage
@@ -122,6 +126,7 @@ floor() {  # the held-out real sequences 88-99 as the bank: their own TTCE / CTC
     --real-sequences 88-99 --metrics ttce,ctc --json --md --out "$E/floor"
 }
 
+if [ "$DATA" = data ]; then keep data; fi
 if [ "$CORE" = "A" ]; then
   world
   method u4d_most 0

@@ -96,9 +96,16 @@ def test_the_queues_run_every_run_the_comparison_needs_and_resume_to_nothing(tmp
     run_both(SCRIPT, root, env)
     assert recorded_calls(tmp_path) == []  # every run has its record: nothing runs again
 
+    # the world and banks live beside the run folders, linked into the checkout: a fresh checkout finds them again
+    for name in ("data", "banks"):
+        assert (root / name).resolve() == (tmp_path / "runs" / name).resolve()
+        (root / name).unlink()
+    run_both(SCRIPT, root, env)
+    assert recorded_calls(tmp_path) == []
+
     # a new machine: the checkout (records, exported nets) without run folders, world or banks
     for name in ("data", "banks"):
-        shutil.rmtree(root / name)
+        (root / name).unlink()
     shutil.rmtree(tmp_path / "runs")
     run_both(SCRIPT, root, env)
     assert [argv[0] for argv in recorded_calls(tmp_path)] == ["simulate"]
