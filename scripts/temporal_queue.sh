@@ -83,7 +83,7 @@ world() {  # the simulated world and the uncertainty segmentor's probabilities o
 }
 score() {  # BANK OUT: TTCE k = 3, 4, CTC k = 1..4 and FRD against the held-out places
   [ -f "$2/evaluation.json" ] || u4d evaluate --bank "$1" --real "$DATA/sim_seg" --real-sequences 88-99 \
-    --metrics ttce,ctc,frd --extractor-frd "$FRD" --json --md --out "$2"
+    --metrics ttce,ctc,frd --extractor-frd "$FRD" --json --md --out "$2" --no-progress
 }
 budget() {  # OUT RUN...: each net's steps and training minutes (its log) and the host, beside the evaluation
   "$PY" - "$@" <<'PYEOF'
@@ -123,7 +123,7 @@ floor() {  # the held-out real sequences 88-99 as the bank: their own TTCE / CTC
   mkdir -p "$T/floor/sequences"
   for s in $(seq 88 99); do ln -sfn "$(realpath "$DATA/sim_seg/sequences/$s")" "$T/floor/sequences/$s"; done
   [ -f "$E/floor/evaluation.json" ] || u4d evaluate --bank "$T/floor" --real "$DATA/sim_seg" \
-    --real-sequences 88-99 --metrics ttce,ctc --json --md --out "$E/floor"
+    --real-sequences 88-99 --metrics ttce,ctc --json --md --out "$E/floor" --no-progress
 }
 
 if [ "$DATA" = data ]; then keep data; fi

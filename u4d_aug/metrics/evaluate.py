@@ -24,6 +24,7 @@ from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder
 from u4d_aug.metrics import bev, temporal
+from u4d_aug.progress import progress_bar
 
 METRICS = ("frd", "fpd", "jsd", "mmd", "points", "rangejs", "intensityjs", "ttce", "ctc")
 TABLE1 = ("frd", "fpd", "jsd", "mmd", "points", "rangejs", "intensityjs")
@@ -68,6 +69,11 @@ def list_scans(
     return entries
 
 
+def _scans(entries: list[tuple[str, str, Path]], what: str, progress: bool) -> Any:
+    """`entries` with a progress bar over their scans ("bank features", ...) when `progress`."""
+    return progress_bar(entries, desc=what, unit="scan", enabled=progress, leave=False)
+
+
 def _window(points: np.ndarray) -> np.ndarray:
     """Points inside the 0.5-63 m evaluation window (R2DM/LiDARGen), applied to both sides before FRD/FPD."""
     depth2 = np.einsum("ij,ij->i", points[:, :3], points[:, :3])
@@ -75,20 +81,26 @@ def _window(points: np.ndarray) -> np.ndarray:
 
 
 def _stream_features(
-    extractor: Any, entries: list[tuple[str, str, Path]], batch_size: int = 8
+    extractor: Any, entries: list[tuple[str, str, Path]], batch_size: int = 8, what: str = "", progress: bool = False
 ) -> dict[str, np.ndarray]:
     """Features of windowed scans read batch by batch (a 10k-scan bank never sits in memory at once)."""
     from u4d_aug.metrics.extractors import extract_features
 
     parts = []
-    for start in range(0, len(entries), batch_size):
-        scans = [_window(read_kitti_scan(path)) for _, _, path in entries[start : start + batch_size]]
-        parts.append(extract_features(extractor, scans, batch_size))
+    with progress_bar(total=len(entries), desc=what, unit="scan", enabled=progress, leave=False) as bar:
+        for start in range(0, len(entries), batch_size):
+            scans = [_window(read_kitti_scan(path)) for _, _, path in entries[start : start + batch_size]]
+            parts.append(extract_features(extractor, scans, batch_size))
+            bar.update(len(scans))
     return {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
 
 
 def _feature_metric(
-    name: str, checkpoint: str | Path | None, bank: list[tuple[str, str, Path]], real: list[tuple[str, str, Path]]
+    name: str,
+    checkpoint: str | Path | None,
+    bank: list[tuple[str, str, Path]],
+    real: list[tuple[str, str, Path]],
+    progress: bool = False,
 ) -> dict[str, Any]:
     """FRD or FPD entry: Fréchet distance of extractor features, with the extractor hash and path."""
     from u4d_aug.metrics.extractors import load_extractor
@@ -101,8 +113,8 @@ def _feature_metric(
         raise InputError(f"--extractor-{name} {checkpoint}: this checkpoint is a {extractor.kind} extractor")
     if len(bank) < 2 or len(real) < 2:
         return {"value": None, "missing": "needs at least 2 scans on each side", "extractor_hash": extractor.hash}
-    feats_bank = _stream_features(extractor, bank)
-    feats_real = _stream_features(extractor, real)
+    feats_bank = _stream_features(extractor, bank, what=f"{name} bank", progress=progress)
+    feats_real = _stream_features(extractor, real, what=f"{name} real", progress=progress)
     entry: dict[str, Any] = {
         "value": frechet_from_features(feats_real[name], feats_bank[name]),
         "feature_dim": int(feats_bank[name].shape[1]),
@@ -115,13 +127,15 @@ def _feature_metric(
     return entry
 
 
-def scan_statistics(entries: list[tuple[str, str, Path]]) -> dict[str, np.ndarray]:
+def scan_statistics(
+    entries: list[tuple[str, str, Path]], what: str = "", progress: bool = False
+) -> dict[str, np.ndarray]:
     """Points per scan "points" (S,), pooled histograms of point ranges over `RANGE_BINS` "rangejs" (80,) and of
     intensities (clipped to [0, 1]) over `INTENSITY_BINS` "intensityjs" (50,) of the scans."""
     counts = []
     ranges = np.zeros(len(RANGE_BINS) - 1, dtype=np.int64)
     intensities = np.zeros(len(INTENSITY_BINS) - 1, dtype=np.int64)
-    for _, _, path in entries:
+    for _, _, path in _scans(entries, what, progress):
         points = read_kitti_scan(path)  # (N, 4) x, y, z, intensity
         counts.append(points.shape[0])
         ranges += np.histogram(np.linalg.norm(points[:, :3], axis=1), RANGE_BINS)[0]
@@ -152,7 +166,9 @@ def _statistic_metric(name: str, bank: dict[str, np.ndarray], real: dict[str, np
     return entry
 
 
-def _temporal_table(root: Path, entries: list[tuple[str, str, Path]], metrics: tuple[str, ...]) -> dict[str, Any]:
+def _temporal_table(
+    root: Path, entries: list[tuple[str, str, Path]], metrics: tuple[str, ...], what: str = "", progress: bool = False
+) -> dict[str, Any]:
     """TTCE (m) and CTC (m^2) per interval pooled over the sequences of `entries`, or the reason it is missing."""
     by_seq: dict[str, list[int]] = {}
     for seq, frame, _ in entries:
@@ -167,7 +183,7 @@ def _temporal_table(root: Path, entries: list[tuple[str, str, Path]], metrics: t
         if np.any(np.diff(frames) != 1):
             return {"missing": f"{folder}: frames are not consecutive; temporal intervals need consecutive frames"}
     ttce_scores, ctc_scores, seconds = [], [], {"ttce": 0.0, "ctc": 0.0}
-    for seq, frames in by_seq.items():
+    for seq, frames in progress_bar(by_seq.items(), desc=what, unit="sequence", enabled=progress, leave=False):
         scans, poses = temporal.load_kitti_sequence(root / "sequences" / seq, frames)
         if "ttce" in metrics:
             start = time.perf_counter()
@@ -199,8 +215,10 @@ def evaluate(
     extractor_frd: str | Path | None = None,
     extractor_fpd: str | Path | None = None,
     real_sequences: list[str] | None = None,
+    progress: bool = False,
 ) -> dict[str, Any]:
-    """Table 1 (bank vs real) and Table 2 (temporal, bank and real) as one json-ready result."""
+    """Table 1 (bank vs real) and Table 2 (temporal, bank and real) as one json-ready result (progress bars over the
+    scans of each pass when `progress`)."""
     bank, real = Path(bank), Path(real)
     bank_entries, real_entries = list_scans(bank, max_scans), list_scans(real, max_scans, real_sequences)
     result: dict[str, Any] = {
@@ -235,11 +253,14 @@ def evaluate(
     if wanted1:
         if "jsd" in wanted1 or "mmd" in wanted1:
             start = time.perf_counter()
-            hist_bank = bev.bev_histograms(read_kitti_scan(path) for _, _, path in bank_entries)  # (S_b, 100, 100)
-            hist_real = bev.bev_histograms(read_kitti_scan(path) for _, _, path in real_entries)  # (S_r, 100, 100)
+            bank_scans = _scans(bank_entries, "BEV bank", progress)
+            real_scans = _scans(real_entries, "BEV real", progress)
+            hist_bank = bev.bev_histograms(read_kitti_scan(path) for _, _, path in bank_scans)  # (S_b, 100, 100)
+            hist_real = bev.bev_histograms(read_kitti_scan(path) for _, _, path in real_scans)  # (S_r, 100, 100)
             result["seconds"]["bev_histograms"] = time.perf_counter() - start
         if any(name in STATISTICS for name in wanted1):
-            stats_bank, stats_real = scan_statistics(bank_entries), scan_statistics(real_entries)
+            stats_bank = scan_statistics(bank_entries, "statistics bank", progress)
+            stats_real = scan_statistics(real_entries, "statistics real", progress)
         for name in wanted1:
             start = time.perf_counter()
             if name == "jsd":
@@ -251,16 +272,16 @@ def evaluate(
                 entry = _statistic_metric(name, stats_bank, stats_real)
             else:
                 checkpoint = extractor_frd if name == "frd" else extractor_fpd
-                entry = _feature_metric(name, checkpoint, bank_entries, real_entries)
+                entry = _feature_metric(name, checkpoint, bank_entries, real_entries, progress)
             result["table1"][name] = entry
             result["seconds"][name] = time.perf_counter() - start
     wanted2 = tuple(m for m in TABLE2 if m in metrics)
     if wanted2:
-        result["table2"]["bank"] = _temporal_table(bank, bank_entries, wanted2)
+        result["table2"]["bank"] = _temporal_table(bank, bank_entries, wanted2, "temporal bank", progress)
         if bank.resolve() == real.resolve() and bank_entries == real_entries:
             result["table2"]["real"] = result["table2"]["bank"]  # same scans: computed once
         else:
-            result["table2"]["real"] = _temporal_table(real, real_entries, wanted2)
+            result["table2"]["real"] = _temporal_table(real, real_entries, wanted2, "temporal real", progress)
     return result
 
 
@@ -337,6 +358,7 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--extractor-frd", type=Path, default=None, help="FRD extractor checkpoint (frd.pt)")
     parser.add_argument("--extractor-fpd", type=Path, default=None, help="FPD extractor checkpoint (fpd.pt)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
@@ -353,6 +375,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         args.extractor_frd,
         args.extractor_fpd,
         args.real_sequences,
+        progress=not args.no_progress,
     )
     text = to_markdown(result)
     print(text)

@@ -118,6 +118,18 @@ def test_cli_writes_json_and_md(synthetic, tmp_path, capsys):
     assert (tmp_path / "o" / "evaluation.md").read_text() + "\n" == printed
 
 
+@pytest.mark.parametrize("quiet", [False, True])
+def test_cli_shows_progress_over_each_pass_unless_told_not_to(synthetic, tmp_path, capsys, quiet):
+    parser = argparse.ArgumentParser()
+    add_evaluate_arguments(parser)
+    argv = ["--bank", str(synthetic["bank"]), "--real", str(synthetic["real"]), "--metrics", "points,jsd,ctc"]
+    args = parser.parse_args(argv + ["--max-scans", "3"] + (["--no-progress"] if quiet else []))
+    assert run_evaluate(args) == 0
+    err = capsys.readouterr().err
+    for what in ("BEV bank", "BEV real", "statistics bank", "statistics real", "temporal real"):
+        assert (what in err) != quiet, what
+
+
 def test_bad_inputs(tmp_path):
     with pytest.raises(InputError, match="--metrics"):
         parse_metrics("jsd,fid")
