@@ -34,8 +34,8 @@ from segmentation.predict import load_checkpoint, model_from_checkpoint
 from segmentation.semi import unlabeled_stream
 from u4d_aug.config import config_from_dict
 from u4d_aug.data.datasets import ScanDataset
-from u4d_aug.errors import InputError
-from u4d_aug.io import atomic_write_json, atomic_write_text
+from u4d_aug.errors import InputError, exit_code_of
+from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder
 from u4d_aug.progress import progress_bar
 
 
@@ -117,6 +117,20 @@ def parse_banks(texts: list[str]) -> dict[str, Path]:
     return banks
 
 
+def teacher_and_sources(
+    checkpoint: Path, real: Path, banks: dict[str, Path]
+) -> tuple[SegTrainConfig, torch.nn.Module, dict[str, ScanDataset]]:
+    """The checkpoint's config (data.root = `real`, no banks), its net in eval mode, and the sources: the unlabelled
+    part of its split of `real` ("real unlabelled"), then each bank."""
+    ckpt = load_checkpoint(checkpoint)
+    cfg = config_from_dict(SegTrainConfig, ckpt["config"], source=f"{checkpoint} config")
+    cfg.data.root, cfg.semi.banks = real, []
+    model = model_from_checkpoint(ckpt, torch.device("cpu"), source=str(checkpoint))
+    sources = {"real unlabelled": unlabeled_stream(cfg).sources[0]}
+    sources.update({name: ScanDataset(folder, None) for name, folder in banks.items()})
+    return cfg, model, sources
+
+
 def measure(
     checkpoints: list[Path],
     real: Path,
@@ -129,15 +143,8 @@ def measure(
     per_source: dict[str, list[dict]] = {}
     threshold = names = None
     for checkpoint in checkpoints:
-        ckpt = load_checkpoint(checkpoint)
-        cfg = config_from_dict(SegTrainConfig, ckpt["config"], source=f"{checkpoint} config")
-        cfg.data.root = real
-        cfg.semi.banks = []
-        model = model_from_checkpoint(ckpt, torch.device("cpu"), source=str(checkpoint))
-        threshold = cfg.semi.pseudo_threshold
-        names = list(ckpt.get("class_names") or class_names(cfg))
-        sources = {"real unlabelled": unlabeled_stream(cfg).sources[0]}
-        sources.update({name: ScanDataset(folder, None) for name, folder in banks.items()})
+        cfg, model, sources = teacher_and_sources(checkpoint, real, banks)
+        threshold, names = cfg.semi.pseudo_threshold, class_names(cfg)
         for name, source in sources.items():
             what = f"{checkpoint.parent.name} {name}"
             stats = source_statistics(model, source, cfg, scans, what, progress, intensity)
@@ -192,12 +199,7 @@ def plot_examples(checkpoint: Path, real: Path, banks: dict[str, Path], scans: i
     confident and grey where its label would be dropped."""
     from u4d_aug.viz import draw_bev, label_colors, plt, save_figure
 
-    ckpt = load_checkpoint(checkpoint)
-    cfg = config_from_dict(SegTrainConfig, ckpt["config"], source=f"{checkpoint} config")
-    cfg.data.root, cfg.semi.banks = real, []
-    model = model_from_checkpoint(ckpt, torch.device("cpu"), source=str(checkpoint))
-    sources = {"real unlabelled": unlabeled_stream(cfg).sources[0]}
-    sources.update({name: ScanDataset(folder, None) for name, folder in banks.items()})
+    cfg, model, sources = teacher_and_sources(checkpoint, real, banks)
     fig, axes = plt.subplots(1, len(sources), figsize=(5 * len(sources), 5.2), squeeze=False)
     for ax, (name, source) in zip(axes[0], sources.items()):
         picked = evenly_spaced(len(source), scans)
@@ -216,10 +218,7 @@ def plot_examples(checkpoint: Path, real: Path, banks: dict[str, Path], scans: i
 
 def plot(result: dict, path: Path) -> None:
     """Bars: the kept pseudo-labels' class shares per source."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from u4d_aug.viz import plt, save_figure
 
     names = result["class_names"]
     sources = list(result["sources"])
@@ -235,13 +234,10 @@ def plot(result: dict, path: Path) -> None:
     ax.set_title("The teacher's confident pseudo-labels on each unlabelled source")
     ax.legend()
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
+    save_figure(fig, path)
 
 
-def main(argv: list[str] | None = None) -> int:
+def run(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", type=Path, action="append", required=True, help="teacher (repeatable)")
     parser.add_argument("--real", type=Path, required=True, help="the world the checkpoint trained on")
@@ -255,13 +251,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.scans < 1:
         raise InputError(f"--scans must be >= 1, got {args.scans}")
+    make_folder(args.out)  # a file in the way: one line before the long computation
     torch.set_num_threads(1)
     banks = parse_banks(args.bank)
     result = measure(args.checkpoint, args.real, banks, args.scans, not args.no_progress, args.intensity)
     command = "python benchmarks/bank_confidence.py " + " ".join(argv if argv is not None else sys.argv[1:])
     text = markdown(result, command)
     print(text)
-    args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(args.out / "bank_confidence.json", result)
     atomic_write_text(args.out / "bank_confidence.md", text)
     plot(result, args.out / "bank_confidence.png")
@@ -269,8 +265,9 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def main(argv: list[str] | None = None) -> int:
+    return exit_code_of(run, argv)
+
+
 if __name__ == "__main__":
-    try:
-        sys.exit(main())
-    except InputError as exc:
-        sys.exit(f"error: {exc}")
+    sys.exit(main())

@@ -19,8 +19,9 @@
 # (PY, default python3, runs benchmarks/temporal_table.py). Each finished method-seed leaves its evaluation and its
 # training budget in EVALS (default RESULTS/temporal_evals, committed): a method with one there is not run again, so
 # the table grows over sessions on different machines although run folders and checkpoints stay on the machine.
-# The world is DATA/sim_seg (DATA default data, then a link to RUNS/data unless the checkout has one) and its probabilities DATA/sim_seg_probs; core A writes what is
-# missing (the same commands as scripts/downstream_queue.sh), core B waits for them.
+# The world is DATA/sim_seg (DATA default data, then a link to RUNS/data unless the checkout has one) and its
+# probabilities DATA/sim_seg_probs; core A writes what is missing (the same commands as scripts/downstream_queue.sh),
+# core B waits for them.
 set -euo pipefail
 RUNS=${RUNS:-../runs}
 DATA=${DATA:-data}

@@ -70,7 +70,20 @@ def test_evenly_spaced_picks():
     assert bank_confidence.evenly_spaced(10, 3) == [0, 4, 9]  # 4.5 rounds to even
 
 
-def test_bad_bank_is_named(world, tmp_path):
+def test_bad_inputs_are_named_in_one_line(world, tmp_path, capsys):
     for text, match in (("nameonly", "NAME=DIR"), (f"x={tmp_path / 'absent'}", "absent is not a folder")):
         with pytest.raises(InputError, match=match):
             bank_confidence.parse_banks([text])
+    (tmp_path / "file").write_text("")
+    cases = [
+        (["--checkpoint", str(tmp_path / "none.pt"), "--real", str(world["root"])], "none.pt"),
+        (["--checkpoint", str(world["ckpt"]), "--real", str(tmp_path / "nowhere")], "nowhere"),
+        (["--checkpoint", str(world["ckpt"]), "--real", str(world["root"]), "--scans", "0"], "--scans"),
+    ]
+    for argv, named in cases:
+        assert bank_confidence.main(argv + ["--out", str(tmp_path / "o"), "--no-progress"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("error:") and named in err and "\n" not in err, err
+    argv = ["--checkpoint", str(world["ckpt"]), "--real", str(world["root"]), "--out", str(tmp_path / "file")]
+    assert bank_confidence.main(argv) == 2
+    assert "is a file" in capsys.readouterr().err

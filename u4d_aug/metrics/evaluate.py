@@ -70,7 +70,7 @@ def list_scans(
 
 
 def _scans(entries: list[tuple[str, str, Path]], what: str, progress: bool) -> Any:
-    """`entries` with a progress bar over their scans ("bank features", ...) when `progress`."""
+    """`entries` with a progress bar over their scans, titled `what` ("BEV bank", ...), when `progress`."""
     return progress_bar(entries, desc=what, unit="scan", enabled=progress, leave=False)
 
 
