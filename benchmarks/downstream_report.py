@@ -53,7 +53,7 @@ from u4d_aug.validate import check_plain_name
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "downstream"
 FINISHED = ("done", "partial")
-REFERENCES = ("mt", "mt+r2dm")  # every arm is paired with each of these
+REFERENCES = ("mt", "mt+r2dm")  # every mean-teacher arm is paired with each of these (sup-only only via NAMED_PAIRS)
 NAMED_PAIRS = (("mt", "sup-only"), ("mt+u4d", "mt+u4d-random"))  # (arm, reference): arm - reference
 CLASS_PAIRS = (("mt+u4d", "mt"), ("mt+u4d", "mt+r2dm"))  # the per-class table and chart
 ARM_METRICS = (("miou", "miou"), ("ece", "ece_per_scan"), ("ece_pooled", "ece_pooled"))  # summary key, results key
@@ -227,8 +227,9 @@ def burn_in_mismatches(arm: dict, reference: dict) -> list[int]:
 
 
 def pair_names(names: list[str]) -> list[tuple[str, str]]:
-    """(arm, reference) pairs: NAMED_PAIRS, then every arm against each of REFERENCES present, without reverses."""
-    wanted = [*NAMED_PAIRS, *((arm, ref) for ref in REFERENCES if ref in names for arm in names if arm != ref)]
+    """(arm, reference) pairs: NAMED_PAIRS, then every mean-teacher arm against each of REFERENCES, without reverses."""
+    others = [(arm, ref) for ref in REFERENCES if ref in names for arm in names if arm not in (ref, "sup-only")]
+    wanted = [*NAMED_PAIRS, *others]
     pairs: list[tuple[str, str]] = []
     for pair in wanted:
         if pair not in pairs and pair[::-1] not in pairs:
