@@ -23,7 +23,8 @@ a list aligned with the `seeds` list beside it (null where a run lacks the metri
         rangejs, intensityjs, points, frd, fpd as `u4d evaluate` reports them), real_points, intensity_mean,
         real_intensity_mean, real (the reference root and sequences), sources}
     paired.A_vs_B (A - B on the seeds both finished): arm, reference, miou / ece: {seeds, per_seed, mean, std, n,
-        above, ci95 [lo, hi] (t distribution), p (two-sided paired t-test), seeds_needed}, iou.CLASS / bands.BAND alike
+        above, ci95 [lo, hi] (t distribution), p (two-sided paired t-test), seeds_needed}, iou.CLASS / bands.BAND alike;
+        mean, ci95, p at the top are the mIoU difference's (the issue's `paired.A_vs_B.mean` / `.ci95` / `.p`)
     unpaired.A_vs_B: why the pair has no numbers
     figures: paired, per_class, learning_curves, reliability.ARM (file names in --out; null = not drawn), not_found
 """
@@ -257,10 +258,14 @@ def paired_summary(entries: list[dict]) -> tuple[dict, dict]:
         if diff["miou"]["n"] == 0:
             unpaired[key] = "no seed finished in both"
             continue
+        miou = percent(diff["miou"])
         paired[key] = {
             "arm": arm,
             "reference": reference,
-            "miou": percent(diff["miou"]),
+            "mean": miou["mean"],
+            "ci95": miou["ci95"],
+            "p": miou["p"],
+            "miou": miou,
             "ece": percent(diff["ece_per_scan"]),
             "iou": {name: percent(stat) for name, stat in diff["iou"].items()},
             "bands": {name: percent(stat) for name, stat in diff["bands"].items()},
