@@ -24,7 +24,7 @@ a list aligned with the `seeds` list beside it (null where a run lacks the metri
         real_intensity_mean, real (the reference root and sequences), sources}
     paired.A_vs_B (A - B on the seeds both finished): arm, reference, miou / ece: {seeds, per_seed, mean, std, n,
         above, ci95 [lo, hi] (t distribution), p (two-sided paired t-test), seeds_needed}, iou.CLASS / bands.BAND alike;
-        mean, ci95, p at the top are the mIoU difference's (the issue's `paired.A_vs_B.mean` / `.ci95` / `.p`)
+        mean, ci95, p at the top are the mIoU difference's (the headline: `paired.A_vs_B.mean` / `.ci95` / `.p`)
     unpaired.A_vs_B: why the pair has no numbers
     figures: paired, per_class, learning_curves, reliability.ARM (file names in --out; null = not drawn), not_found
 """

@@ -129,7 +129,7 @@ def test_paired_difference_mean_ci_p_and_seeds_needed_by_hand(written):
     assert list(paired) == ["mt_vs_sup-only", "mt+u4d_vs_mt+u4d-random", "mt+u4d_vs_mt", "mt+u4d-random_vs_mt"]
     miou = paired["mt+u4d_vs_mt"]["miou"]  # per seed +1, +2, +3 points
     top = paired["mt+u4d_vs_mt"]
-    assert (top["mean"], top["ci95"], top["p"]) == (miou["mean"], miou["ci95"], miou["p"])  # the keys
+    assert (top["mean"], top["ci95"], top["p"]) == (miou["mean"], miou["ci95"], miou["p"])  # the headline keys
     assert miou["seeds"] == [0, 1, 2] and miou["per_seed"] == pytest.approx([1.0, 2.0, 3.0]) and miou["n"] == 3
     assert (miou["mean"], miou["std"]) == (pytest.approx(2.0), pytest.approx(1.0))
     half = T_975_DF2 * 1.0 / math.sqrt(3)
