@@ -118,7 +118,8 @@ random_arm() {  # SEED: the random-P_u bank arm of a 10 % seed (the bank from th
   wait_bank "$BANKS/u4d_random_hdl64_ms"
   exp10 "$1" mt+u4d-random
 }
-nets_1pct() {  # 1 % labels: the uncertainty segmentor is sup-only of the 1 % split (8 labelled scans); core A
+nets_1pct() {  # 1 % labels: the uncertainty segmentor is sup-only of the 1 % split (8 labelled scans); core B
+  # trains it while core A writes the random-P_u bank, so neither core waits idle
   local seg=$RUNS/unc_seg_1pct file=weights/uncertainty_segmentor_1pct.pt
   if [ ! -f "$file" ]; then
     u4d seg-train configs/seg/cpu_semi.yaml mode=supervised "data.root=$DATA/sim_seg" data.split_mode=sequence \
@@ -167,7 +168,6 @@ if [ "$CORE" = A ]; then
   main_arms 2
   random_net stage1
   random_arm 0
-  nets_1pct
   net_1pct stage1
   arms_1pct 0
   arms_1pct 2
@@ -178,6 +178,7 @@ else
   main_arms 1
   main_arms 3
   random_net stage2
+  nets_1pct
   random_arm 1
   net_1pct stage2
   arms_1pct 1
