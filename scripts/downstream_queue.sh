@@ -34,7 +34,7 @@ done_bank() {  # a bank whose `u4d generate` finished
 }
 keep() {  # NAME: ./NAME links to RUNS/NAME unless it is there, so the world and banks outlive a new checkout
   mkdir -p "$RUNS/$1"
-  [ -e "$1" ] || ln -s "$(cd "$RUNS/$1" && pwd)" "$1" 2> /dev/null || [ -e "$1" ]  # the other core may link first
+  [ -e "$1" ] || ln -sn "$(cd "$RUNS/$1" && pwd)" "$1" 2> /dev/null || [ -e "$1" ]  # the other core may link first
 }
 wait_bank() { while ! done_bank "$1"; do sleep "$WAIT"; done; }
 wait_file() { while [ ! -f "$1" ]; do sleep "$WAIT"; done; }

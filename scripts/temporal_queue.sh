@@ -41,7 +41,7 @@ last_step() { tail -n 1 "$1/log.jsonl" 2>/dev/null | python3 -c "import sys,json
 done_bank() { python3 -c "import json,sys; sys.exit(0 if json.load(open('$1/manifest.json')).get('complete') else 1)" 2>/dev/null; }
 keep() {  # NAME: ./NAME links to RUNS/NAME unless it is there, so the world and banks outlive a new checkout
   mkdir -p "$RUNS/$1"
-  [ -e "$1" ] || ln -s "$(cd "$RUNS/$1" && pwd)" "$1" 2> /dev/null || [ -e "$1" ]  # the other core may link first
+  [ -e "$1" ] || ln -sn "$(cd "$RUNS/$1" && pwd)" "$1" 2> /dev/null || [ -e "$1" ]  # the other core may link first
 }
 wait_file() { while [ ! -f "$1" ]; do sleep "$WAIT"; done; }
 
