@@ -15,8 +15,9 @@
 #   3. the random-P_u nets (A: stage 1, B: stage 2; exported to weights/u4d_random_stage*.pt; 2.5 to 3.5 hours each
 #      on one thread, the length of a session: start them first),
 #   4. the random-P_u bank and its arm's seeds 0 and 1,
-#   5. the 1 % uncertainty segmentor, its probabilities and nets (weights/*_1pct*.pt), then the 1 % seeds,
-#   6. SPVCNN at 10 %, seeds 0 and 1.
+#   5. the 1 % uncertainty segmentor (B, while A writes the random-P_u bank), its probabilities and nets
+#      (weights/*_1pct*.pt; A: stage 1, B: stage 2),
+#   6. A: the 1 % bank, the 1 % seed 0, SPVCNN at 10 % seed 0; B: SPVCNN seed 1 (its stage 2 ends first), 1 % seeds 1, 2.
 # Each queue waits for what the other one writes (the world, a bank). RUNS (default ../runs) says where run folders go;
 # the world goes to data/ and the banks to banks/, the paths configs/experiment/*.yaml name: links to RUNS/data and
 # RUNS/banks where the checkout has neither, so a fresh checkout on the same machine finds them again.
@@ -170,7 +171,6 @@ if [ "$CORE" = A ]; then
   random_arm 0
   net_1pct stage1
   arms_1pct 0
-  arms_1pct 2
   spv_arms 0
 else
   wait_file "$DATA/sim_seg/done"
@@ -181,7 +181,8 @@ else
   nets_1pct
   random_arm 1
   net_1pct stage2
+  spv_arms 1  # stage 2 ends before core A's stage 1 and 1 % bank: SPVCNN needs only the 10 % banks
   arms_1pct 1
-  spv_arms 1
+  arms_1pct 2
 fi
 echo "queue $CORE done"
