@@ -17,16 +17,27 @@ SCRIPT = REPO / "scripts" / "downstream_queue.sh"
 MAIN = {"sup-only", "mt", "mt+r2dm", "mt+u4d"}
 
 
+EXPORTED = (
+    "u4d_1pct_stage1",
+    "u4d_1pct_stage2",
+    "u4d_random_stage1",
+    "u4d_random_stage2",
+    "uncertainty_segmentor_1pct",
+)
+
+
 def checkout(tmp_path: Path) -> Path:
-    """configs/ and scripts/ of the repository, weights/ a folder of links to its files, benchmarks/ empty: what the
-    queues write (records, exported nets) stays in the scratch checkout."""
+    """configs/ and scripts/ of the repository, weights/ a folder of links to its files but the ones the queues export
+    (the queues start from the beginning, whichever of them are committed), benchmarks/ empty: what the queues write
+    (records, exported nets) stays in the scratch checkout."""
     root = tmp_path / "co"
     root.mkdir()
     for name in ("configs", "scripts"):
         (root / name).symlink_to(REPO / name)
     (root / "weights").mkdir()
     for path in (REPO / "weights").iterdir():
-        (root / "weights" / path.name).symlink_to(path)
+        if path.stem not in EXPORTED:
+            (root / "weights" / path.name).symlink_to(path)
     (root / "benchmarks" / "results").mkdir(parents=True)
     return root
 
@@ -87,8 +98,7 @@ def test_the_queues_run_every_run_the_comparison_needs_and_resume_to_nothing(tmp
     (unc,) = seg_runs.values()
     assert unc.data.label_fraction == 0.01 and unc.mode == "supervised"
     exported = sorted(option(argv, "--out") for argv in made if argv[0] == "export-weights")
-    assert exported == [f"weights/{n}.pt" for n in ("u4d_1pct_stage1", "u4d_1pct_stage2", "u4d_random_stage1",
-                                                   "u4d_random_stage2", "uncertainty_segmentor_1pct")]  # fmt: skip
+    assert exported == [f"weights/{name}.pt" for name in EXPORTED]
     records = sorted((root / "benchmarks" / "results" / "downstream" / "records").rglob("*.json"))
     assert len(records) == 4 * 4 + 2 + 3 * 4 + 2 * 4  # 10 %, the ablation's 2 seeds, 1 %, SPVCNN
 
