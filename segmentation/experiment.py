@@ -81,6 +81,8 @@ class ArmConfig:
     bank_ratio: float = 0.5  # share of the unlabeled scans drawn from the bank
     # key=value overrides of this arm only, after the experiment's (ablations, e.g. semi.pseudo_threshold=0.75)
     overrides: list[str] = field(default_factory=list)
+    # the seeds this arm runs, of the experiment's seeds (an ablation on fewer seeds); None = all of them
+    seeds: list[int] | None = None
 
     def __post_init__(self) -> None:
         check_plain_name(self.name, "arm name")  # it names the folder OUT/runs/NAME
@@ -444,7 +446,8 @@ def run_experiment_config(
                 "overrides": list(arm.overrides),
             }
             runs = []
-            for seed in cfg.seeds:
+            seeds = [seed for seed in cfg.seeds if arm.seeds is None or seed in arm.seeds]
+            for seed in seeds:
                 run = run_config(cfg, arm, backbone, seed)
                 t0 = time.perf_counter()
                 path = None if cfg.records_dir is None else record_path(cfg.records_dir, arm.name, backbone, seed)
@@ -479,10 +482,11 @@ def run_experiment_config(
                 logger.warning("%s / %s: missing (%s)", arm.name, backbone, problem)
                 continue
             if not runs:
-                entry.update(status="not run", reason="no finished run")
+                reason = "no finished run" if seeds else f"its seeds {arm.seeds} are not among the seeds {cfg.seeds}"
+                entry.update(status="not run", reason=reason)
                 results["arms"].append(entry)
                 continue
-            status = "done" if len(runs) == len(cfg.seeds) else "partial"
+            status = "done" if len(runs) == len(seeds) else "partial"
             entry.update(status=status, **aggregate(runs))
             entry["runs"] = [{k: v for k, v in r.items() if k != "bins"} for r in runs]
             pooled = None

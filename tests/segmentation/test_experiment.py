@@ -326,6 +326,16 @@ def test_report_only_trains_nothing_and_pairs_the_seeds_both_arms_finished(tmp_p
     with pytest.raises(InputError, match="--arms: 'nope' is not an arm of the experiment"):
         run(arms, "seeds=[0]", "--arms", "nope")
 
+    # an arm's own seeds: mt on seed 0 only is done with its one seed; seeds outside the experiment's run nothing
+    fewer = "arms=[{name: sup-only, mode: supervised}, {name: mt, mode: semi, seeds: [0]}, {name: mt-b, seeds: [5]}]"
+    before = sorted(p.relative_to(tmp_path) for p in (tmp_path / "out" / "runs").rglob("*"))
+    assert run(fewer, "seeds=[0, 1, 2]", "--arms", "mt", "mt-b") == 0
+    assert sorted(p.relative_to(tmp_path) for p in (tmp_path / "out" / "runs").rglob("*")) == before  # trained nothing
+    results = json.loads((tmp_path / "out" / "results.json").read_text())
+    sup, mt, mt_b = results["arms"]
+    assert (sup["status"], mt["status"], [r["seed"] for r in mt["runs"]]) == ("partial", "done", [0])
+    assert mt_b["status"] == "not run" and mt_b["reason"] == "its seeds [5] are not among the seeds [0, 1, 2]"
+
 
 def test_an_arm_run_by_another_process_donates_its_burn_in(tmp_path):
     """`arms=[mt]` in a second invocation starts from the burn_in.pt of sup-only, trained by the first one."""
