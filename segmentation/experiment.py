@@ -88,6 +88,8 @@ class ArmConfig:
         check_plain_name(self.name, "arm name")  # it names the folder OUT/runs/NAME
         if not 0.0 <= self.bank_ratio <= 1.0:
             raise InputError(f"arm {self.name}: bank_ratio must be in [0, 1], got {self.bank_ratio}")
+        if self.seeds is not None and not self.seeds:
+            raise InputError(f"arm {self.name}: seeds must list at least one seed (or be left out for all), got []")
 
 
 def default_arms() -> list[ArmConfig]:

@@ -335,6 +335,8 @@ def test_report_only_trains_nothing_and_pairs_the_seeds_both_arms_finished(tmp_p
     sup, mt, mt_b = results["arms"]
     assert (sup["status"], mt["status"], [r["seed"] for r in mt["runs"]]) == ("partial", "done", [0])
     assert mt_b["status"] == "not run" and mt_b["reason"] == "its seeds [5] are not among the seeds [0, 1, 2]"
+    with pytest.raises(InputError, match=r"arm mt: seeds must list at least one seed"):
+        load_config(ExperimentConfig, TINY, ["arms=[{name: mt, mode: semi, seeds: []}]"])
 
 
 def test_an_arm_run_by_another_process_donates_its_burn_in(tmp_path):
