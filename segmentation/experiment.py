@@ -83,6 +83,9 @@ class ArmConfig:
     overrides: list[str] = field(default_factory=list)
     # the seeds this arm runs, of the experiment's seeds (an ablation on fewer seeds); None = all of them
     seeds: list[int] | None = None
+    # the backbones this arm runs on, of the experiment's (an ablation on one backbone); the arm is left out of the
+    # other backbones' tables; None = all of them
+    backbones: list[Literal["minkunet", "spvcnn"]] | None = None
 
     def __post_init__(self) -> None:
         check_plain_name(self.name, "arm name")  # it names the folder OUT/runs/NAME
@@ -90,6 +93,8 @@ class ArmConfig:
             raise InputError(f"arm {self.name}: bank_ratio must be in [0, 1], got {self.bank_ratio}")
         if self.seeds is not None and not self.seeds:
             raise InputError(f"arm {self.name}: seeds must list at least one seed (or be left out for all), got []")
+        if self.backbones is not None and not self.backbones:
+            raise InputError(f"arm {self.name}: backbones must name at least one (or be left out for all), got []")
 
 
 def default_arms() -> list[ArmConfig]:
@@ -439,6 +444,8 @@ def run_experiment_config(
         train = not report_only and (train_arms is None or arm.name in train_arms)
         problem = bank_problem(arm)
         for backbone in cfg.backbones:
+            if arm.backbones is not None and backbone not in arm.backbones:
+                continue  # not part of this backbone's table
             bank = None if arm.bank is None else str(arm.bank)
             entry: dict = {
                 "arm": arm.name,

@@ -338,6 +338,18 @@ def test_report_only_trains_nothing_and_pairs_the_seeds_both_arms_finished(tmp_p
     with pytest.raises(InputError, match=r"arm mt: seeds must list at least one seed"):
         load_config(ExperimentConfig, TINY, ["arms=[{name: mt, mode: semi, seeds: []}]"])
 
+    # an arm's own backbones: mt-b only on spvcnn is left out of the minkunet table (no entry, no contrast)
+    one = "arms=[{name: sup-only, mode: supervised}, {name: mt, mode: semi}, {name: mt-b, backbones: [spvcnn]}]"
+    assert run(one, "seeds=[0, 1, 2]", contrasts, "--report-only") == 0
+    results = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert [a["arm"] for a in results["arms"]] == ["sup-only", "mt"]
+    assert [c["arm"] for c in results["contrasts"]] == ["mt", "sup-only"]
+    assert "mt-b" not in (tmp_path / "out" / "results.md").read_text()
+    with pytest.raises(InputError, match=r"arm mt: backbones must name at least one"):
+        load_config(ExperimentConfig, TINY, ["arms=[{name: mt, mode: semi, backbones: []}]"])
+    with pytest.raises(InputError, match=r"arms\[0\]\.backbones.* got \[.pointnet.\]"):
+        load_config(ExperimentConfig, TINY, ["arms=[{name: mt, mode: semi, backbones: [pointnet]}]"])
+
 
 def test_an_arm_run_by_another_process_donates_its_burn_in(tmp_path):
     """`arms=[mt]` in a second invocation starts from the burn_in.pt of sup-only, trained by the first one."""
