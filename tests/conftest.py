@@ -3,6 +3,7 @@ SemanticKITTI root and tiny diffusion checkpoints that several test modules read
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -12,6 +13,7 @@ import torch
 
 from tests.tiny_nets import TINY, TINY_MOST, save_checkpoint, save_random_checkpoint
 from tests.tiny_worlds import REAL_ROOT, write_toy_root
+from u4d_aug.cmdline import LOGGERS
 
 STAGES = ("stage1", "stage2", "baseline")
 
@@ -27,6 +29,17 @@ def one_thread() -> Iterator[None]:
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(autouse=True)
+def project_log_levels() -> Iterator[None]:
+    """Every test starts with the project's loggers as they were, whatever level a CLI test before it (--quiet) set."""
+    loggers = [logging.getLogger(name) for name in LOGGERS]
+    saved = [(logger.level, list(logger.handlers)) for logger in loggers]
+    yield
+    for logger, (level, handlers) in zip(loggers, saved, strict=True):
+        logger.setLevel(level)
+        logger.handlers[:] = handlers
 
 
 @pytest.fixture(scope="session")
