@@ -357,7 +357,7 @@ def arms_table(arms: dict) -> list[str]:
     ]
     for name, arm in arms.items():
         if "reason" in arm:
-            lines.append(f"| {name} | {arm['status']}: {arm['reason']} | 0 | - | - | - | - | - | - |")
+            lines.append(f"| {name} | {arm['status']}: {arm['reason']} | - | - | - | - | - | - | - |")
             continue
         wall = arm["wall_clock_s"]
         wall_text = "n/a" if wall["mean"] is None else f"{wall['mean'] / 60:.1f} ± {wall['std'] / 60:.1f}"

@@ -608,7 +608,7 @@ def results_markdown(results: dict) -> str:
     ]
     for e in results["arms"]:
         if e["status"] not in ("done", "partial"):
-            lines.append(f"| {e['arm']} | {e['backbone']} | {e['status']}: {e['reason']} | 0 | - | - | - | - | - |")
+            lines.append(f"| {e['arm']} | {e['backbone']} | {e['status']}: {e['reason']} | - | - | - | - | - | - |")
             continue
         wall = e["wall_clock_s"]
         wall_text = "n/a" if wall["mean"] is None else f"{wall['mean']:.1f} ± {wall['std']:.1f}"

@@ -13,6 +13,7 @@ import torch
 
 from tests.tiny_nets import TINY, TINY_MOST, save_checkpoint, save_random_checkpoint
 from tests.tiny_worlds import REAL_ROOT, write_toy_root
+from u4d_aug import progress
 from u4d_aug.cmdline import LOGGERS
 
 STAGES = ("stage1", "stage2", "baseline")
@@ -33,13 +34,20 @@ def one_thread() -> Iterator[None]:
 
 @pytest.fixture(autouse=True)
 def project_log_levels() -> Iterator[None]:
-    """Every test starts with the project's loggers as they were, whatever level a CLI test before it (--quiet) set."""
+    """Every test starts with the project's loggers at their defaults (no level, no stderr handler) and progress bars
+    on, whatever a CLI call before it set: a module fixture's `--quiet` runs before this and would otherwise hide
+    the INFO records a test asserts."""
     loggers = [logging.getLogger(name) for name in LOGGERS]
     saved = [(logger.level, list(logger.handlers)) for logger in loggers]
+    for logger in loggers:
+        logger.setLevel(logging.NOTSET)
+        logger.handlers[:] = []
+    progress.set_quiet(False)
     yield
     for logger, (level, handlers) in zip(loggers, saved, strict=True):
         logger.setLevel(level)
         logger.handlers[:] = handlers
+    progress.set_quiet(False)
 
 
 @pytest.fixture(scope="session")

@@ -337,7 +337,7 @@ def test_a_run_killed_before_its_first_checkpoint_starts_again_from_step_0(toy_r
         (out / "checkpoints" / ".step_0000003.pt.k1ll3d.tmp").write_bytes(b"half a checkpoint")
         holder = {"pid": dead.pid, "host": socket.gethostname(), "start": None, "started": 0}
         (out / ".lock").write_text(json.dumps(holder))
-        with caplog.at_level("INFO"):
+        with caplog.at_level("INFO", logger="u4d_aug"):
             train(tiny_config(toy_root, out), resume=resume, progress=False)
         assert "took over the lock" in caplog.text and "starting it again from step 0" in caplog.text
         steps = [r["step"] for r in read_jsonl(out / "log.jsonl") if "loss" in r]

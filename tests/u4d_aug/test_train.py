@@ -115,7 +115,7 @@ def test_a_run_killed_before_its_first_checkpoint_starts_again_from_step_0(tiny_
     assert (out / ".lock").is_file() and not (out / "checkpoints").exists()
     (out / "checkpoints").mkdir()
     (out / "checkpoints" / ".step_0000002.pt.k1ll3d.tmp").write_bytes(b"half a checkpoint")
-    with caplog.at_level("INFO"):
+    with caplog.at_level("INFO", logger="u4d_aug"):
         record = train(diffusion_config(tiny_world, out, "baseline"), progress=False)
     assert "took over the lock" in caplog.text and "starting it again from step 0" in caplog.text
     assert record["step"] == 4 and [r["step"] for r in read_jsonl(out / "log.jsonl")] == [2, 4]
