@@ -22,6 +22,7 @@ a list aligned with the `seeds` list beside it (null where a run lacks the metri
         iou.CLASS and bands.BAND: {mean, std, n}; bank_fidelity (with --bank-eval): {METRIC: value (jsd, mmd x1e4,
         rangejs, intensityjs, points, frd, fpd as `u4d evaluate` reports them), real_points, intensity_mean,
         real_intensity_mean, real (the reference root and sequences), sources}
+        provenance: [{seed, cpu, torch, steps, minutes, burn_in_weights, bank_content}] (null where no record)
     paired.A_vs_B (A - B on the seeds both finished): arm, reference, miou / ece: {seeds, per_seed, mean, std, n,
         above, ci95 [lo, hi] (t distribution), p (two-sided paired t-test), seeds_needed}, iou.CLASS / bands.BAND alike;
         mean, ci95, p at the top are the mIoU difference's (the headline: `paired.A_vs_B.mean` / `.ci95` / `.p`)
@@ -206,14 +207,18 @@ def arm_summary(entry: dict) -> dict:
 
 
 def run_provenance(run: dict) -> dict:
-    """Where one run trained, the burn-in it started from and the bank scans it read (from its record; None if
-    unknown: a run folder without a record)."""
+    """Where one run trained, its budget (steps; training minutes incl. a shared burn-in and resumes, from its log),
+    the burn-in it started from and the bank scans it read (from its record; None if unknown: a run folder without a
+    record)."""
     host = run.get("host") or {}
     banks = run.get("banks") or []
+    wall = run.get("wall_clock_s")
     return {
         "seed": run["seed"],
         "cpu": host.get("cpu"),
         "torch": host.get("torch"),
+        "steps": run.get("step"),
+        "minutes": None if wall is None else round(wall / 60, 1),
         "burn_in_weights": run.get("burn_in_weights"),
         "bank_content": [bank.get("content_sha256") for bank in banks] or None,
     }
@@ -415,11 +420,19 @@ def provenance_table(arms: dict) -> list[str]:
     rows = [(name, p) for name, arm in arms.items() for p in arm.get("provenance", []) if p["cpu"] is not None]
     if not rows:
         return []
-    lines = ["", "### Where each run trained (from its record)", "",
-             "| seed | arm | cpu | torch | burn-in weights | bank scans |", "|---|---|---|---|---|---|"]  # fmt: skip
+    lines = ["", "### Where each run trained and its budget (from its record)", "",
+             "Minutes: training time from the run's log, incl. the burn-in a mean-teacher arm shares with sup-only"
+             " and time before a resume (one thread per run); not the final evaluation.", "",
+             "| seed | arm | cpu | torch | steps | minutes | burn-in weights | bank scans |",
+             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for name, p in sorted(rows, key=lambda row: (row[1]["seed"], list(arms).index(row[0]))):
         bank = ", ".join(str(digest) for digest in p["bank_content"]) if p["bank_content"] else "-"
-        lines.append(f"| {p['seed']} | {name} | {p['cpu']} | {p['torch']} | {p['burn_in_weights'] or '-'} | {bank} |")
+        steps = "-" if p.get("steps") is None else f"{p['steps']:,}"
+        minutes = "-" if p.get("minutes") is None else f"{p['minutes']:.1f}"
+        lines.append(
+            f"| {p['seed']} | {name} | {p['cpu']} | {p['torch']} | {steps} | {minutes} | "
+            f"{p['burn_in_weights'] or '-'} | {bank} |"
+        )
     return lines
 
 

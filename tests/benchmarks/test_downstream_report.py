@@ -273,11 +273,13 @@ def test_bank_fidelity_joins_the_arm_that_reads_the_bank(tmp_path):
 
 
 def test_provenance_from_records_and_pairs_on_different_burn_ins(tmp_path):
-    """Runs with records name their host, burn-in and bank scans; a pair whose burn-ins differ is listed."""
+    """Runs with records name their host, steps and minutes, burn-in and bank scans; a pair whose burn-ins differ is
+    listed."""
 
     def with_record(run: dict, cpu: str, burn_in: str, bank: str | None = None) -> dict:
         banks = [{"content_sha256": bank}] if bank else []
-        return {**run, "host": {"cpu": cpu, "torch": "2.13.0+cpu"}, "burn_in_weights": burn_in, "banks": banks}
+        record = {"host": {"cpu": cpu, "torch": "2.13.0+cpu"}, "burn_in_weights": burn_in, "banks": banks}
+        return {**run, **record, "step": 1500}
 
     mt = [with_record(fake_run(s, 0.45 + s / 100, 0.05, 0.5), "Intel Xeon", f"b{s}") for s in range(2)]
     bank = [with_record(fake_run(0, 0.47, 0.05, 0.5), "Intel Xeon", "b0", "c0ffee")]
@@ -288,10 +290,11 @@ def test_provenance_from_records_and_pairs_on_different_burn_ins(tmp_path):
     assert report.main(["--setting", f"10pct/minkunet={tmp_path / 'results.json'}", "--out", str(out)]) == 0
     setting = json.loads((out / "summary.json").read_text())["10pct/minkunet"]
     assert setting["arms"]["mt+u4d"]["provenance"][1] == {
-        "seed": 1, "cpu": "AMD EPYC", "torch": "2.13.0+cpu", "burn_in_weights": "other", "bank_content": ["beef"],
+        "seed": 1, "cpu": "AMD EPYC", "torch": "2.13.0+cpu", "steps": 1500, "minutes": 2.0, "burn_in_weights": "other",
+        "bank_content": ["beef"],
     }  # fmt: skip
     assert setting["paired"]["mt+u4d_vs_mt"]["burn_in_differs"] == [1]
     text = (out / "report.md").read_text()
-    assert "| 1 | mt+u4d | AMD EPYC | 2.13.0+cpu | other | beef |" in text
-    assert "| 0 | mt | Intel Xeon | 2.13.0+cpu | b0 | - |" in text
+    assert "| 1 | mt+u4d | AMD EPYC | 2.13.0+cpu | 1,500 | 2.0 | other | beef |" in text
+    assert "| 0 | mt | Intel Xeon | 2.13.0+cpu | 1,500 | 1.0 | b0 | - |" in text
     assert "started from different burn-in weights" in text and "mt+u4d − mt (seeds 1)" in text
