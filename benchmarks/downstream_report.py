@@ -308,10 +308,11 @@ def setting_summary(
 
 
 def pm(stat: dict | None, signed: bool = False) -> str:
-    """'46.59 ± 1.89' ('+1.98 ± 1.95' signed) or 'n/a'."""
+    """'46.59 ± 1.89' ('+1.98 ± 1.95' signed), '47.10 (1 seed)' where one value has no spread, or 'n/a'."""
     if stat is None or stat.get("mean") is None:
         return "n/a"
-    return f"{stat['mean']:{'+' if signed else ''}.2f} ± {stat['std']:.2f}"
+    mean = f"{stat['mean']:{'+' if signed else ''}.2f}"
+    return f"{mean} (1 seed)" if stat.get("n") == 1 else f"{mean} ± {stat['std']:.2f}"
 
 
 def per_seed_text(values: list, signed: bool = False) -> str:
@@ -365,7 +366,8 @@ def arms_table(arms: dict) -> list[str]:
             lines.append(f"| {name} | {arm['status']}: {arm['reason']} | - | - | - | - | - | - | - |")
             continue
         wall = arm["wall_clock_s"]
-        wall_text = "n/a" if wall["mean"] is None else f"{wall['mean'] / 60:.1f} ± {wall['std'] / 60:.1f}"
+        wall_text = "n/a" if wall["mean"] is None else f"{wall['mean'] / 60:.1f}"
+        wall_text += "" if wall["mean"] is None or wall.get("n") == 1 else f" ± {wall['std'] / 60:.1f}"
         lines.append(
             f"| {name} | {arm['status']} | {', '.join(map(str, arm['seeds']))} | {pm(arm['miou'])} | "
             f"{per_seed_text(arm['miou']['per_seed'])} | {pm(arm['ece'])} | {per_seed_text(arm['ece']['per_seed'])} | "

@@ -572,6 +572,8 @@ def results_markdown(results: dict) -> str:
     def pct(stat: dict) -> str:
         if stat["mean"] is None:
             return "n/a"
+        if stat.get("n") == 1:  # one value has no spread
+            return f"{100 * stat['mean']:.2f} (1 seed)"
         return f"{100 * stat['mean']:.2f} ± {100 * stat['std']:.2f}"
 
     def signed(stat: dict) -> str:

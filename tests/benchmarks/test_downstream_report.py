@@ -155,6 +155,10 @@ def test_report_says_which_differences_are_inside_the_noise(written):
     assert "**mt − sup-only**: mIoU +4.00 ± 1.00 points over 3 seeds, 95 % CI [+1.52, +6.48], p = 0.02: the CI " in text
     assert "excludes 0, outside the seed noise (mt higher)" in text
     assert "mIoU -1.00 points on the one seed both finished (0): no confidence interval" in text
+    # an arm on one seed has no spread: its mean alone, marked, not "± 0.00"
+    one = "| mt+u4d-random | partial | 0 | 47.00 (1 seed) | 47.00 | 5.00 (1 seed) | 5.00 | 2.50 (1 seed) | 1.0 |"
+    assert one in text
+    assert "| -1.00 (1 seed) |" in text
     # per class, one column (mt+u4d - mt+r2dm has no numbers): car +2, +4, +6 points, CI [-0.97, +8.97] holds 0
     assert "| class | mt+u4d − mt (3 seeds) |\n|---|---|\n| car | +4.00 |\n| road | +0.00 |" in text
     assert "| 0-10 m |" in text  # 10 %: bands carried

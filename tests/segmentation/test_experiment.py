@@ -274,6 +274,9 @@ def test_report_only_trains_nothing_and_pairs_the_seeds_both_arms_finished(tmp_p
     assert paired["miou"]["per_seed"] == pytest.approx([mt["runs"][0]["miou"] - sup["runs"][0]["miou"]])
     markdown = (tmp_path / "out" / "results.md").read_text()
     assert "| sup-only | minkunet | partial | 0, 1 |" in markdown and "| mt-b | minkunet | not run: " in markdown
+    assert f"| mt | minkunet | partial | 0 | {100 * mt['miou']['mean']:.2f} (1 seed) |" in markdown  # no "± 0.00"
+    not_run = next(line for line in markdown.splitlines() if line.startswith("| mt-b | minkunet | not run: "))
+    assert not_run.endswith("| - | - | - | - | - | - |")  # no seed, no number
     assert "## Paired by seed against sup-only" in markdown and "| mt | minkunet | 1 | " in markdown
 
     assert "the last periodic evaluation (2 validation scans)" in markdown
