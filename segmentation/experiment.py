@@ -613,7 +613,8 @@ def results_markdown(results: dict) -> str:
             lines.append(f"| {e['arm']} | {e['backbone']} | {e['status']}: {e['reason']} | - | - | - | - | - | - |")
             continue
         wall = e["wall_clock_s"]
-        wall_text = "n/a" if wall["mean"] is None else f"{wall['mean']:.1f} ± {wall['std']:.1f}"
+        wall_text = "n/a" if wall["mean"] is None else f"{wall['mean']:.1f}"
+        wall_text += "" if wall["mean"] is None or wall.get("n") == 1 else f" ± {wall['std']:.1f}"
         seeds = ", ".join(str(r["seed"]) for r in e["runs"])
         lines.append(
             f"| {e['arm']} | {e['backbone']} | {e['status']} | {seeds} | {pct(e['miou'])} | {pct(e['miou_present'])} | "

@@ -32,22 +32,21 @@ def one_thread() -> Iterator[None]:
     torch.set_num_threads(threads)
 
 
+def reset_project_logging() -> None:
+    """The project's loggers at their defaults (no level, no stderr handler) and progress bars on."""
+    for name in LOGGERS:
+        logging.getLogger(name).setLevel(logging.NOTSET)
+        logging.getLogger(name).handlers[:] = []
+    progress.set_quiet(False)
+
+
 @pytest.fixture(autouse=True)
 def project_log_levels() -> Iterator[None]:
-    """Every test starts with the project's loggers at their defaults (no level, no stderr handler) and progress bars
-    on, whatever a CLI call before it set: a module fixture's `--quiet` runs before this and would otherwise hide
-    the INFO records a test asserts."""
-    loggers = [logging.getLogger(name) for name in LOGGERS]
-    saved = [(logger.level, list(logger.handlers)) for logger in loggers]
-    for logger in loggers:
-        logger.setLevel(logging.NOTSET)
-        logger.handlers[:] = []
-    progress.set_quiet(False)
+    """Every test starts and ends with the project's logging at its defaults, whatever a CLI call set: a module
+    fixture's `--quiet` runs before any per-test fixture and would otherwise hide the INFO records a test asserts."""
+    reset_project_logging()
     yield
-    for logger, (level, handlers) in zip(loggers, saved, strict=True):
-        logger.setLevel(level)
-        logger.handlers[:] = handlers
-    progress.set_quiet(False)
+    reset_project_logging()
 
 
 @pytest.fixture(scope="session")

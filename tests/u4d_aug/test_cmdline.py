@@ -8,7 +8,6 @@ import logging
 import pytest
 
 from u4d_aug.cmdline import (
-    LOGGERS,
     CommandParser,
     configure_logging,
     parse_command_line,
@@ -16,16 +15,6 @@ from u4d_aug.cmdline import (
     split_verbosity,
 )
 from u4d_aug.config import add_run_arguments
-
-
-@pytest.fixture(autouse=True)
-def restore_loggers():
-    """configure_logging changes the package loggers: leave them as they were for the next test."""
-    saved = {name: (logging.getLogger(name).level, list(logging.getLogger(name).handlers)) for name in LOGGERS}
-    yield
-    for name, (level, handlers) in saved.items():
-        logging.getLogger(name).setLevel(level)
-        logging.getLogger(name).handlers[:] = handlers
 
 
 def run_parser() -> argparse.ArgumentParser:

@@ -10,14 +10,11 @@ from u4d_aug.cmdline import configure_logging
 
 
 def test_quiet_disables_bars_whatever_the_call_asks():
-    try:
-        configure_logging(30)  # WARNING: --quiet
-        assert progress.progress_bar(range(3), enabled=True).disable
-        configure_logging(20)  # INFO: the default
-        assert not progress.progress_bar(range(3), enabled=True).disable
-        assert progress.progress_bar(range(3), enabled=False).disable  # --no-progress still wins
-    finally:
-        progress.set_quiet(False)
+    configure_logging(30)  # WARNING: --quiet (tests/conftest.py resets logging after each test)
+    assert progress.progress_bar(range(3), enabled=True).disable
+    configure_logging(20)  # INFO: the default
+    assert not progress.progress_bar(range(3), enabled=True).disable
+    assert progress.progress_bar(range(3), enabled=False).disable  # --no-progress still wins
 
 
 def test_quiet_simulate_draws_no_bar(tmp_path):

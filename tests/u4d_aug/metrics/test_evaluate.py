@@ -13,7 +13,6 @@ import torch
 
 from tests.tiny_nets import EXTRACTOR_TINY as TINY_CONFIG
 from tests.tiny_worlds import write_tiny_root
-from u4d_aug import progress
 from u4d_aug.config import load_config
 from u4d_aug.errors import InputError
 from u4d_aug.metrics.evaluate import (
@@ -120,8 +119,7 @@ def test_cli_writes_json_and_md(synthetic, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("quiet", [False, True])
-def test_cli_shows_progress_over_each_pass_unless_told_not_to(synthetic, tmp_path, capsys, quiet, monkeypatch):
-    monkeypatch.setattr(progress, "_quiet", False)  # an earlier `u4d ... --quiet` in this process turned bars off
+def test_cli_shows_progress_over_each_pass_unless_told_not_to(synthetic, tmp_path, capsys, quiet):
     parser = argparse.ArgumentParser()
     add_evaluate_arguments(parser)
     argv = ["--bank", str(synthetic["bank"]), "--real", str(synthetic["real"]), "--metrics", "points,jsd,ctc"]
