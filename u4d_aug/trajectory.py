@@ -22,6 +22,7 @@ def relative_motion(poses: np.ndarray) -> np.ndarray:
     if poses.ndim != 3 or poses.shape[1:] != (4, 4):
         raise InputError(f"poses must be (L, 4, 4) homogeneous transforms, got {poses.shape}")
     relative = np.linalg.inv(poses[0]) @ poses  # (L, 4, 4)
+    relative[0] = np.eye(4)  # frame 0 in its own frame, exactly (inv(P) @ P leaves ~1e-16 of round-off)
     yaw = np.arctan2(relative[:, 1, 0], relative[:, 0, 0])
     return np.concatenate([relative[:, :3, 3], yaw[:, None]], axis=1).astype(np.float32)
 

@@ -33,6 +33,7 @@ def test_real_kitti_poses_give_forward_motion():
 
     poses = read_poses(REAL / "poses.txt", read_calib(REAL / "calib.txt"))[:4]
     motion = relative_motion(poses)
+    assert not motion[0].any()  # frame 0 is the origin exactly, as written to a bank's poses.txt
     steps = np.linalg.norm(np.diff(motion[:, :2], axis=0), axis=1)
     assert np.all(steps > 0.3) and np.all(steps < 2.0)  # seq 00 starts at ~0.5-1 m per frame
     assert np.all(motion[1:, 0] > 0) and np.all(np.abs(motion[:, 2]) < 0.2)  # ahead (x forward), level
