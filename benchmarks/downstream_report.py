@@ -41,7 +41,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from segmentation.experiment import MAX_SEEDS_ESTIMATE, mean_std, paired_arms
+from segmentation.experiment import MAX_SEEDS_ESTIMATE, mean_std, mean_text, paired_arms
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import (
     atomic_open,
@@ -307,14 +307,6 @@ def setting_summary(
 # ------------------------------------------------------------------------------------------------- report.md
 
 
-def pm(stat: dict | None, signed: bool = False) -> str:
-    """'46.59 ± 1.89' ('+1.98 ± 1.95' signed), '47.10 (1 seed)' where one value has no spread, or 'n/a'."""
-    if stat is None or stat.get("mean") is None:
-        return "n/a"
-    mean = f"{stat['mean']:{'+' if signed else ''}.2f}"
-    return f"{mean} (1 seed)" if stat.get("n") == 1 else f"{mean} ± {stat['std']:.2f}"
-
-
 def per_seed_text(values: list, signed: bool = False) -> str:
     """'47.05, 44.03' ('-' for a missing value)."""
     return ", ".join("-" if v is None else (f"{v:+.2f}" if signed else f"{v:.2f}") for v in values)
@@ -365,13 +357,11 @@ def arms_table(arms: dict) -> list[str]:
         if "reason" in arm:
             lines.append(f"| {name} | {arm['status']}: {arm['reason']} | - | - | - | - | - | - | - |")
             continue
-        wall = arm["wall_clock_s"]
-        wall_text = "n/a" if wall["mean"] is None else f"{wall['mean'] / 60:.1f}"
-        wall_text += "" if wall["mean"] is None or wall.get("n") == 1 else f" ± {wall['std'] / 60:.1f}"
         lines.append(
-            f"| {name} | {arm['status']} | {', '.join(map(str, arm['seeds']))} | {pm(arm['miou'])} | "
-            f"{per_seed_text(arm['miou']['per_seed'])} | {pm(arm['ece'])} | {per_seed_text(arm['ece']['per_seed'])} | "
-            f"{pm(arm['ece_pooled'])} | {wall_text} |"
+            f"| {name} | {arm['status']} | {', '.join(map(str, arm['seeds']))} | {mean_text(arm['miou'])} | "
+            f"{per_seed_text(arm['miou']['per_seed'])} | {mean_text(arm['ece'])} | "
+            f"{per_seed_text(arm['ece']['per_seed'])} | {mean_text(arm['ece_pooled'])} | "
+            f"{mean_text(arm['wall_clock_s'], scale=1 / 60, digits=1)} |"
         )
     return lines
 
@@ -388,7 +378,7 @@ def paired_table(paired: dict, metric: str) -> list[str]:
         p_text = "n/a" if stat["p"] is None else f"{stat['p']:.2g}"
         lines.append(
             f"| {pair['arm']} − {pair['reference']} | {', '.join(map(str, stat['seeds']))} | "
-            f"{per_seed_text(stat['per_seed'], signed=True)} | {pm(stat, signed=True)} | {ci} | {p_text} | "
+            f"{per_seed_text(stat['per_seed'], signed=True)} | {mean_text(stat, signed=True)} | {ci} | {p_text} | "
             f"{needed_text(stat)} |"
         )
     return lines

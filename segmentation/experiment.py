@@ -320,6 +320,14 @@ def bins_from_dict(data: dict) -> ReliabilityBins:
     return ReliabilityBins(count, confidence * count, accuracy * count, int(data["total"]))
 
 
+def mean_text(stat: dict | None, scale: float = 1.0, digits: int = 2, signed: bool = False) -> str:
+    """A `mean_std` stat times `scale`: '46.59 ± 1.89', '47.10 (1 seed)' where one value has no spread, or 'n/a'."""
+    if stat is None or stat.get("mean") is None:
+        return "n/a"
+    mean = f"{scale * stat['mean']:{'+' if signed else ''}.{digits}f}"
+    return f"{mean} (1 seed)" if stat.get("n") == 1 else f"{mean} ± {scale * stat['std']:.{digits}f}"
+
+
 MAX_SEEDS_ESTIMATE = 200  # seeds_needed gives up beyond this
 
 
@@ -570,14 +578,10 @@ def results_markdown(results: dict) -> str:
     """The results table (percentages, mean ± std over seeds) and per-class IoU of the finished arms."""
 
     def pct(stat: dict) -> str:
-        if stat["mean"] is None:
-            return "n/a"
-        if stat.get("n") == 1:  # one value has no spread
-            return f"{100 * stat['mean']:.2f} (1 seed)"
-        return f"{100 * stat['mean']:.2f} ± {100 * stat['std']:.2f}"
+        return mean_text(stat, scale=100)
 
     def signed(stat: dict) -> str:
-        return pct(stat) if stat["mean"] is None else "+" * (stat["mean"] >= 0) + pct(stat)
+        return mean_text(stat, scale=100, signed=True)
 
     def paired_cells(paired: dict) -> str:
         miou, ece = paired["miou"], paired["ece_per_scan"]
@@ -612,13 +616,10 @@ def results_markdown(results: dict) -> str:
         if e["status"] not in ("done", "partial"):
             lines.append(f"| {e['arm']} | {e['backbone']} | {e['status']}: {e['reason']} | - | - | - | - | - | - |")
             continue
-        wall = e["wall_clock_s"]
-        wall_text = "n/a" if wall["mean"] is None else f"{wall['mean']:.1f}"
-        wall_text += "" if wall["mean"] is None or wall.get("n") == 1 else f" ± {wall['std']:.1f}"
         seeds = ", ".join(str(r["seed"]) for r in e["runs"])
         lines.append(
             f"| {e['arm']} | {e['backbone']} | {e['status']} | {seeds} | {pct(e['miou'])} | {pct(e['miou_present'])} | "
-            f"{pct(e['ece_per_scan'])} | {pct(e['ece_pooled'])} | {wall_text} |"
+            f"{pct(e['ece_per_scan'])} | {pct(e['ece_pooled'])} | {mean_text(e['wall_clock_s'], digits=1)} |"
         )
     paired = [e for e in results["arms"] if "vs_reference" in e]
     if paired:

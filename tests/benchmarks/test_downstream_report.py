@@ -156,7 +156,9 @@ def test_report_says_which_differences_are_inside_the_noise(written):
     assert "excludes 0, outside the seed noise (mt higher)" in text
     assert "mIoU -1.00 points on the one seed both finished (0): no confidence interval" in text
     # an arm on one seed has no spread: its mean alone, marked, not "± 0.00"
-    one = "| mt+u4d-random | partial | 0 | 47.00 (1 seed) | 47.00 | 5.00 (1 seed) | 5.00 | 2.50 (1 seed) | 1.0 |"
+    one = (
+        "| mt+u4d-random | partial | 0 | 47.00 (1 seed) | 47.00 | 5.00 (1 seed) | 5.00 | 2.50 (1 seed) | 1.0 (1 seed) |"
+    )
     assert one in text
     assert "| -1.00 (1 seed) |" in text
     # per class, one column (mt+u4d - mt+r2dm has no numbers): car +2, +4, +6 points, CI [-0.97, +8.97] holds 0

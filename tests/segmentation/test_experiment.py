@@ -22,6 +22,7 @@ from segmentation.experiment import (
     burn_in_signature,
     donors_on_disk,
     mean_std,
+    mean_text,
     paired_differences,
     run_config,
     run_experiment,
@@ -42,6 +43,13 @@ def test_mean_std_over_seeds():
     stat = mean_std([0.2, 0.4, None])
     assert stat["n"] == 2 and stat["mean"] == pytest.approx(0.3) and stat["std"] == pytest.approx(0.1414213562)
     assert mean_std([None]) == {"mean": None, "std": None, "n": 0}
+
+
+def test_mean_text_marks_one_seed_instead_of_a_zero_spread():
+    assert mean_text(mean_std([0.2, 0.4]), scale=100) == "30.00 ± 14.14"
+    assert mean_text(mean_std([-0.0125]), scale=100, signed=True) == "-1.25 (1 seed)"
+    assert mean_text(mean_std([90.0, 150.0]), scale=1 / 60, digits=1, signed=True) == "+2.0 ± 0.7"
+    assert mean_text(mean_std([None])) == "n/a" and mean_text(None) == "n/a"
 
 
 def test_paired_differences_by_seed():
