@@ -4,8 +4,11 @@ The paper observes that spatial mixing dominates near the input and output and t
 the UNet (U4D §2, MoST analysis). Here one L-frame sequence is sampled (ancestral DDPM by default) and after every
 net call the batch-mean gates (α^s, α^t) of each MoST block (depth order enc -> mid -> dec) are recorded with the
 call's log-SNR: a (steps, blocks) table per gate, its mean per block over the whole sampling and over its first,
-middle and last third (high -> low noise). Stage 2 samples with an empty condition (no uncertain region); a net
-with an ego-motion condition drives `--step` metres per frame, straight ahead.
+middle and last third (high -> low noise). Gates near ½ do not mean the branches are equal: a branch conv can grow
+or shrink while its gate stays put, so each call also records the RMS of what each branch adds (α^s F^s, α^t F^t)
+and the temporal share of the update, RMS(α^t F^t) / (RMS(α^s F^s) + RMS(α^t F^t)), per block. Stage 2 samples
+with an empty condition (no uncertain region); a net with an ego-motion condition drives `--step` metres per frame,
+straight ahead.
 """
 
 from __future__ import annotations
@@ -44,57 +47,97 @@ def gate_trajectory(
     poses = None
     if cfg.net.pose_dim:
         poses = torch.from_numpy(straight_motion(frames, step))[None]  # (1, L, 4)
-    log_snrs, gates = [], []
+    log_snrs, gates, updates = [], [], []
 
     def denoise(x, lam, c):
         out = net(x, lam, c, poses=poses) if poses is not None else net(x, lam, c)
         log_snrs.append(float(lam.reshape(-1)[0]))
         gates.append(net.gate_weights().cpu().numpy())  # (M, 2)
+        updates.append(net.branch_updates().cpu().numpy())  # (M, 3)
         return out
 
-    with torch.no_grad():
-        sample(sampler, denoise, shape, steps, generator, cond=cond)
-    table = np.stack(gates)  # (S, M, 2)
-    return {"blocks": list(net.most_names), "log_snr": log_snrs, "alpha_s": table[..., 0], "alpha_t": table[..., 1]}
+    blocks = net.most_blocks()
+    for block in blocks:
+        block.record_updates = True
+    try:
+        with torch.no_grad():
+            sample(sampler, denoise, shape, steps, generator, cond=cond)
+    finally:
+        for block in blocks:
+            block.record_updates = False
+    table, rms = np.stack(gates).astype(np.float64), np.stack(updates).astype(np.float64)  # (S, M, 2), (S, M, 3)
+    return {
+        "blocks": list(net.most_names),
+        "log_snr": log_snrs,
+        "alpha_s": table[..., 0],
+        "alpha_t": table[..., 1],
+        "rms_x": rms[..., 0],
+        "rms_s": rms[..., 1],
+        "rms_t": rms[..., 2],
+    }
+
+
+def temporal_share(trajectory: dict) -> np.ndarray:
+    """(S, M) RMS(α^t F^t) / (RMS(α^s F^s) + RMS(α^t F^t)); ½ where both branches add nothing (an untrained block)."""
+    rms_s, rms_t = trajectory["rms_s"], trajectory["rms_t"]
+    total = rms_s + rms_t
+    return np.where(total > 0, rms_t / np.maximum(total, 1e-30), 0.5)
 
 
 def summarise_gates(trajectory: dict) -> dict:
     """Mean α^s / α^t per block over all steps and over the three thirds of the sampling (json-ready)."""
-    alpha_s, alpha_t = trajectory["alpha_s"], trajectory["alpha_t"]
+    alpha_s, alpha_t, share = trajectory["alpha_s"], trajectory["alpha_t"], temporal_share(trajectory)
     thirds = np.array_split(np.arange(len(alpha_t)), 3)
+
+    def by_phase(table: np.ndarray) -> dict:
+        return {phase: table[idx].mean(axis=0).round(4).tolist() for phase, idx in zip(PHASES, thirds) if len(idx)}
+
+    rms_x = np.maximum(trajectory["rms_x"], 1e-30)
     return {
         "blocks": trajectory["blocks"],
         "mean_alpha_s": alpha_s.mean(axis=0).round(4).tolist(),
         "mean_alpha_t": alpha_t.mean(axis=0).round(4).tolist(),
-        "alpha_t_by_phase": {
-            phase: alpha_t[idx].mean(axis=0).round(4).tolist() for phase, idx in zip(PHASES, thirds) if len(idx)
-        },
+        "alpha_t_by_phase": by_phase(alpha_t),
+        "mean_temporal_share": share.mean(axis=0).round(4).tolist(),
+        "temporal_share_by_phase": by_phase(share),
+        "mean_update_s_over_x": (trajectory["rms_s"] / rms_x).mean(axis=0).round(4).tolist(),
+        "mean_update_t_over_x": (trajectory["rms_t"] / rms_x).mean(axis=0).round(4).tolist(),
         "log_snr": [round(v, 4) for v in trajectory["log_snr"]],
         "alpha_t": alpha_t.round(4).tolist(),
     }
 
 
 def plot_gates(path: str | Path, trajectory: dict, title: str = "") -> Path:
-    """Left: mean α^t per block for each third of the sampling; right: α^t over (sampling step, block)."""
+    """α^t and the update's temporal share per block for each third of the sampling; α^t over (step, block)."""
     from u4d_aug.viz import plt, save_figure
 
     summary = summarise_gates(trajectory)
     blocks, alpha_t = summary["blocks"], trajectory["alpha_t"]
     depth = np.arange(len(blocks))
-    fig, (left, right) = plt.subplots(1, 2, figsize=(11.0, 3.4), gridspec_kw={"width_ratios": [1, 1.3]})
-    for phase, values in summary["alpha_t_by_phase"].items():
-        left.plot(depth, values, marker="o", label=phase)
-    left.axhline(0.5, color="gray", linewidth=0.8, linestyle="--")
-    left.set_xticks(depth, blocks)
-    left.set_ylim(0.0, 1.0)
-    left.set_xlabel("MoST block (input -> output)")
-    left.set_ylabel(r"mean $\alpha^t$ (temporal); $\alpha^s = 1 - \alpha^t$")
-    left.legend(fontsize=8)
-    image = right.imshow(alpha_t, aspect="auto", cmap="coolwarm", vmin=0.0, vmax=1.0, interpolation="nearest")
-    right.set_xticks(depth, blocks)
-    right.set_ylabel("sampling step (noisy -> clean)")
-    right.set_title(r"$\alpha^t$", fontsize=9)
-    fig.colorbar(image, ax=right, fraction=0.04)
+    fig, (gate_ax, share_ax, heat_ax) = plt.subplots(
+        1, 3, figsize=(15.0, 3.6), gridspec_kw={"width_ratios": [1, 1, 1.3]}
+    )
+    panels = (
+        (gate_ax, summary["alpha_t_by_phase"], r"mean gate $\alpha^t$ (temporal); $\alpha^s = 1 - \alpha^t$"),
+        (share_ax, summary["temporal_share_by_phase"], r"temporal share of the update: $|\alpha^t F^t| / \Sigma$"),
+    )
+    for ax, phases, label in panels:
+        for phase, values in phases.items():
+            ax.plot(depth, values, marker="o", label=phase)
+        ax.axhline(0.5, color="gray", linewidth=0.8, linestyle="--")
+        ax.set_xticks(depth, blocks)
+        ax.set_ylim(0.0, 1.0)
+        ax.set_xlabel("MoST block (input -> output)")
+        ax.set_ylabel(label, fontsize=9)
+        ax.legend(fontsize=8)
+    spread = max(float(np.abs(alpha_t - 0.5).max()), 0.01)  # the colour range follows the data around ½
+    image = heat_ax.imshow(
+        alpha_t, aspect="auto", cmap="coolwarm", vmin=0.5 - spread, vmax=0.5 + spread, interpolation="nearest"
+    )
+    heat_ax.set_xticks(depth, blocks)
+    heat_ax.set_ylabel("sampling step (noisy -> clean)")
+    heat_ax.set_title(rf"$\alpha^t$ (colour range 0.5 ± {spread:.2f})", fontsize=9)
+    fig.colorbar(image, ax=heat_ax, fraction=0.04)
     fig.suptitle(title or "MoST gates while sampling", fontsize=10)
     return save_figure(fig, path)
 
@@ -123,7 +166,8 @@ def run_gates(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary))
     else:
-        for name, s, t in zip(summary["blocks"], summary["mean_alpha_s"], summary["mean_alpha_t"]):
-            print(f"{name}: alpha_s {s:.3f}  alpha_t {t:.3f}")
+        rows = zip(summary["blocks"], summary["mean_alpha_s"], summary["mean_alpha_t"], summary["mean_temporal_share"])
+        for name, s, t, share in rows:
+            print(f"{name}: alpha_s {s:.3f}  alpha_t {t:.3f}  temporal share of the update {share:.3f}")
     atomic_write_text(Path(args.png).with_suffix(".json"), json.dumps(summary, indent=1))
     return 0

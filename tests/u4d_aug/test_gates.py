@@ -14,14 +14,20 @@ from u4d_aug.errors import InputError
 from u4d_aug.gates import gate_trajectory, summarise_gates
 
 
-def save_net(path: Path, *overrides: str, temporal_block: str | None = None) -> Path:
-    """A tiny MoST checkpoint; `temporal_block` gets a gate bias that picks the temporal branch (α^t ≈ 1)."""
+def save_net(path: Path, *overrides: str, temporal_block: str | None = None, trained_branch: str | None = None) -> Path:
+    """A tiny MoST checkpoint; `temporal_block` gets a gate bias that picks the temporal branch (α^t ≈ 1);
+    `trained_branch` ("enc0:temporal", "mid:spatial", ...) gives that block's branch conv non-zero weights."""
 
     def bias(net) -> None:
         if temporal_block is not None:
             block = net.most_blocks()[net.most_names.index(temporal_block)]
             with torch.no_grad():
                 block.gate[-1].bias.copy_(torch.tensor([-6.0, 6.0]))
+        if trained_branch is not None:
+            name, branch = trained_branch.split(":")
+            conv = getattr(net.most_blocks()[net.most_names.index(name)], branch)
+            with torch.no_grad():
+                conv.weight.copy_(torch.randn(conv.weight.shape, generator=torch.Generator().manual_seed(1)))
 
     return save_checkpoint(path, TINY_MOST, overrides, step=1, edit=bias)
 
@@ -41,6 +47,23 @@ def test_gates_are_recorded_per_call_and_block(tmp_path):
     others = [t for i, t in enumerate(summary["mean_alpha_t"]) if i != mid]
     assert all(abs(t - 0.5) < 1e-6 for t in others)  # untrained gates are (½, ½)
     assert set(summary["alpha_t_by_phase"]) == {"high noise", "middle", "low noise"}
+
+
+def test_update_share_follows_the_branch_that_adds_to_the_residual(tmp_path):
+    from u4d_aug.pipeline import load_generator
+
+    loaded = load_generator(save_net(tmp_path / "net.pt", trained_branch="mid:temporal"))
+    trajectory = gate_trajectory(loaded, frames=3, steps=4, generator=torch.Generator().manual_seed(0))
+    summary = summarise_gates(trajectory)
+    mid = summary["blocks"].index("mid")
+    assert trajectory["rms_t"].shape == (4, 5) and np.all(trajectory["rms_x"] > 0)
+    assert summary["mean_temporal_share"][mid] == 1.0  # only its temporal conv adds anything
+    assert summary["mean_update_t_over_x"][mid] > 0 and summary["mean_update_s_over_x"][mid] == 0.0
+    assert summary["mean_alpha_t"][mid] == 0.5  # while its gate stays at ½
+    others = [share for i, share in enumerate(summary["mean_temporal_share"]) if i != mid]
+    assert others == [0.5] * 4  # untrained blocks add nothing: neither branch leads
+    assert set(summary["temporal_share_by_phase"]) == {"high noise", "middle", "low noise"}
+    assert not any(block.record_updates for block in loaded[0].most_blocks())  # switched off afterwards
 
 
 def test_cli_writes_figure_and_json(tmp_path, capsys):

@@ -59,7 +59,9 @@ class MoSTBlock(nn.Module):
     conv of the same activation. Gate logits = MLP(concat(mean of x over L, H, W; mean over L of the timestep
     embedding)), plus N(0, noise_std²) in training mode only; softmax over the two branches. After each
     forward, `last_gates` (B, 2) holds (α^s, α^t) (detached) and `last_cv` the CV² of their batch sums (with
-    grad, for the loss).
+    grad, for the loss). With `record_updates` set (analysis, `u4d gates`), `last_updates` (3,) also holds the RMS of
+    x, α^s ⊙ F^s and α^t ⊙ F^t over the batch: what each branch adds to the residual stream, which the gates alone do
+    not show (a branch conv can grow while its gate stays at ½).
     """
 
     def __init__(
@@ -100,6 +102,8 @@ class MoSTBlock(nn.Module):
             nn.init.zeros_(layer.bias)
         self.last_gates: Tensor | None = None
         self.last_cv: Tensor | None = None
+        self.record_updates = False
+        self.last_updates: Tensor | None = None
 
     def gates(self, x: Tensor, emb: Tensor, frames: int, generator: torch.Generator | None = None) -> Tensor:
         """(α^s, α^t) per sequence: x (B·L, C, H, W), emb (B·L, E) -> (B, 2), rows sum to 1."""
@@ -133,4 +137,8 @@ class MoSTBlock(nn.Module):
         alpha = gates.to(x.dtype).repeat_interleave(frames, dim=0)[:, :, None, None, None]  # (B·L, 2, 1, 1, 1)
         self.last_gates = gates.detach()
         self.last_cv = cv_squared(gates.sum(dim=0))  # importance = batch sum of each branch's gate
-        return x + alpha[:, 0] * f_s + alpha[:, 1] * f_t
+        update_s, update_t = alpha[:, 0] * f_s, alpha[:, 1] * f_t
+        if self.record_updates:
+            rms = [v.detach().float().square().mean().sqrt() for v in (x, update_s, update_t)]
+            self.last_updates = torch.stack(rms)
+        return x + update_s + update_t

@@ -214,6 +214,11 @@ class RangeUNet(nn.Module):
         rows = [block.last_gates.float().mean(dim=0) for block in self.most_blocks() if block.last_gates is not None]
         return torch.stack(rows) if rows else torch.zeros(0, 2)
 
+    def branch_updates(self) -> Tensor:
+        """(M, 3) RMS of (x, α^s F^s, α^t F^t) per gated MoST block in the last forward with `record_updates` set."""
+        rows = [block.last_updates for block in self.most_blocks() if block.last_updates is not None]
+        return torch.stack(rows) if rows else torch.zeros(0, 3)
+
     def most_aux_loss(self) -> Tensor:
         """Σ over MoST blocks of CV² of the branch importances in the last forward (0 without MoST)."""
         terms = [block.last_cv for block in self.most_blocks() if block.last_cv is not None]

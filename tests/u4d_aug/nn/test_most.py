@@ -84,6 +84,23 @@ def test_block_shapes_identity_at_init_and_gates(frames, generator):
         assert float(block.gate[-1].weight.grad.abs().sum()) > 0
 
 
+def test_branch_updates_are_recorded_only_when_asked(generator):
+    block = randomized(MoSTBlock(8, E, kernel_t=3, noise_std=0.0, groups=4).eval())
+    x = torch.randn(6, 8, H, W, generator=generator)
+    emb = torch.randn(2, E, generator=generator).repeat_interleave(3, dim=0)
+    out = block(x, emb, 3)
+    assert block.last_updates is None  # training never pays for the norms
+    block.record_updates = True
+    torch.testing.assert_close(block(x, emb, 3), out)  # recording does not change the output
+    alpha = block.last_gates.repeat_interleave(3, dim=0)[:, :, None, None, None]
+    h = F.silu(block.norm(x))
+    update_s = alpha[:, 0] * block.spatial(h)
+    update_t = alpha[:, 1] * temporal_conv(h, block.temporal.weight, block.temporal.bias, 3)
+    torch.testing.assert_close(out, x + update_s + update_t)
+    rms = [v.square().mean().sqrt() for v in (x, update_s, update_t)]
+    torch.testing.assert_close(block.last_updates, torch.stack(rms))
+
+
 def test_block_rejects_a_batch_that_is_not_whole_sequences():
     block = MoSTBlock(8, E, groups=4)
     with pytest.raises(ValueError, match="3-frame"):
