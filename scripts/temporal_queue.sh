@@ -14,7 +14,7 @@
 # Each generates 24 sequences of 5 frames (TTCE k = 4 needs 5 frames; the temporal convolution and the poses relative
 # to frame 0 carry over from L = 4) along ego motions drawn from the training places, scored by `u4d evaluate`
 # against the held-out places 88-99; the floor scores those real held-out sequences themselves. Core A ends with the
-# table (benchmarks/temporal_table.py -> benchmarks/results/temporal.json / .md) and the gate figure.
+# table (benchmarks/temporal_table.py -> benchmarks/results/temporal.json / .md); u4d_most seed 0 draws the gate figures.
 # RUNS (default ../runs) says where run folders go, RESULTS (default benchmarks/results) where the table and figure go
 # (PY, default python3, runs benchmarks/temporal_table.py). Each finished method-seed leaves its evaluation and its
 # training budget in EVALS (default RESULTS/temporal_evals, committed): a method with one there is not run again, so
@@ -107,8 +107,9 @@ method() {  # NAME SEED: fine-tune, generate, score one U4D-like method (u4d_mos
   u4d_pair "${name}_s$seed" "$seed" "$@"
   sequences "$T/banks/${name}_s$seed" u4d "$seed" "stage1=$T/${name}_s$seed/stage1" "stage2=$T/${name}_s$seed/stage2"
   score "$T/banks/${name}_s$seed" "$E/${name}_s$seed"
-  if [ "$name" = u4d_most ] && [ "$seed" = 0 ]; then  # the gate figure of the trained model
-    u4d gates "$T/u4d_most_s0/stage2" --png "$RESULTS/most_gates.png" --json > "$E/gates_u4d_most_s0.json"
+  if [ "$name" = u4d_most ] && [ "$seed" = 0 ]; then  # the gate figures of the trained model (+ json beside)
+    u4d gates "$T/u4d_most_s0/stage2" --png "$RESULTS/most_gates.png"
+    u4d gates "$T/u4d_most_s0/stage1" --png "$RESULTS/most_gates_stage1.png"
   fi
   budget "$E/${name}_s$seed" "$T/${name}_s$seed/stage1" "$T/${name}_s$seed/stage2"
 }

@@ -75,7 +75,12 @@ def test_every_call_is_valid_budgets_are_equal_and_the_table_is_written(queue_en
     assert table["methods"]["u4d_most"]["seeds"] == 2 and table["methods"]["floor"]["seeds"] == 1
     assert set(table["fusion"]) == {"gating", "cascade", "add", "concat"}
     evals = tmp_path / "results" / "temporal_evals"
-    assert (evals / "gates_u4d_most_s0.json").read_text().strip() == "{}"
+    gates = [(a[1], option(a, "--png")) for a in made if a[0] == "gates"]  # the trained model's two stages
+    results = tmp_path / "results"
+    assert gates == [
+        (f"{runs}/u4d_most_s0/stage2", f"{results}/most_gates.png"),
+        (f"{runs}/u4d_most_s0/stage1", f"{results}/most_gates_stage1.png"),
+    ]
     budget = json.loads((evals / "u4d_most_s1" / "budget.json").read_text())
     assert budget["nets"] == {"stage1": {"steps": 20, "minutes": 20.0}, "stage2": {"steps": 20, "minutes": 20.0}}
     assert budget["host"]["cores"] >= 1 and budget["host"]["torch_threads"] == 1
