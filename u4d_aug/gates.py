@@ -85,7 +85,7 @@ def temporal_share(trajectory: dict) -> np.ndarray:
 
 
 def summarise_gates(trajectory: dict) -> dict:
-    """Mean α^s / α^t per block over all steps and over the three thirds of the sampling (json-ready)."""
+    """Per block, over all steps and per third of the sampling: gates, the update's temporal share and size (json)."""
     alpha_s, alpha_t, share = trajectory["alpha_s"], trajectory["alpha_t"], temporal_share(trajectory)
     thirds = np.array_split(np.arange(len(alpha_t)), 3)
 
