@@ -1,7 +1,9 @@
 #!/bin/bash
-# The long runs of the temporal table (the paper's Table 2, the MoST fusion ablation, the gate figure) as two queues,
-# one per CPU core, each a list of idempotent steps that resume from their checkpoints: after an interruption run the
-# same command again. From the repository root, after (or between) the downstream queues:
+# The long runs of the temporal table (the paper's Table 2, the MoST fusion ablation, the gate figure) as one list of
+# idempotent tasks that two queues, one per CPU core, share: each queue takes the first task whose inputs are ready and
+# that no live queue holds (a claim folder in RUNS/temporal/claims with its boot id and pid), so the two stages of one
+# U4D method train side by side and a method lands within hours. After an interruption run the same commands again:
+# claims of queues that ended are taken over and every task resumes from its checkpoints. From the repository root:
 #   CORE=A nohup bash scripts/temporal_queue.sh > temporal_A.log 2>&1 &
 #   CORE=B nohup bash scripts/temporal_queue.sh > temporal_B.log 2>&1 &
 # Every sequence net is the shipped single-frame net of its stage (weights/) fine-tuned on L = 4 frame windows by
@@ -13,15 +15,15 @@
 #   fusion_<v>       U4D with net.most_fusion=cascade|add|concat, seed 0 (gating is u4d_most seed 0)
 # Each generates 24 sequences of 5 frames (TTCE k = 4 needs 5 frames; the temporal convolution and the poses relative
 # to frame 0 carry over from L = 4) along ego motions drawn from the training places, scored by `u4d evaluate`
-# against the held-out places 88-99; the floor scores those real held-out sequences themselves. Core A ends with the
-# table (benchmarks/temporal_table.py -> benchmarks/results/temporal.json / .md); u4d_most seed 0 draws the gate figures.
+# against the held-out places 88-99; the floor scores those real held-out sequences themselves. The queue that finds
+# everything done writes the table (benchmarks/temporal_table.py -> benchmarks/results/temporal.json / .md);
+# u4d_most seed 0 draws the gate figures.
 # RUNS (default ../runs) says where run folders go, RESULTS (default benchmarks/results) where the table and figure go
 # (PY, default python3, runs benchmarks/temporal_table.py). Each finished method-seed leaves its evaluation and its
 # training budget in EVALS (default RESULTS/temporal_evals, committed): a method with one there is not run again, so
 # the table grows over sessions on different machines although run folders and checkpoints stay on the machine.
 # The world is DATA/sim_seg (DATA default data, then a link to RUNS/data unless the checkout has one) and its
-# probabilities DATA/sim_seg_probs; core A writes what is missing (the same commands as scripts/downstream_queue.sh),
-# core B waits for them.
+# probabilities DATA/sim_seg_probs (the same commands as scripts/downstream_queue.sh), the first task.
 set -euo pipefail
 RUNS=${RUNS:-../runs}
 DATA=${DATA:-data}
@@ -30,7 +32,7 @@ PY=${PY:-python3}
 STEPS=${STEPS:-2000}
 CORE=${CORE:?set CORE=A or CORE=B}
 export OMP_NUM_THREADS=1
-WAIT=${WAIT:-300}  # seconds between looks at what the other queue writes
+WAIT=${WAIT:-120}  # seconds between looks for a task whose inputs the other queue is writing
 T=$RUNS/temporal
 E=${EVALS:-$RESULTS/temporal_evals}
 PRESET=configs/u4d/cpu_hdl64_most.yaml
@@ -43,7 +45,6 @@ keep() {  # NAME: ./NAME links to RUNS/NAME unless it is there, so the world and
   mkdir -p "$RUNS/$1"
   [ -e "$1" ] || ln -sn "$(cd "$RUNS/$1" && pwd)" "$1" 2> /dev/null || [ -e "$1" ]  # the other core may link first
 }
-wait_file() { while [ ! -f "$1" ]; do sleep "$WAIT"; done; }
 
 finetune() {  # RUN STAGE STEPS [overrides...]: one sequence net from the shipped net of its stage
   local run=$1 stage=$2 steps=$3
@@ -58,12 +59,6 @@ finetune_baseline() {  # RUN SEED
   [ "$(last_step "$run")" = "$((2 * STEPS))" ] && return 0
   u4d train-diffusion "$PRESET" stage=baseline "steps=$((2 * STEPS))" init_from=weights/baseline.pt \
     "data_root=$DATA/sim_seg" sample_every=0 "seed=$seed" --out "$run" --no-progress $(resume_flag "$run")
-}
-u4d_pair() {  # NAME SEED [overrides...]: stage 1 and stage 2 of one U4D sequence model
-  local name=$1 seed=$2
-  shift 2
-  finetune "$T/$name/stage1" stage1 "$STEPS" "seed=$seed" "$@"
-  finetune "$T/$name/stage2" stage2 "$STEPS" "seed=$seed" "$@"
 }
 sequences() {  # OUT MODE SEED [overrides...]: 24 sequences of 5 frames along motions of the nets' training places
   local out=$1 mode=$2 seed=$3
@@ -100,11 +95,8 @@ with open(os.path.join(out, "budget.json.tmp"), "w") as f:
 os.replace(os.path.join(out, "budget.json.tmp"), os.path.join(out, "budget.json"))
 PYEOF
 }
-method() {  # NAME SEED: fine-tune, generate, score one U4D-like method (u4d_most, u4d_no_temporal, fusion_*)
+method() {  # NAME SEED: generate and score one trained U4D-like method (u4d_most, u4d_no_temporal, fusion_*)
   local name=$1 seed=$2
-  shift 2
-  [ -f "$E/${name}_s$seed/budget.json" ] && return 0
-  u4d_pair "${name}_s$seed" "$seed" "$@"
   sequences "$T/banks/${name}_s$seed" u4d "$seed" "stage1=$T/${name}_s$seed/stage1" "stage2=$T/${name}_s$seed/stage2"
   score "$T/banks/${name}_s$seed" "$E/${name}_s$seed"
   if [ "$name" = u4d_most ] && [ "$seed" = 0 ]; then  # the gate figures of the trained model (+ json beside)
@@ -113,10 +105,8 @@ method() {  # NAME SEED: fine-tune, generate, score one U4D-like method (u4d_mos
   fi
   budget "$E/${name}_s$seed" "$T/${name}_s$seed/stage1" "$T/${name}_s$seed/stage2"
 }
-baseline_method() {  # SEED
+baseline_method() {  # SEED: generate and score one trained baseline
   local seed=$1
-  [ -f "$E/baseline_most_s$seed/budget.json" ] && return 0
-  finetune_baseline "$T/baseline_most_s$seed" "$seed"
   sequences "$T/banks/baseline_most_s$seed" baseline "$seed" "baseline=$T/baseline_most_s$seed"
   score "$T/banks/baseline_most_s$seed" "$E/baseline_most_s$seed"
   budget "$E/baseline_most_s$seed" "$T/baseline_most_s$seed"
@@ -128,16 +118,84 @@ floor() {  # the held-out real sequences 88-99 as the bank: their own TTCE / CTC
     --real-sequences 88-99 --metrics ttce,ctc --json --md --out "$E/floor" --no-progress
 }
 
+# The tasks, in the order the queues take them: "KIND ARGS..." with done_KIND (its result exists), ready_KIND (its
+# inputs exist) and run_KIND.
+TASKS=("world")
+for entry in u4d_most:0: u4d_no_temporal:0:net.most=false u4d_most:1: u4d_no_temporal:1:net.most=false baseline:0 \
+  baseline:1 fusion_cascade:0:net.most_fusion=cascade fusion_add:0:net.most_fusion=add \
+  fusion_concat:0:net.most_fusion=concat; do
+  IFS=: read -r name seed over <<< "$entry"
+  if [ "$name" = baseline ]; then
+    TASKS+=("baseline $seed" "finish_baseline $seed")
+  else
+    TASKS+=("stage $name $seed stage1${over:+ $over}" "stage $name $seed stage2${over:+ $over}" "finish $name $seed")
+  fi
+done
+TASKS+=("floor")
+
+done_world() { [ -f "$DATA/sim_seg_probs/done" ]; }
+ready_world() { true; }
+run_world() { world; }
+done_stage() { [ -f "$E/${1}_s$2/budget.json" ] || [ "$(last_step "$T/${1}_s$2/$3")" = "$STEPS" ]; }
+ready_stage() { done_world; }
+run_stage() {
+  local name=$1 seed=$2 stage=$3
+  shift 3
+  finetune "$T/${name}_s$seed/$stage" "$stage" "$STEPS" "seed=$seed" "$@"
+}
+done_finish() { [ -f "$E/${1}_s$2/budget.json" ]; }
+ready_finish() { done_stage "$1" "$2" stage1 && done_stage "$1" "$2" stage2; }
+run_finish() { method "$1" "$2"; }
+done_baseline() { [ -f "$E/baseline_most_s$1/budget.json" ] || [ "$(last_step "$T/baseline_most_s$1")" = "$((2 * STEPS))" ]; }
+ready_baseline() { [ -f "$DATA/sim_seg/done" ]; }
+run_baseline() { finetune_baseline "$T/baseline_most_s$1" "$1"; }
+done_finish_baseline() { [ -f "$E/baseline_most_s$1/budget.json" ]; }
+ready_finish_baseline() { done_baseline "$1"; }
+run_finish_baseline() { baseline_method "$1"; }
+done_floor() { [ -f "$E/floor/evaluation.json" ]; }
+ready_floor() { [ -f "$DATA/sim_seg/done" ]; }
+run_floor() { floor; }
+
+BOOT=$(cat /proc/sys/kernel/random/boot_id 2> /dev/null || hostname)
+CLAIMS=$T/claims
+claim() {  # TASK-ID: take the task unless a live queue holds it (a queue of an earlier boot or a dead pid does not)
+  mkdir -p "$CLAIMS"
+  (
+    flock 9
+    held="$CLAIMS/$1"
+    if [ -f "$held" ]; then
+      read -r boot pid < "$held" || true
+      if [ "$boot" = "$BOOT" ] && [ "$pid" != "$$" ] && kill -0 "$pid" 2> /dev/null; then exit 1; fi
+    fi
+    echo "$BOOT $$" > "$held"
+  ) 9> "$CLAIMS/.lock"
+}
+release() { rm -f "$CLAIMS/$1"; }
+
 if [ "$DATA" = data ]; then keep data; fi
-if [ "$CORE" = "A" ]; then
-  world
-  method u4d_most 0
-  method u4d_no_temporal 0 net.most=false
-  baseline_method 1
-  method fusion_cascade 0 net.most_fusion=cascade
-  method fusion_concat 0 net.most_fusion=concat
-  floor
-  for name in u4d_most_s1 u4d_no_temporal_s1 baseline_most_s0 fusion_add_s0; do wait_file "$E/$name/budget.json"; done
+while true; do  # take the first ready task nobody holds; wait while the other queue holds what is left
+  left=0
+  ran=0
+  for task in "${TASKS[@]}"; do
+    read -r -a words <<< "$task"
+    kind=${words[0]}
+    args=("${words[@]:1}")
+    "done_$kind" "${args[@]}" && continue
+    left=1
+    "ready_$kind" "${args[@]}" || continue
+    id=$(echo "$task" | tr ' =' '__')
+    claim "$id" || continue
+    echo "queue $CORE: $task ($(date -u +%Y-%m-%dT%H:%M))"
+    "run_$kind" "${args[@]}"
+    release "$id"
+    ran=1
+    break
+  done
+  [ "$ran" = 1 ] && continue
+  [ "$left" = 0 ] && break
+  sleep "$WAIT"
+done
+if claim table; then  # every method-seed and the floor are scored: the table (a queue finishing later rewrites it)
   "$PY" benchmarks/temporal_table.py \
     --method "u4d_most=$E/u4d_most_s0" --method "u4d_most=$E/u4d_most_s1" \
     --method "baseline_most=$E/baseline_most_s0" --method "baseline_most=$E/baseline_most_s1" \
@@ -146,11 +204,6 @@ if [ "$CORE" = "A" ]; then
     --fusion "gating=$E/u4d_most_s0" --fusion "cascade=$E/fusion_cascade_s0" \
     --fusion "add=$E/fusion_add_s0" --fusion "concat=$E/fusion_concat_s0" \
     --out "$RESULTS/temporal"
-else
-  wait_file "$DATA/sim_seg_probs/done"
-  baseline_method 0
-  method u4d_most 1
-  method u4d_no_temporal 1 net.most=false
-  method fusion_add 0 net.most_fusion=add
+  release table
 fi
 echo "temporal queue $CORE done"

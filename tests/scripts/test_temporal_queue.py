@@ -1,13 +1,15 @@
 """scripts/temporal_queue.sh run end to end with the stand-in `u4d` (tests/scripts/stand_in.py): every call is one
 the real commands accept, the budgets are equal, the table comes out of the real benchmarks/temporal_table.py, and a
-second run starts nothing."""
+second run starts nothing; two queues share one task list through claims."""
 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -101,3 +103,39 @@ def test_the_script_needs_a_core(queue_env):
     env = {k: v for k, v in queue_env.items() if k != "CORE"}
     result = subprocess.run(["bash", str(SCRIPT)], cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
     assert result.returncode != 0 and "set CORE=A or CORE=B" in result.stderr
+
+
+def test_claims_of_ended_queues_are_taken_over_and_a_live_claim_is_left_alone(queue_env, tmp_path):
+    claims = tmp_path / "runs" / "temporal" / "claims"
+    claims.mkdir(parents=True)
+    boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+    ended = subprocess.Popen(["true"])
+    ended.wait()
+    (claims / "world").write_text("an-earlier-boot 1\n")  # pid 1 lives, but on another boot: an ended queue
+    (claims / "stage_u4d_most_0_stage1").write_text(f"{boot} {ended.pid}\n")  # this boot, the pid has ended
+    (claims / "floor").write_text(f"{boot} {os.getpid()}\n")  # this boot, alive: a queue still scoring the floor
+    procs = [
+        subprocess.Popen(
+            ["bash", str(SCRIPT)],
+            cwd=REPO,
+            env={**queue_env, "CORE": core},
+            text=True,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )  # fmt: skip
+        for core in ("A", "B")
+    ]
+    evals = tmp_path / "results" / "temporal_evals"
+    names = [f"{m}_s{s}" for m in ("u4d_most", "u4d_no_temporal", "baseline_most") for s in (0, 1)]
+    names += [f"fusion_{v}_s0" for v in ("cascade", "add", "concat")]
+    deadline = time.monotonic() + 150
+    while not all((evals / n / "budget.json").is_file() for n in names) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    time.sleep(1.0)
+    assert all((evals / n / "budget.json").is_file() for n in names)  # the ended queues' tasks were taken over
+    assert not (evals / "floor").exists() and all(p.poll() is None for p in procs)  # both wait for the live holder
+    (claims / "floor").unlink()  # the holder ended without scoring it: a queue takes it over
+    for proc in procs:
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err[-3000:]
+    assert (evals / "floor" / "evaluation.json").is_file() and (tmp_path / "results" / "temporal.json").is_file()
