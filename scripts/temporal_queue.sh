@@ -1,7 +1,7 @@
 #!/bin/bash
 # The long runs of the temporal table (the paper's Table 2, the MoST fusion ablation, the gate figure) as one list of
 # idempotent tasks that two queues, one per CPU core, share: each queue takes the first task whose inputs are ready and
-# that no live queue holds (a claim folder in RUNS/temporal/claims with its boot id and pid), so the two stages of one
+# that no live queue holds (a claim file in RUNS/temporal/claims with its boot id and pid), so the two stages of one
 # U4D method train side by side and a method lands within hours. After an interruption run the same commands again:
 # claims of queues that ended are taken over and every task resumes from its checkpoints. From the repository root:
 #   CORE=A nohup bash scripts/temporal_queue.sh > temporal_A.log 2>&1 &

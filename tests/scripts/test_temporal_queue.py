@@ -121,7 +121,7 @@ def test_claims_of_ended_queues_are_taken_over_and_a_live_claim_is_left_alone(qu
             env={**queue_env, "CORE": core},
             text=True,
             stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
+            stderr=(tmp_path / f"queue_{core}.err").open("w"),  # a file: nobody reads a pipe while they wait
         )  # fmt: skip
         for core in ("A", "B")
     ]
@@ -135,7 +135,6 @@ def test_claims_of_ended_queues_are_taken_over_and_a_live_claim_is_left_alone(qu
     assert all((evals / n / "budget.json").is_file() for n in names)  # the ended queues' tasks were taken over
     assert not (evals / "floor").exists() and all(p.poll() is None for p in procs)  # both wait for the live holder
     (claims / "floor").unlink()  # the holder ended without scoring it: a queue takes it over
-    for proc in procs:
-        _, err = proc.communicate(timeout=60)
-        assert proc.returncode == 0, err[-3000:]
+    for proc, core in zip(procs, ("A", "B")):
+        assert proc.wait(timeout=60) == 0, (tmp_path / f"queue_{core}.err").read_text()[-3000:]
     assert (evals / "floor" / "evaluation.json").is_file() and (tmp_path / "results" / "temporal.json").is_file()
