@@ -7,7 +7,8 @@
 Each DIR holds the evaluation.json of `u4d evaluate --json --out DIR` (u4d_aug/metrics/evaluate.py); repeating a NAME
 adds a seed. A method's score is its "table2.bank" side (for the real floor, the bank is the held-out real sequences)
 and "table1.frd". Nothing is recomputed. Writes OUT.json and OUT.md (two tables, mean ± std over seeds, ddof 1 as
-segmentation.experiment.mean_std; a missing entry shows its reason, never a number).
+segmentation.experiment.mean_std; a missing entry shows its reason, never a number) and OUT.png (TTCE and CTC against
+the interval k, one line per method and fusion variant, bars = std over seeds; the floor dashed black).
 
 OUT.json:
     units: {ttce, ctc, frd}; intervals: {ttce: [3, 4], ctc: [1, 2, 3, 4]}
@@ -17,6 +18,7 @@ OUT.json:
             or ttce / ctc: {missing: reason} when no seed has one
         frd: {mean, std, n, per_seed} or {missing: reason}; absent when no source's table1 has frd
         missing: {source: reason} for the seeds whose temporal metrics are missing (absent when none)
+    figure: the PNG's file name (beside OUT.json)
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from pathlib import Path
 from segmentation.experiment import mean_std
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder, read_json_file
+from u4d_aug.viz import plt, save_figure
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "temporal"
 INTERVALS = {"ttce": ("3", "4"), "ctc": ("1", "2", "3", "4")}  # u4d_aug.metrics.temporal TTCE_/CTC_INTERVALS
@@ -193,22 +196,59 @@ def to_markdown(table: dict) -> str:
     lines += markdown_table(table["methods"], "method") if table["methods"] else ["No --method given."]
     lines += ["", "## MoST fusion ablation", ""]
     lines += markdown_table(table["fusion"], "fusion") if table["fusion"] else ["No --fusion given."]
-    lines += ["", "## Sources", ""]
+    lines += ["", f"![TTCE and CTC against k]({table['figure']})", "", "## Sources", ""]
     for part in ("methods", "fusion"):
         for name, entry in table[part].items():
             lines.append(f"- {part}/{name} ({entry['seeds']} seeds): " + ", ".join(f"`{s}`" for s in entry["sources"]))
     return "\n".join(lines) + "\n"
 
 
+# ------------------------------------------------------------------------------------------------- figure
+
+
+def plot_intervals(table: dict, path: Path) -> Path:
+    """OUT.png: TTCE (left) and CTC (right) mean against k per method (solid) and fusion variant (dotted), ± std."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    for ax, metric in zip(axes, ("ttce", "ctc")):
+        ks = [int(k) for k in INTERVALS[metric]]
+        for part, style in (("methods", "-"), ("fusion", ":")):
+            for name, entry in table[part].items():
+                if "missing" in entry[metric]:
+                    continue
+                stats = [entry[metric][str(k)] for k in ks]
+                points = [(k, s["mean"], s["std"]) for k, s in zip(ks, stats) if s.get("mean") is not None]
+                if not points:
+                    continue
+                x, mean, std = zip(*points)
+                floor = part == "methods" and name == "floor"
+                label = name if part == "methods" else f"fusion: {name}"
+                ax.errorbar(
+                    x, mean, yerr=std, capsize=3, marker="o", markersize=4, label=label,
+                    linestyle="--" if floor else style, color="black" if floor else None,
+                )  # fmt: skip
+        ax.set_xticks(ks)
+        ax.set_xlabel("interval k (frames apart)")
+        ax.set_ylabel("TTCE (m)" if metric == "ttce" else "CTC (m²)")
+        ax.set_title(f"{metric.upper()} ↓, mean ± std over seeds", fontsize=10)
+        ax.grid(alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    if not handles:
+        handles, labels = axes[1].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=8)
+    fig.tight_layout()
+    return save_figure(fig, path, dpi=120)
+
+
 # ------------------------------------------------------------------------------------------------- main
 
 
 def run(argv: list[str] | None = None) -> int:
-    """Read and check every evaluation.json (before anything is written), then write OUT.json and OUT.md."""
+    """Read and check every evaluation.json (before anything is written), then write OUT.png, OUT.json and OUT.md."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--method", action="append", default=[], metavar="NAME=DIR", help="a seed of a method")
     parser.add_argument("--fusion", action="append", default=[], metavar="VARIANT=DIR", help="a seed of a variant")
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output stem: writes OUT.json and OUT.md")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output stem: OUT.json, .md, .png")
     args = parser.parse_args(argv)
     if not args.method and not args.fusion:
         raise InputError(f"nothing to tabulate: give --method NAME=DIR (e.g. {EXAMPLE}) and/or --fusion VARIANT=DIR")
@@ -229,9 +269,12 @@ def run(argv: list[str] | None = None) -> int:
     }
     make_folder(args.out.parent)
     json_path, md_path = args.out.parent / f"{args.out.name}.json", args.out.parent / f"{args.out.name}.md"
+    png_path = args.out.parent / f"{args.out.name}.png"
+    table["figure"] = png_path.name
+    plot_intervals(table, png_path)
     atomic_write_json(json_path, table)
     atomic_write_text(md_path, to_markdown(table))
-    print(f"-> {json_path}, {md_path}")
+    print(f"-> {json_path}, {md_path}, {png_path}")
     return 0
 
 
