@@ -89,7 +89,7 @@ def test_table_numbers_and_markdown(runs, tmp_path):
     assert "## Table 2" in md and "## MoST fusion ablation" in md and "metres" in md and "m²" in md
     assert "| u4d_most | 2 | 0.3 ± 0.14 | 1.3 ± 0.14 |" in md
     assert "| u4d_no_temporal | 1 (< 2) | missing |" in md and "TTCE missing: poses.txt not found" in md
-    assert "| add | 1 (< 2) | 0.6 ± 0 |" in md
+    assert "| add | 1 (< 2) | 0.6 ± 0 |" in md and "| floor | 2 (real data) | 0.1 ± 0 |" in md
     assert result["figure"] == "temporal.png" and "![TTCE and CTC against k](temporal.png)" in md
     png = (tmp_path / "results" / "temporal.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
