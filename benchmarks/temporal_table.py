@@ -212,13 +212,12 @@ def plot_intervals(table: dict, path: Path) -> Path:
     """OUT.png: TTCE (left) and CTC (right) mean against k per method (solid) and fusion variant (dotted), ± std."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
     for ax, metric in zip(axes, ("ttce", "ctc")):
-        ks = [int(k) for k in INTERVALS[metric]]
         for part, style in (("methods", "-"), ("fusion", ":")):
             for name, entry in table[part].items():
                 if "missing" in entry[metric]:
                     continue
-                stats = [entry[metric][str(k)] for k in ks]
-                points = [(k, s["mean"], s["std"]) for k, s in zip(ks, stats) if s.get("mean") is not None]
+                stats = [(int(k), entry[metric][k]) for k in INTERVALS[metric]]
+                points = [(k, s["mean"], s["std"]) for k, s in stats if s.get("mean") is not None]
                 if not points:
                     continue
                 x, mean, std = zip(*points)
@@ -228,16 +227,14 @@ def plot_intervals(table: dict, path: Path) -> Path:
                     x, mean, yerr=std, capsize=3, marker="o", markersize=4, label=label,
                     linestyle="--" if floor else style, color="black" if floor else None,
                 )  # fmt: skip
-        ax.set_xticks(ks)
+        ax.set_xticks([int(k) for k in INTERVALS[metric]])
         ax.set_xlabel("interval k (frames apart)")
         ax.set_ylabel("TTCE (m)" if metric == "ttce" else "CTC (m²)")
         ax.set_title(f"{metric.upper()} ↓, mean ± std over seeds", fontsize=10)
         ax.grid(alpha=0.3)
-    handles, labels = axes[0].get_legend_handles_labels()
-    if not handles:
-        handles, labels = axes[1].get_legend_handles_labels()
-    if handles:
-        fig.legend(handles, labels, loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=8)
+    legend = {label: handle for ax in axes for handle, label in zip(*ax.get_legend_handles_labels())}
+    if legend:  # every line once, also one that has only CTC or only TTCE
+        fig.legend(legend.values(), legend.keys(), loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=8)
     fig.tight_layout()
     return save_figure(fig, path, dpi=120)
 
