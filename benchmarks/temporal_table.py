@@ -201,7 +201,8 @@ def to_markdown(table: dict) -> str:
     lines += ["", f"![TTCE and CTC against k]({table['figure']})", "", "## Sources", ""]
     for part in ("methods", "fusion"):
         for name, entry in table[part].items():
-            lines.append(f"- {part}/{name} ({entry['seeds']} seeds): " + ", ".join(f"`{s}`" for s in entry["sources"]))
+            seeds = f"{entry['seeds']} seed" + ("s" if entry["seeds"] != 1 else "")
+            lines.append(f"- {part}/{name} ({seeds}): " + ", ".join(f"`{s}`" for s in entry["sources"]))
     return "\n".join(lines) + "\n"
 
 

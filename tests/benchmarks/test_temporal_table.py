@@ -91,6 +91,7 @@ def test_table_numbers_and_markdown(runs, tmp_path):
     assert "| u4d_no_temporal | 1 (< 2) | missing |" in md and "TTCE missing: poses.txt not found" in md
     assert "| add | 1 (< 2) | 0.6 ± 0 |" in md and "| floor | 2 (real data) | 0.1 ± 0 |" in md
     assert result["figure"] == "temporal.png" and "![TTCE and CTC against k](temporal.png)" in md
+    assert "- fusion/add (1 seed): `" in md and "- methods/u4d_most (2 seeds): `" in md
     png = (tmp_path / "results" / "temporal.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
 
