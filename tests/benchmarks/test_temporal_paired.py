@@ -37,15 +37,19 @@ def trajectory(step: float, yaw: float) -> np.ndarray:
     return poses
 
 
-def write_bank(root: Path, rng: np.random.Generator, trajectories: list[np.ndarray], drift: float) -> Path:
-    """A bank whose frame i sees the room from pose i, moved by a random `drift` m the poses do not know of."""
+def write_bank(
+    root: Path, rng: np.random.Generator, trajectories: list[np.ndarray], drift: float, moving: bool = True
+) -> Path:
+    """A bank whose frame i sees the room from pose i (from pose 0 unless `moving`), moved by a random `drift` m the
+    poses do not know of; poses.txt always holds the trajectory."""
     calib = {key: np.eye(4)[:3] for key in ("P0", "P1", "P2", "P3", "Tr")}
     for s, poses in enumerate(trajectories):
         folder = root / "sequences" / f"{s:02d}"
         (folder / "velodyne").mkdir(parents=True)
         world = room(np.random.default_rng(s))
         for i, pose in enumerate(poses):
-            local = (world - pose[:3, 3]) @ pose[:3, :3]  # (N, 3) sensor frame
+            seen_from = pose if moving else poses[0]
+            local = (world - seen_from[:3, 3]) @ seen_from[:3, :3]  # (N, 3) sensor frame
             local = local + rng.normal(0.0, drift, 3) * (i > 0)  # frame 0 fixed, later frames drift
             scan = np.concatenate([local, np.full((len(local), 1), 0.5)], axis=1).astype(np.float32)
             write_kitti_scan(folder / "velodyne" / f"{i:06d}.bin", scan)

@@ -112,6 +112,42 @@ def icp_transform(
     return np.asarray(result.transformation)
 
 
+def icp_translations(
+    scans: Sequence[np.ndarray],
+    poses: np.ndarray,
+    intervals: Sequence[int] = TTCE_INTERVALS,
+    max_correspondence_distance: float = MAX_CORRESPONDENCE,
+    min_range: float = MIN_RANGE,
+    voxel_size: float | None = TTCE_VOXEL_SIZE,
+    max_iteration: int = ICP_MAX_ITERATION,
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per interval k: (ICP translations (P, 3), pose translations (P, 3)) of the pairs (i, i + k), i ascending.
+
+    Both map frame-j points into frame i (LC `evaluate_4d_transformation.py`: ICP from the identity; the truth is
+    T_i^-1 T_j); `voxel_size` (m) downsamples both clouds before ICP (see TTCE_VOXEL_SIZE), None keeps every point.
+    """
+    poses = _check_sequence(scans, poses, intervals)
+    if voxel_size is not None and voxel_size <= 0:
+        raise InputError(f"voxel_size: expected a positive size in metres or None, got {voxel_size}")
+    if max_iteration < 1:
+        raise InputError(f"max_iteration: expected >= 1, got {max_iteration}")
+    clouds: dict[int, o3d.geometry.PointCloud] = {}
+    pairs: dict[int, tuple[list[np.ndarray], list[np.ndarray]]] = {int(k): ([], []) for k in intervals}
+    for i in range(len(scans)):
+        for k, (estimates, truths) in pairs.items():
+            j = i + k
+            if j >= len(scans):
+                continue
+            for index in (i, j):
+                if index not in clouds:
+                    clouds[index] = _point_cloud(_xyz(scans[index], min_range), voxel_size)
+            estimate = icp_transform(clouds[j], clouds[i], max_correspondence_distance, max_iteration)  # j -> i
+            estimates.append(estimate[:3, 3])
+            truths.append(relative_pose(poses, i, j)[:3, 3])
+        clouds.pop(i, None)  # frame i is never a target again
+    return {k: (np.reshape(e, (-1, 3)), np.reshape(t, (-1, 3))) for k, (e, t) in pairs.items()}
+
+
 def ttce(
     scans: Sequence[np.ndarray],
     poses: np.ndarray,
@@ -125,26 +161,8 @@ def ttce(
 
     `voxel_size` (m) downsamples both clouds before ICP (see TTCE_VOXEL_SIZE); None keeps every point (LC).
     """
-    poses = _check_sequence(scans, poses, intervals)
-    if voxel_size is not None and voxel_size <= 0:
-        raise InputError(f"voxel_size: expected a positive size in metres or None, got {voxel_size}")
-    if max_iteration < 1:
-        raise InputError(f"max_iteration: expected >= 1, got {max_iteration}")
-    clouds: dict[int, o3d.geometry.PointCloud] = {}
-    per_pair: dict[int, list[float]] = {int(k): [] for k in intervals}
-    for i in range(len(scans)):
-        for k in per_pair:
-            j = i + k
-            if j >= len(scans):
-                continue
-            for index in (i, j):
-                if index not in clouds:
-                    clouds[index] = _point_cloud(_xyz(scans[index], min_range), voxel_size)
-            estimate = icp_transform(clouds[j], clouds[i], max_correspondence_distance, max_iteration)  # j -> i
-            truth = relative_pose(poses, i, j)
-            per_pair[k].append(float(np.abs(estimate[:3, 3] - truth[:3, 3]).mean()))
-        clouds.pop(i, None)  # frame i is never a target again
-    return _scores(per_pair)
+    pairs = icp_translations(scans, poses, intervals, max_correspondence_distance, min_range, voxel_size, max_iteration)
+    return _scores({k: np.abs(est - truth).mean(axis=1).tolist() for k, (est, truth) in pairs.items()})
 
 
 def chamfer_squared(tree_p: cKDTree, tree_q: cKDTree, workers: int = 1) -> float:
