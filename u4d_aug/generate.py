@@ -60,6 +60,7 @@ from u4d_aug.pipeline import (
     complete,
     generate_baseline,
     generate_u4d,
+    generate_u4d_propagated,
     load_generator,
     to_points,
 )
@@ -122,6 +123,9 @@ class GenerateConfig:
     # (N, L, 4) motions (x, y, z, yaw per frame; sample i takes motion i mod N) or a KITTI poses.txt of L lines
     # (with calib.txt beside it if there is one); "" = windows of the training sequences' poses.txt
     motion_file: str = ""
+    # u4d mode, sequences with an ego motion: frames 1..L-1 are frame 0 moved along the motion (u4d_aug.propagate)
+    # and completed by stage 2 where it does not reach, so the frames follow the poses (two sampler passes)
+    propagate: bool = False
     # for other codebases (`u4d export`, done once every sample is written): all-ignore .label files (value 0)
     # beside the scans, and mmdetection3d's semantickitti_infos_train.pkl in the bank
     labels: bool = False
@@ -213,9 +217,21 @@ def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info
         identity["motion"] = {"file": file_sha256(cfg.motion_file)} if cfg.motion_file else "training sequences"
     elif cfg.motion_file:
         raise InputError("motion_file: these generators have no ego-motion input (net.pose_dim = 0 or one frame)")
+    if cfg.propagate:
+        if cfg.mode != "u4d" or motions is None:
+            raise InputError(
+                "propagate: moves frame 0 along each sequence's ego motion, so it needs mode=u4d, frames >= 2 and "
+                f"nets with an ego-motion input (net.pose_dim > 0); got mode={cfg.mode}, frames={frames}"
+            )
+        identity["propagate"] = True
     check_compatible(Path(out), identity)
     layout = BankLayout(Path(out), frames)
     old = read_manifest(layout.root)
+    if old is not None and bool(old.get("propagate", False)) != cfg.propagate:  # banks before the key: False
+        raise InputError(
+            f"{layout.manifest_path}: bank was generated with propagate={not cfg.propagate}; "
+            "choose another --out or delete the bank"
+        )
     if old is not None and old.get("frames", 1) != frames:
         raise InputError(
             f"{layout.manifest_path}: bank holds {old.get('frames', 1)}-frame samples, asked for {frames}; "
@@ -283,7 +299,23 @@ def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info
             for i in block:
                 if not layout.is_done(i):  # poses first, frames last (a sample is done once all its frames are)
                     write_sequence_poses(layout, i, poses_from_motion(motions[i]))
-        if cfg.mode == "u4d":
+        if cfg.mode == "u4d" and cfg.propagate:
+            assert motions is not None  # checked with the config
+            result = generate_u4d_propagated(
+                nets["stage1"],
+                nets["stage2"],
+                n,
+                cfg.steps,
+                generators,
+                np.stack([poses_from_motion(motions[i]) for i in block]),
+                cfg.sampler,
+                cfg.stage1_steps,
+                grid=cfg.sampler_grid,
+                motion=motion,
+                mask_fraction=cfg.stage1_mask_fraction,
+            )
+            masks, x0_u = _per_sample(result["m_u_pred"], n)[:, :, 0], _per_sample(result["x0_u"], n)
+        elif cfg.mode == "u4d":
             result = generate_u4d(
                 nets["stage1"],
                 nets["stage2"],

@@ -25,6 +25,7 @@ from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.io import load_checkpoint
 from u4d_aug.nn.unet import RangeUNet
+from u4d_aug.propagate import warp_frame0
 from u4d_aug.range_view import RowMode, unproject
 from u4d_aug.run import newest_checkpoint
 from u4d_aug.sampling import SAMPLER_NAMES, Generators, Grid, Sample, check_grid, mean_start
@@ -241,6 +242,38 @@ def generate_u4d(
     )
     second = complete(stage2, first["x0_u"], first["m_u_pred"], steps, generator, sampler, grid=grid, motion=motion2)
     return {"x0": second["x0"], "x0_u": first["x0_u"], "m_u_pred": first["m_u_pred"]}
+
+
+def generate_u4d_propagated(
+    stage1: Loaded,
+    stage2: Loaded,
+    n: int,
+    steps: int,
+    generator: Generators,
+    poses: np.ndarray,
+    sampler: Sampler = "ddim",
+    stage1_steps: int | None = None,
+    grid: Grid = "time",
+    motion: Tensor | None = None,
+    mask_fraction: float | None = None,
+) -> dict[str, Tensor]:
+    """L-frame U4D sequences that follow their ego motion: `generate_u4d` draws frame 0, `warp_frame0` moves it into
+    frames 1..L-1 along `poses` (n, L, 4, 4), stage 2 completes the pixels it does not reach; the warped pixels are
+    kept as they are -> dict(x0, x0_u, m_u_pred) (n, L, ...), m_u_pred the warped region."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 4 or poses.shape[0] != n or poses.shape[1] < 2 or poses.shape[2:] != (4, 4):
+        raise InputError(f"propagation needs poses (n={n}, L >= 2, 4, 4), got {poses.shape}")
+    frames = poses.shape[1]
+    first = generate_u4d(
+        stage1, stage2, n, steps, generator, sampler, stage1_steps, frames, grid, motion, mask_fraction
+    )
+    sensor = get_sensor(stage2[1].sensor)
+    warped = [warp_frame0(first["x0"][i, 0], poses[i], sensor, stage2[1].row_mode) for i in range(n)]
+    x0_u, m_u = torch.stack([w[0] for w in warped]), torch.stack([w[1] for w in warped])  # (n, L, 2|1, H, W)
+    motion2 = motion if stage2[1].net.pose_dim else None
+    second = complete(stage2, x0_u, m_u, steps, generator, sampler, grid=grid, motion=motion2)
+    x0 = torch.where(m_u.bool(), x0_u.to(second["x0"].device), second["x0"])
+    return {"x0": x0, "x0_u": x0_u, "m_u_pred": m_u}
 
 
 def generate_baseline(

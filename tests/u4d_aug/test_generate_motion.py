@@ -190,3 +190,24 @@ def test_completion_conditions_on_the_real_frames_motion(posed, tmp_path):
     np.save(tmp_path / "m.npy", straight_motion(2, 1.0))
     with pytest.raises(InputError, match="completion mode"):
         generate_bank(gen_config(posed, *sorted(real), f"motion_file={tmp_path / 'm.npy'}"), tmp_path / "x")
+
+
+def test_propagated_banks_move_frame_0_along_the_written_poses(posed, tmp_path):
+    motion = straight_motion(3, 1.0)
+    np.save(tmp_path / "straight.npy", motion)
+    bank = tmp_path / "bank"
+    overrides = ("num=1", "frames=3", f"motion_file={tmp_path / 'straight.npy'}", "propagate=true")
+    manifest = generate_bank(gen_config(posed, *overrides), bank, progress=False)
+    assert manifest["complete"]
+    layout = BankLayout(bank, 3)
+    plain = tmp_path / "plain"
+    generate_bank(gen_config(posed, *overrides[:-1]), plain, progress=False)
+    with pytest.raises(InputError, match="generated with propagate=True"):  # one bank, one way of generating
+        generate_bank(gen_config(posed, *overrides[:-1]), bank, progress=False)
+    with pytest.raises(InputError, match="different propagate"):
+        generate_bank(gen_config(posed, *overrides), plain, progress=False)
+    with pytest.raises(InputError, match="propagate: moves frame 0"):
+        generate_bank(gen_config(posed, "mode=baseline", *overrides), tmp_path / "b", progress=False)
+    written = read_poses(layout.poses_path(0), read_calib(layout.calib_path(0)))
+    np.testing.assert_allclose(written, poses_from_motion(motion), atol=1e-6)
+    assert layout.scan_path(0, 2).is_file() or layout.is_empty(0, 2)
