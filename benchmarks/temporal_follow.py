@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from u4d_aug.bank import named_banks, sequence_ids
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder
 from u4d_aug.metrics import temporal
@@ -30,17 +31,6 @@ from u4d_aug.viz import plt, save_figure
 
 INTERVALS = (1, 2, 3, 4)
 PLOTTED = (1, 3)
-
-
-def parse_bank(text: str) -> tuple[str, Path]:
-    """'NAME=DIR' -> (NAME, DIR), DIR a bank (or real data) with sequences/NN/{velodyne, poses.txt, calib.txt}."""
-    name, sep, folder = text.partition("=")
-    if not sep or not name.strip() or not folder.strip():
-        raise InputError(f"--bank {text!r}: expected NAME=DIR (a folder with sequences/), e.g. u4d=runs/bank")
-    root = Path(folder)
-    if not (root / "sequences").is_dir():
-        raise InputError(f"--bank {text!r}: {root / 'sequences'} is not a folder (expected a u4d generate bank)")
-    return name.strip(), root
 
 
 def follow_scores(estimates: np.ndarray, truths: np.ndarray) -> dict[str, float | int]:
@@ -63,9 +53,7 @@ def follow_scores(estimates: np.ndarray, truths: np.ndarray) -> dict[str, float 
 
 def bank_translations(root: Path, progress: bool = True) -> tuple[list[str], dict[int, tuple[np.ndarray, np.ndarray]]]:
     """Sequence ids and, per k, (ICP (P, 3), pose (P, 3)) translations pooled over the bank's sequences."""
-    ids = sorted(p.name for p in (root / "sequences").iterdir() if p.is_dir())
-    if not ids:
-        raise InputError(f"{root / 'sequences'}: no sequence folders")
+    ids = sequence_ids(root)
     pooled: dict[int, tuple[list, list]] = {k: ([], []) for k in INTERVALS}
     for seq in progress_bar(ids, desc=root.name, unit="sequence", enabled=progress, leave=False):
         scans, poses = temporal.load_kitti_sequence(root / "sequences" / seq)
@@ -125,12 +113,7 @@ def run(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not args.bank:
         raise InputError("--bank: give at least one NAME=DIR")
-    banks: dict[str, Path] = {}
-    for text in args.bank:
-        name, root = parse_bank(text)
-        if name in banks:
-            raise InputError(f"--bank {text!r}: the name {name!r} is given twice")
-        banks[name] = root
+    banks = named_banks(args.bank)
     result: dict = {"intervals": list(INTERVALS), "banks": {}}
     pairs = {}
     for name, root in banks.items():

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from u4d_aug.bank import named_banks, sequence_ids
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder
 from u4d_aug.metrics import temporal
@@ -33,17 +34,6 @@ from u4d_aug.progress import progress_bar
 
 METRICS = {"ttce": temporal.TTCE_INTERVALS, "ctc": temporal.CTC_INTERVALS}
 UNITS = {"ttce": "m", "ctc": "m^2"}
-
-
-def parse_bank(text: str) -> tuple[str, Path]:
-    """'NAME=DIR' -> (NAME, DIR), DIR a bank with sequences/NN/{velodyne, poses.txt, calib.txt}."""
-    name, sep, folder = text.partition("=")
-    if not sep or not name.strip() or not folder.strip():
-        raise InputError(f"--bank {text!r}: expected NAME=DIR (a bank folder with sequences/), e.g. u4d=runs/bank")
-    root = Path(folder)
-    if not (root / "sequences").is_dir():
-        raise InputError(f"--bank {text!r}: {root / 'sequences'} is not a folder (expected a u4d generate bank)")
-    return name.strip(), root
 
 
 def sequence_scores(sequence_dir: Path) -> tuple[np.ndarray, dict[str, dict[int, float]]]:
@@ -75,14 +65,12 @@ def score_banks(banks: dict[str, Path], progress: bool = True) -> tuple[list[str
     """Sequence ids and {bank: {metric: {k: (S,) per-sequence scores}}}; raises unless every bank matches the first."""
     names = list(banks)
     first = banks[names[0]]
-    ids = sorted(p.name for p in (first / "sequences").iterdir() if p.is_dir())
-    if not ids:
-        raise InputError(f"{first / 'sequences'}: no sequence folders")
+    ids = sequence_ids(first)
     per_bank: dict[str, dict] = {}
     reference_poses: dict[str, np.ndarray] = {}
     for name in names:
         root = banks[name]
-        found = sorted(p.name for p in (root / "sequences").iterdir() if p.is_dir())
+        found = sequence_ids(root)
         if found != ids:
             raise InputError(f"{root / 'sequences'}: sequences {found} differ from {first / 'sequences'}'s {ids}")
         table = {m: {k: [] for k in ks} for m, ks in METRICS.items()}
@@ -187,12 +175,7 @@ def run(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.boot < 100:
         raise InputError(f"--boot: expected at least 100 resamples, got {args.boot}")
-    banks: dict[str, Path] = {}
-    for text in args.bank:
-        name, root = parse_bank(text)
-        if name in banks:
-            raise InputError(f"--bank {text!r}: the name {name!r} is given twice")
-        banks[name] = root
+    banks = named_banks(args.bank)
     result = report(banks, args.boot, args.seed, progress=not args.no_progress)
     make_folder(args.out.parent)
     command = "python benchmarks/temporal_paired.py " + " ".join(sys.argv[1:] if argv is None else argv)

@@ -215,6 +215,32 @@ def check_compatible(root: str | Path, identity: dict[str, Any]) -> None:
             )
 
 
+def named_banks(texts: list[str], flag: str = "--bank") -> dict[str, Path]:
+    """'NAME=DIR' arguments -> {NAME: DIR}, each DIR a folder with sequences/ (a bank, or real data in its layout)."""
+    banks: dict[str, Path] = {}
+    for text in texts:
+        name, sep, folder = text.partition("=")
+        name = name.strip()
+        if not sep or not name or not folder.strip():
+            raise InputError(f"{flag} {text!r}: expected NAME=DIR (a folder with sequences/), e.g. u4d=runs/bank")
+        root = Path(folder)
+        if not (root / "sequences").is_dir():
+            raise InputError(f"{flag} {text!r}: {root / 'sequences'} is not a folder (expected a u4d generate bank)")
+        if name in banks:
+            raise InputError(f"{flag} {text!r}: the name {name!r} is given twice")
+        banks[name] = root
+    return banks
+
+
+def sequence_ids(root: str | Path) -> list[str]:
+    """Names of the folders in ROOT/sequences, sorted; an InputError when there are none."""
+    folder = Path(root) / "sequences"
+    ids = sorted(p.name for p in folder.iterdir() if p.is_dir()) if folder.is_dir() else []
+    if not ids:
+        raise InputError(f"{folder}: no sequence folders")
+    return ids
+
+
 def write_manifest(root: str | Path, manifest: dict[str, Any]) -> None:
     """Write BANK/manifest.json atomically."""
     atomic_write_json(BankLayout(Path(root)).manifest_path, manifest)

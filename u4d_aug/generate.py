@@ -217,21 +217,16 @@ def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info
         identity["motion"] = {"file": file_sha256(cfg.motion_file)} if cfg.motion_file else "training sequences"
     elif cfg.motion_file:
         raise InputError("motion_file: these generators have no ego-motion input (net.pose_dim = 0 or one frame)")
-    if cfg.propagate:
-        if cfg.mode != "u4d" or motions is None:
-            raise InputError(
-                "propagate: moves frame 0 along each sequence's ego motion, so it needs mode=u4d, frames >= 2 and "
-                f"nets with an ego-motion input (net.pose_dim > 0); got mode={cfg.mode}, frames={frames}"
-            )
-        identity["propagate"] = True
+    if cfg.propagate and (cfg.mode != "u4d" or motions is None):
+        raise InputError(
+            "propagate: moves frame 0 along each sequence's ego motion, so it needs mode=u4d, frames >= 2 and "
+            f"nets with an ego-motion input (net.pose_dim > 0); got mode={cfg.mode}, frames={frames}"
+        )
+    if cfg.propagate:  # like the other sampling options: banks written before it stay compatible
+        identity["sampling"]["propagate"] = True
     check_compatible(Path(out), identity)
     layout = BankLayout(Path(out), frames)
     old = read_manifest(layout.root)
-    if old is not None and bool(old.get("propagate", False)) != cfg.propagate:  # banks before the key: False
-        raise InputError(
-            f"{layout.manifest_path}: bank was generated with propagate={not cfg.propagate}; "
-            "choose another --out or delete the bank"
-        )
     if old is not None and old.get("frames", 1) != frames:
         raise InputError(
             f"{layout.manifest_path}: bank holds {old.get('frames', 1)}-frame samples, asked for {frames}; "
@@ -299,36 +294,37 @@ def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info
             for i in block:
                 if not layout.is_done(i):  # poses first, frames last (a sample is done once all its frames are)
                     write_sequence_poses(layout, i, poses_from_motion(motions[i]))
-        if cfg.mode == "u4d" and cfg.propagate:
-            assert motions is not None  # checked with the config
-            result = generate_u4d_propagated(
-                nets["stage1"],
-                nets["stage2"],
-                n,
-                cfg.steps,
-                generators,
-                np.stack([poses_from_motion(motions[i]) for i in block]),
-                cfg.sampler,
-                cfg.stage1_steps,
-                grid=cfg.sampler_grid,
-                motion=motion,
-                mask_fraction=cfg.stage1_mask_fraction,
-            )
-            masks, x0_u = _per_sample(result["m_u_pred"], n)[:, :, 0], _per_sample(result["x0_u"], n)
-        elif cfg.mode == "u4d":
-            result = generate_u4d(
-                nets["stage1"],
-                nets["stage2"],
-                n,
-                cfg.steps,
-                generators,
-                cfg.sampler,
-                cfg.stage1_steps,
-                frames,
-                grid=cfg.sampler_grid,
-                motion=motion,
-                mask_fraction=cfg.stage1_mask_fraction,
-            )
+        if cfg.mode == "u4d":
+            if cfg.propagate:
+                assert motions is not None  # checked with the config
+                poses = np.stack([poses_from_motion(motions[i]) for i in block])  # (n, L, 4, 4)
+                result = generate_u4d_propagated(
+                    nets["stage1"],
+                    nets["stage2"],
+                    n,
+                    cfg.steps,
+                    generators,
+                    poses,
+                    cfg.sampler,
+                    cfg.stage1_steps,
+                    grid=cfg.sampler_grid,
+                    motion=motion,
+                    mask_fraction=cfg.stage1_mask_fraction,
+                )
+            else:
+                result = generate_u4d(
+                    nets["stage1"],
+                    nets["stage2"],
+                    n,
+                    cfg.steps,
+                    generators,
+                    cfg.sampler,
+                    cfg.stage1_steps,
+                    frames,
+                    grid=cfg.sampler_grid,
+                    motion=motion,
+                    mask_fraction=cfg.stage1_mask_fraction,
+                )
             masks, x0_u = _per_sample(result["m_u_pred"], n)[:, :, 0], _per_sample(result["x0_u"], n)
         elif cfg.mode == "baseline":
             result = generate_baseline(

@@ -12,7 +12,7 @@ import yaml
 
 from tests.tiny_nets import TINY, gen_config
 from tests.tiny_worlds import write_posed_world
-from u4d_aug.bank import BankLayout, file_sha256, read_manifest, write_sample
+from u4d_aug.bank import BankLayout, file_sha256, named_banks, read_manifest, sequence_ids, write_sample
 from u4d_aug.config import load_config
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
@@ -294,3 +294,23 @@ def test_batched_generation_gives_the_one_by_one_scans(random_checkpoints, tmp_p
     assert scans[0].shape != scans[1].shape or not np.allclose(scans[0], scans[1])  # each sample its own noise
     with pytest.raises(InputError, match="batch_size"):
         gen_config(random_checkpoints, "batch_size=0")
+
+
+def test_named_banks_and_their_sequences(tmp_path: Path) -> None:
+    for seq in ("01", "00"):
+        (tmp_path / "a" / "sequences" / seq).mkdir(parents=True)
+    (tmp_path / "a" / "sequences" / "notes.txt").write_text("not a sequence")
+    (tmp_path / "empty" / "sequences").mkdir(parents=True)
+    assert named_banks([f"a={tmp_path / 'a'}", f" b ={tmp_path / 'empty'}"]) == {
+        "a": tmp_path / "a",
+        "b": tmp_path / "empty",
+    }
+    assert sequence_ids(tmp_path / "a") == ["00", "01"]
+    with pytest.raises(InputError, match="empty/sequences: no sequence folders"):
+        sequence_ids(tmp_path / "empty")
+    with pytest.raises(InputError, match="expected NAME=DIR"):
+        named_banks(["nobank"])
+    with pytest.raises(InputError, match="is not a folder"):
+        named_banks([f"x={tmp_path}"], flag="--real")
+    with pytest.raises(InputError, match="'a' is given twice"):
+        named_banks([f"a={tmp_path / 'a'}", f"a={tmp_path / 'empty'}"])

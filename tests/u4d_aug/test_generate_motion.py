@@ -202,9 +202,9 @@ def test_propagated_banks_move_frame_0_along_the_written_poses(posed, tmp_path):
     layout = BankLayout(bank, 3)
     plain = tmp_path / "plain"
     generate_bank(gen_config(posed, *overrides[:-1]), plain, progress=False)
-    with pytest.raises(InputError, match="generated with propagate=True"):  # one bank, one way of generating
+    with pytest.raises(InputError, match="different sampling"):  # one bank, one way of generating
         generate_bank(gen_config(posed, *overrides[:-1]), bank, progress=False)
-    with pytest.raises(InputError, match="different propagate"):
+    with pytest.raises(InputError, match="different sampling"):
         generate_bank(gen_config(posed, *overrides), plain, progress=False)
     with pytest.raises(InputError, match="propagate: moves frame 0"):
         generate_bank(gen_config(posed, "mode=baseline", *overrides), tmp_path / "b", progress=False)
