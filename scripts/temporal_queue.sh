@@ -22,6 +22,10 @@
 # (PY, default python3, runs benchmarks/temporal_table.py). Each finished method-seed leaves its evaluation and its
 # training budget in EVALS (default RESULTS/temporal_evals, committed): a method with one there is not run again, so
 # the table grows over sessions on different machines although run folders and checkpoints stay on the machine.
+# PROPAGATE=1 generates every sequence with propagate=true (frame 0 moved along the ego motion into the later frames,
+# the rest completed: u4d_aug.propagate) into banks NAME_prop_sSEED, scores them into RESULTS/temporal_evals_propagated
+# and writes RESULTS/temporal_propagated.json / .md; it reuses every trained net on the machine and trains the missing
+# ones. The floor (real sequences) is the same in both and is scored once, into RESULTS/temporal_evals/floor.
 # The world is DATA/sim_seg (DATA default data, then a link to RUNS/data unless the checkout has one) and its
 # probabilities DATA/sim_seg_probs (the same commands as scripts/downstream_queue.sh), the first task.
 set -euo pipefail
@@ -34,7 +38,13 @@ CORE=${CORE:?set CORE=A or CORE=B}
 export OMP_NUM_THREADS=1
 WAIT=${WAIT:-120}  # seconds between looks for a task whose inputs the other queue is writing
 T=$RUNS/temporal
-E=${EVALS:-$RESULTS/temporal_evals}
+PROPAGATE=${PROPAGATE:-0}
+if [ "$PROPAGATE" = 1 ]; then
+  E=${EVALS:-$RESULTS/temporal_evals_propagated} BANK=_prop_s TABLE=temporal_propagated PROP=(propagate=true)
+else
+  E=${EVALS:-$RESULTS/temporal_evals} BANK=_s TABLE=temporal PROP=()
+fi
+FLOOR=$RESULTS/temporal_evals/floor
 PRESET=configs/u4d/cpu_hdl64_most.yaml
 FRD=weights/extractor_frd.pt
 
@@ -64,7 +74,7 @@ sequences() {  # OUT MODE SEED [overrides...]: 24 sequences of 5 frames along mo
   local out=$1 mode=$2 seed=$3
   shift 3
   done_bank "$out" || u4d generate configs/u4d/generate_hdl64.yaml --out "$out" "mode=$mode" num=24 frames=5 \
-    "seed=$((1000 * seed))" "$@" --no-progress
+    "seed=$((1000 * seed))" "${PROP[@]}" "$@" --no-progress
 }
 world() {  # the simulated world and the uncertainty segmentor's probabilities of its training places
   if [ ! -f "$DATA/sim_seg/done" ]; then
@@ -97,9 +107,9 @@ PYEOF
 }
 method() {  # NAME SEED: generate and score one trained U4D-like method (u4d_most, u4d_no_temporal, fusion_*)
   local name=$1 seed=$2
-  sequences "$T/banks/${name}_s$seed" u4d "$seed" "stage1=$T/${name}_s$seed/stage1" "stage2=$T/${name}_s$seed/stage2"
-  score "$T/banks/${name}_s$seed" "$E/${name}_s$seed"
-  if [ "$name" = u4d_most ] && [ "$seed" = 0 ]; then  # the gate figures of the trained model (+ json beside)
+  sequences "$T/banks/$name$BANK$seed" u4d "$seed" "stage1=$T/${name}_s$seed/stage1" "stage2=$T/${name}_s$seed/stage2"
+  score "$T/banks/$name$BANK$seed" "$E/${name}_s$seed"
+  if [ "$name" = u4d_most ] && [ "$seed" = 0 ] && [ "$PROPAGATE" = 0 ]; then  # the gate figures of the trained model (+ json beside)
     u4d gates "$T/u4d_most_s0/stage2" --png "$RESULTS/most_gates.png"
     u4d gates "$T/u4d_most_s0/stage1" --png "$RESULTS/most_gates_stage1.png"
   fi
@@ -107,15 +117,15 @@ method() {  # NAME SEED: generate and score one trained U4D-like method (u4d_mos
 }
 baseline_method() {  # SEED: generate and score one trained baseline
   local seed=$1
-  sequences "$T/banks/baseline_most_s$seed" baseline "$seed" "baseline=$T/baseline_most_s$seed"
-  score "$T/banks/baseline_most_s$seed" "$E/baseline_most_s$seed"
+  sequences "$T/banks/baseline_most$BANK$seed" baseline "$seed" "baseline=$T/baseline_most_s$seed"
+  score "$T/banks/baseline_most$BANK$seed" "$E/baseline_most_s$seed"
   budget "$E/baseline_most_s$seed" "$T/baseline_most_s$seed"
 }
 floor() {  # the held-out real sequences 88-99 as the bank: their own TTCE / CTC
   mkdir -p "$T/floor/sequences"
   for s in $(seq 88 99); do ln -sfn "$(realpath "$DATA/sim_seg/sequences/$s")" "$T/floor/sequences/$s"; done
-  [ -f "$E/floor/evaluation.json" ] || u4d evaluate --bank "$T/floor" --real "$DATA/sim_seg" \
-    --real-sequences 88-99 --metrics ttce,ctc --json --md --out "$E/floor" --no-progress
+  [ -f "$FLOOR/evaluation.json" ] || u4d evaluate --bank "$T/floor" --real "$DATA/sim_seg" \
+    --real-sequences 88-99 --metrics ttce,ctc --json --md --out "$FLOOR" --no-progress
 }
 
 # The tasks, in the order the queues take them: "KIND ARGS..." with done_KIND (its result exists), ready_KIND (its
@@ -152,7 +162,7 @@ run_baseline() { finetune_baseline "$T/baseline_most_s$1" "$1"; }
 done_finish_baseline() { [ -f "$E/baseline_most_s$1/budget.json" ]; }
 ready_finish_baseline() { done_baseline "$1"; }
 run_finish_baseline() { baseline_method "$1"; }
-done_floor() { [ -f "$E/floor/evaluation.json" ]; }
+done_floor() { [ -f "$FLOOR/evaluation.json" ]; }
 ready_floor() { [ -f "$DATA/sim_seg/done" ]; }
 run_floor() { floor; }
 
@@ -200,10 +210,10 @@ if claim table; then  # every method-seed and the floor are scored: the table (a
     --method "u4d_most=$E/u4d_most_s0" --method "u4d_most=$E/u4d_most_s1" \
     --method "baseline_most=$E/baseline_most_s0" --method "baseline_most=$E/baseline_most_s1" \
     --method "u4d_no_temporal=$E/u4d_no_temporal_s0" --method "u4d_no_temporal=$E/u4d_no_temporal_s1" \
-    --method "floor=$E/floor" \
+    --method "floor=$FLOOR" \
     --fusion "gating=$E/u4d_most_s0" --fusion "cascade=$E/fusion_cascade_s0" \
     --fusion "add=$E/fusion_add_s0" --fusion "concat=$E/fusion_concat_s0" \
-    --out "$RESULTS/temporal"
+    --out "$RESULTS/$TABLE"
   release table
 fi
 echo "temporal queue $CORE done"

@@ -59,6 +59,7 @@ from u4d_aug.pipeline import (
     Sampler,
     complete,
     generate_baseline,
+    generate_baseline_propagated,
     generate_u4d,
     generate_u4d_propagated,
     load_generator,
@@ -123,8 +124,9 @@ class GenerateConfig:
     # (N, L, 4) motions (x, y, z, yaw per frame; sample i takes motion i mod N) or a KITTI poses.txt of L lines
     # (with calib.txt beside it if there is one); "" = windows of the training sequences' poses.txt
     motion_file: str = ""
-    # u4d mode, sequences with an ego motion: frames 1..L-1 are frame 0 moved along the motion (u4d_aug.propagate)
-    # and completed by stage 2 where it does not reach, so the frames follow the poses (two sampler passes)
+    # u4d and baseline modes, sequences with an ego motion: frames 1..L-1 are frame 0 moved along the motion
+    # (u4d_aug.propagate) and completed where it does not reach (u4d: by stage 2; baseline: by inpainting with the
+    # same net), so the frames follow the poses (two sampler passes)
     propagate: bool = False
     # for other codebases (`u4d export`, done once every sample is written): all-ignore .label files (value 0)
     # beside the scans, and mmdetection3d's semantickitti_infos_train.pkl in the bank
@@ -217,10 +219,10 @@ def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info
         identity["motion"] = {"file": file_sha256(cfg.motion_file)} if cfg.motion_file else "training sequences"
     elif cfg.motion_file:
         raise InputError("motion_file: these generators have no ego-motion input (net.pose_dim = 0 or one frame)")
-    if cfg.propagate and (cfg.mode != "u4d" or motions is None):
+    if cfg.propagate and (cfg.mode not in ("u4d", "baseline") or motions is None):
         raise InputError(
-            "propagate: moves frame 0 along each sequence's ego motion, so it needs mode=u4d, frames >= 2 and "
-            f"nets with an ego-motion input (net.pose_dim > 0); got mode={cfg.mode}, frames={frames}"
+            "propagate: moves frame 0 along each sequence's ego motion, so it needs mode=u4d or baseline, "
+            f"frames >= 2 and nets with an ego-motion input (net.pose_dim > 0); got mode={cfg.mode}, frames={frames}"
         )
     if cfg.propagate:  # like the other sampling options: banks written before it stay compatible
         identity["sampling"]["propagate"] = True
@@ -326,6 +328,12 @@ def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info
                     mask_fraction=cfg.stage1_mask_fraction,
                 )
             masks, x0_u = _per_sample(result["m_u_pred"], n)[:, :, 0], _per_sample(result["x0_u"], n)
+        elif cfg.mode == "baseline" and cfg.propagate:
+            assert motions is not None  # checked with the config
+            poses = np.stack([poses_from_motion(motions[i]) for i in block])  # (n, L, 4, 4)
+            result = generate_baseline_propagated(
+                nets["baseline"], n, cfg.steps, generators, poses, cfg.sampler, grid=cfg.sampler_grid, motion=motion
+            )
         elif cfg.mode == "baseline":
             result = generate_baseline(
                 nets["baseline"], n, cfg.steps, generators, cfg.sampler, frames, grid=cfg.sampler_grid, motion=motion

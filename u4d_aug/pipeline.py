@@ -28,7 +28,7 @@ from u4d_aug.nn.unet import RangeUNet
 from u4d_aug.propagate import warp_frame0
 from u4d_aug.range_view import RowMode, unproject
 from u4d_aug.run import newest_checkpoint
-from u4d_aug.sampling import SAMPLER_NAMES, Generators, Grid, Sample, check_grid, mean_start
+from u4d_aug.sampling import SAMPLER_NAMES, Generators, Grid, Sample, check_grid, mean_start, replace_known
 from u4d_aug.sampling import sample as sample_named
 from u4d_aug.stage import DiffusionTrainConfig, build_net, config_from_checkpoint
 from u4d_aug.weights import is_exported, load_exported
@@ -94,7 +94,10 @@ def _sample(
     sampler: Sampler,
     grid: Grid = "time",
     motion: Tensor | None = None,
+    known: tuple[Tensor, Tensor] | None = None,
 ) -> Sample:
+    """`sampler` on the loaded net; `known` (x0 (*batch, C, H, W), mask (*batch, 1, H, W)) pins x̂0 where mask is 1
+    (`replace_known`)."""
     net, cfg = loaded
     device = next(net.parameters()).device
     shape = (*batch_shape, cfg.net.in_channels, cfg.height, cfg.width)
@@ -110,6 +113,8 @@ def _sample(
         denoise = functools.partial(_with_poses, net, poses)
     elif motion is not None:
         raise InputError(f"this {cfg.diffusion.stage} net has no ego-motion input (net.pose_dim = 0); drop motion")
+    if known is not None:
+        denoise = replace_known(denoise, known[0].to(device), known[1].to(device))
     if sampler not in SAMPLER_NAMES:
         raise InputError(f"sampler {sampler!r} is not one of {', '.join(repr(n) for n in SAMPLER_NAMES)}")
     try:
@@ -291,6 +296,34 @@ def generate_baseline(
     _check_stage(net, "baseline", "baseline")
     shape = _batch_shape(n, frames or net[1].frames)
     return {"x0": _sample(net, shape, steps, generator, None, sampler, grid, motion).x0}
+
+
+def generate_baseline_propagated(
+    net: Loaded,
+    n: int,
+    steps: int,
+    generator: Generators,
+    poses: np.ndarray,
+    sampler: Sampler = "ddim",
+    grid: Grid = "time",
+    motion: Tensor | None = None,
+) -> dict[str, Tensor]:
+    """L-frame baseline sequences that follow their ego motion: `generate_baseline` draws frame 0, `warp_frame0`
+    moves it into frames 1..L-1 along `poses` (n, L, 4, 4), and a second pass of the unconditional net inpaints the
+    pixels it does not reach by replacement (`replace_known`) -> dict(x0, x0_u, m_u_pred) (n, L, ...), m_u_pred the
+    warped region. The single-stage counterpart of `generate_u4d_propagated`."""
+    _check_stage(net, "baseline", "baseline")
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 4 or poses.shape[0] != n or poses.shape[1] < 2 or poses.shape[2:] != (4, 4):
+        raise InputError(f"propagation needs poses (n={n}, L >= 2, 4, 4), got {poses.shape}")
+    frames = poses.shape[1]
+    first = generate_baseline(net, n, steps, generator, sampler, frames, grid, motion)["x0"]  # (n, L, 2, H, W)
+    sensor = get_sensor(net[1].sensor)
+    warped = [warp_frame0(first[i, 0], poses[i], sensor, net[1].row_mode) for i in range(n)]
+    x0_u, m_u = torch.stack([w[0] for w in warped]), torch.stack([w[1] for w in warped])  # (n, L, 2|1, H, W)
+    second = _sample(net, (n, frames), steps, generator, None, sampler, grid, motion, known=(x0_u, m_u)).x0
+    x0 = torch.where(m_u.bool().to(second.device), x0_u.to(second.device), second)  # exact where known
+    return {"x0": x0, "x0_u": x0_u, "m_u_pred": m_u}
 
 
 def to_points(x0: Tensor, sensor: Sensor | str, row_mode: RowMode = "beam") -> list[np.ndarray]:

@@ -65,6 +65,25 @@ def mean_start(denoise_fn: DenoiseFn, mean: Tensor, below: float) -> DenoiseFn:
     return wrapped
 
 
+def replace_known(denoise_fn: DenoiseFn, x0_known: Tensor, mask: Tensor) -> DenoiseFn:
+    """`denoise_fn` whose x̂0 is `x0_known` where `mask` ({0, 1}, broadcast to x_t) is 1: inpainting an
+    unconditional net by replacement (Song et al. 2021, score SDE app. I; RePaint without resampling).
+
+    The returned ε is (x_t − α x̂0')/σ of the replaced x̂0', so every sampler's next x_s carries the known pixels
+    noised to its level and the last x̂0 is `x0_known` there; the `extra` of the wrapped function is passed through.
+    """
+
+    def wrapped(x_t: Tensor, lam: Tensor, cond: Tensor | None) -> Tensor | tuple[Tensor, Any]:
+        out = denoise_fn(x_t, lam, cond)
+        eps, extra = out if isinstance(out, tuple) else (out, None)
+        alpha, sigma = alpha_sigma(lam.reshape(-1).view(-1, *([1] * (x_t.dim() - 1))).to(x_t.dtype))
+        eps_known = (x_t - alpha * x0_known.to(x_t.device, x_t.dtype)) / sigma  # the ε of x̂0 = x0_known
+        eps = torch.where(mask.to(x_t.device).bool().expand_as(x_t), eps_known.to(eps.dtype), eps)  # others exact
+        return (eps, extra) if isinstance(out, tuple) else eps
+
+    return wrapped
+
+
 def sample(
     name: SamplerName,
     denoise_fn: DenoiseFn,

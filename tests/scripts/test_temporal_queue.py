@@ -99,6 +99,27 @@ def test_every_call_is_valid_budgets_are_equal_and_the_table_is_written(queue_en
     assert [a[0] for a in recorded_calls(tmp_path)] == ["seg-predict"]
 
 
+def test_propagate_reuses_the_trained_nets_and_writes_its_own_table(queue_env, tmp_path):
+    run_both(SCRIPT, REPO, queue_env)
+    runs = tmp_path / "runs" / "temporal"
+    shutil.rmtree(runs / "baseline_most_s0")  # a net that is not on this machine is trained
+    (tmp_path / "calls.jsonl").unlink()
+    run_both(SCRIPT, REPO, {**queue_env, "PROPAGATE": "1"})
+    made = recorded_calls(tmp_path)
+    trained = [option(a, "--out") for a in made if a[0] == "train-diffusion"]
+    assert trained == [str(runs / "baseline_most_s0")]
+    generated = [a for a in made if a[0] == "generate"]
+    assert len(generated) == 9 and all("propagate=true" in a for a in generated)
+    assert all(check_call(a, REPO)[1].propagate and "_prop_s" in option(a, "--out") for a in generated)
+    scored = [option(a, "--out") for a in made if a[0] == "evaluate"]
+    results = tmp_path / "results"
+    assert len(scored) == 9 and all(Path(o).parent == results / "temporal_evals_propagated" for o in scored)
+    assert not [a for a in made if a[0] == "gates"]  # the gate figures are of the nets, drawn once
+    table = json.loads((results / "temporal_propagated.json").read_text())
+    assert table["methods"]["u4d_most"]["seeds"] == 2 and table["methods"]["floor"]["seeds"] == 1  # the one floor
+    assert set(table["fusion"]) == {"gating", "cascade", "add", "concat"}
+
+
 def test_the_script_needs_a_core(queue_env):
     env = {k: v for k, v in queue_env.items() if k != "CORE"}
     result = subprocess.run(["bash", str(SCRIPT)], cwd=REPO, env=env, capture_output=True, text=True, timeout=60)

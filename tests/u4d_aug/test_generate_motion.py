@@ -206,8 +206,11 @@ def test_propagated_banks_move_frame_0_along_the_written_poses(posed, tmp_path):
         generate_bank(gen_config(posed, *overrides[:-1]), bank, progress=False)
     with pytest.raises(InputError, match="different sampling"):
         generate_bank(gen_config(posed, *overrides), plain, progress=False)
+    baseline = generate_bank(gen_config(posed, "mode=baseline", *overrides), tmp_path / "b", progress=False)
+    assert baseline["complete"] and baseline["sampling"]["propagate"] is True
     with pytest.raises(InputError, match="propagate: moves frame 0"):
-        generate_bank(gen_config(posed, "mode=baseline", *overrides), tmp_path / "b", progress=False)
+        unposed = ("mode=baseline", f"baseline={posed['paths']['unposed']}", "frames=3", "propagate=true")
+        generate_bank(gen_config(posed, *unposed), tmp_path / "c", progress=False)  # nothing to move frame 0 along
     written = read_poses(layout.poses_path(0), read_calib(layout.calib_path(0)))
     np.testing.assert_allclose(written, poses_from_motion(motion), atol=1e-6)
     assert layout.scan_path(0, 2).is_file() or layout.is_empty(0, 2)

@@ -14,7 +14,7 @@ from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.data.sensors import hdl64
 from u4d_aug.errors import InputError
 from u4d_aug.metrics.temporal import icp_translations
-from u4d_aug.pipeline import generate_u4d_propagated, load_generator
+from u4d_aug.pipeline import generate_baseline, generate_baseline_propagated, generate_u4d_propagated, load_generator
 from u4d_aug.propagate import warp_frame0
 from u4d_aug.range_view import project, to_image, unproject
 from u4d_aug.trajectory import poses_from_motion, straight_motion
@@ -42,13 +42,15 @@ def test_a_real_scan_moved_along_poses_follows_them(kitti_root: Path) -> None:
         assert np.abs(estimate - truth).mean() < 0.1
 
 
-def test_propagated_sequences_keep_the_warped_pixels(tmp_path: Path) -> None:
-    def randomize(net) -> None:  # random weights everywhere, so stage 2's completion is not trivially empty
-        weights = torch.Generator().manual_seed(1)
-        with torch.no_grad():
-            for p in net.parameters():
-                p.copy_(torch.randn(p.shape, generator=weights) * 0.1)
+def randomize(net) -> None:
+    """Random weights everywhere, so a completion is not trivially empty."""
+    weights = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.copy_(torch.randn(p.shape, generator=weights) * 0.1)
 
+
+def test_propagated_sequences_keep_the_warped_pixels(tmp_path: Path) -> None:
     loaded = {}
     for stage in ("stage1", "stage2"):
         overrides = (f"diffusion.stage={stage}", "net.pose_dim=4")
@@ -71,3 +73,23 @@ def test_propagated_sequences_keep_the_warped_pixels(tmp_path: Path) -> None:
         generate_u4d_propagated(loaded["stage1"], loaded["stage2"], 2, 2, torch.Generator(), poses, "ddim")
     with pytest.raises(InputError, match="warp_frame0: expected"):
         warp_frame0(x0[0], poses[0], sensor)
+
+
+def test_propagated_baseline_sequences_inpaint_around_the_warped_pixels(tmp_path: Path) -> None:
+    overrides = ("diffusion.stage=baseline", "net.pose_dim=4")
+    loaded = load_generator(save_checkpoint(tmp_path / "baseline.pt", TINY_MOST, overrides, 1, randomize))
+    motion = torch.from_numpy(straight_motion(3, 2.0))[None]  # (1, 3, 4)
+    poses = poses_from_motion(motion[0].numpy())[None]  # (1, 3, 4, 4)
+    out = generate_baseline_propagated(loaded, 1, 3, torch.Generator().manual_seed(0), poses, "ddim", motion=motion)
+    x0, x0_u, m_u = out["x0"], out["x0_u"], out["m_u_pred"]
+    assert x0.shape == (1, 3, 2, 16, 64) and m_u.shape == (1, 3, 1, 16, 64)
+    plain = generate_baseline(loaded, 1, 3, torch.Generator().manual_seed(0), "ddim", 3, motion=motion)["x0"]
+    torch.testing.assert_close(x0[:, 0], plain[:, 0])  # frame 0 is the first pass's frame 0
+    expected_u, expected_m = warp_frame0(plain[0, 0], poses[0], hdl64(), loaded[1].row_mode)
+    torch.testing.assert_close(m_u[0], expected_m)  # the known region is frame 0 moved along the poses
+    known = m_u.bool().expand_as(x0)
+    torch.testing.assert_close(x0[known], x0_u[known])  # kept as it is
+    assert 0 < float(m_u[0, 1:].mean()) < 1  # frames 1, 2: part warped, part inpainted
+    assert not torch.allclose(x0[:, 1:][~known[:, 1:]], plain[:, 1:][~known[:, 1:]])  # the rest is drawn anew
+    with pytest.raises(InputError, match="propagation needs poses"):
+        generate_baseline_propagated(loaded, 2, 2, torch.Generator(), poses, "ddim", motion=motion)

@@ -11,7 +11,15 @@ from torch import nn
 from u4d_aug.diffusion import LOG_SNR_MAX, LOG_SNR_MIN, alpha_sigma, log_snr
 from u4d_aug.ema import EMA
 from u4d_aug.nn.unet import RangeUNet, UNetConfig
-from u4d_aug.sampling import ddim_sample, ddpm_sample, dpmpp_2m_sample, dpmpp_2m_sde_sample, mean_start, sample
+from u4d_aug.sampling import (
+    ddim_sample,
+    ddpm_sample,
+    dpmpp_2m_sample,
+    dpmpp_2m_sde_sample,
+    mean_start,
+    replace_known,
+    sample,
+)
 
 SAMPLERS = [ddpm_sample, ddim_sample, dpmpp_2m_sample, dpmpp_2m_sde_sample]
 SHAPE = (2, 2, 8, 16)
@@ -23,6 +31,19 @@ def oracle(x0: torch.Tensor):
     def denoise(x_t: torch.Tensor, lam: torch.Tensor, cond: torch.Tensor | None):
         alpha, sigma = alpha_sigma(lam.double().view(-1, 1, 1, 1))
         return ((x_t.double() - alpha * x0.double()) / sigma).float(), lam
+
+    return denoise
+
+
+def two_point(a: torch.Tensor):
+    """The exact denoiser of data x0 = ±a with probability ½ each: E[x0 | x_t] = a tanh(α <x_t, a> / σ²) per sample."""
+
+    def denoise(x_t: torch.Tensor, lam: torch.Tensor, cond: torch.Tensor | None):
+        alpha, sigma = alpha_sigma(lam.double().view(-1, 1, 1, 1))
+        x = x_t.double()
+        score = (x * a.double()).sum(dim=(1, 2, 3), keepdim=True)  # (B, 1, 1, 1) <x_t, a>
+        x0 = a.double() * torch.tanh(alpha * score / sigma**2)
+        return ((x - alpha * x0) / sigma).float()
 
     return denoise
 
@@ -387,3 +408,23 @@ def test_ema_average_warmup_and_state_roundtrip():
         EMA(nn.Linear(3, 4)).load_state_dict(ema.state_dict())
     with pytest.raises(ValueError, match="decay"):
         EMA(a, decay=1.5)
+
+
+@pytest.mark.parametrize("sampler", SAMPLERS)
+def test_replace_known_keeps_the_known_pixels_and_conditions_the_rest(sampler):
+    a = torch.linspace(-0.9, 0.9, 2 * 8 * 16).view(1, 2, 8, 16)  # the data are +a and -a, half each
+
+    def generators() -> list[torch.Generator]:
+        return [torch.Generator().manual_seed(i) for i in range(8)]
+
+    free = sampler(two_point(a), (8, 2, 8, 16), 20, generators()).x0
+    signs = torch.sign((free * a).sum(dim=(1, 2, 3)))
+    assert (signs > 0).any() and (signs < 0).any()  # unconditioned: both modes are drawn
+    mask = torch.zeros(1, 1, 8, 16)
+    mask[..., :, :12] = 1.0  # three quarters of every image are known (about a warped frame's share): +a's pixels
+    out = sampler(replace_known(two_point(a), a.expand(8, -1, -1, -1), mask), (8, 2, 8, 16), 20, generators()).x0
+    torch.testing.assert_close(out[..., :12], a[..., :12].expand(8, -1, -1, -1))  # known pixels exactly as given
+    torch.testing.assert_close(out[..., 12:], a[..., 12:].expand(8, -1, -1, -1), atol=1e-3, rtol=0)  # rest follows
+    empty = replace_known(two_point(a), -a.expand(8, -1, -1, -1), torch.zeros(1))
+    none = sampler(empty, (8, 2, 8, 16), 20, generators())
+    torch.testing.assert_close(none.x0, free)  # an empty mask changes nothing
