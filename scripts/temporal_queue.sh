@@ -131,17 +131,19 @@ floor() {  # the held-out real sequences 88-99 as the bank: their own TTCE / CTC
 # The tasks, in the order the queues take them: "KIND ARGS..." with done_KIND (its result exists), ready_KIND (its
 # inputs exist) and run_KIND.
 TASKS=("world")
+LAST=()
 for entry in u4d_most:0: u4d_no_temporal:0:net.most=false u4d_most:1: u4d_no_temporal:1:net.most=false baseline:0 \
   baseline:1 fusion_cascade:0:net.most_fusion=cascade fusion_add:0:net.most_fusion=add \
   fusion_concat:0:net.most_fusion=concat; do
   IFS=: read -r name seed over <<< "$entry"
   if [ "$name" = baseline ]; then
-    TASKS+=("baseline $seed" "finish_baseline $seed")
+    TASKS+=("finish_baseline $seed")
+    LAST+=("baseline $seed")
   else
     TASKS+=("stage $name $seed stage1${over:+ $over}" "stage $name $seed stage2${over:+ $over}" "finish $name $seed")
   fi
 done
-TASKS+=("floor")
+TASKS+=("floor" "${LAST[@]}")  # the baselines' trainings, the longest tasks, once nothing else is ready
 
 done_world() { [ -f "$DATA/sim_seg_probs/done" ]; }
 ready_world() { true; }
