@@ -11,7 +11,8 @@ sum(t_icp . t_pose) / sum(|t_pose|^2) (1: the frames move as the poses say; 0: t
 poses, and TTCE against standing still (t_pose = 0). Writes OUT.json, OUT.md and OUT.png (ICP against pose
 translation length per pair, one panel per bank, k = 1 and 3).
 
-OUT.json: intervals; banks.NAME: {path, sequences, k: {pairs, pose_m, icp_m, gain, ttce_poses, ttce_still}}
+OUT.json: intervals; registration;
+    banks.NAME: {path, sequences, k: {pairs, pose_m, icp_m, gain, ttce_poses, ttce_still}}
 """
 
 from __future__ import annotations
@@ -51,13 +52,16 @@ def follow_scores(estimates: np.ndarray, truths: np.ndarray) -> dict[str, float 
     }
 
 
-def bank_translations(root: Path, progress: bool = True) -> tuple[list[str], dict[int, tuple[np.ndarray, np.ndarray]]]:
-    """Sequence ids and, per k, (ICP (P, 3), pose (P, 3)) translations pooled over the bank's sequences."""
+def bank_translations(
+    root: Path, progress: bool = True, registration: temporal.Registration = "icp"
+) -> tuple[list[str], dict[int, tuple[np.ndarray, np.ndarray]]]:
+    """Sequence ids and, per k, (ICP (P, 3), pose (P, 3)) translations pooled over the bank's sequences
+    (`registration` "global": ICP from a FPFH + RANSAC registration, TTCE-global's)."""
     ids = sequence_ids(root)
     pooled: dict[int, tuple[list, list]] = {k: ([], []) for k in INTERVALS}
     for seq in progress_bar(ids, desc=root.name, unit="sequence", enabled=progress, leave=False):
         scans, poses = temporal.load_kitti_sequence(root / "sequences" / seq)
-        for k, (est, truth) in temporal.icp_translations(scans, poses, INTERVALS).items():
+        for k, (est, truth) in temporal.icp_translations(scans, poses, INTERVALS, registration=registration).items():
             pooled[k][0].append(est)
             pooled[k][1].append(truth)
     return ids, {k: (np.concatenate(e), np.concatenate(t)) for k, (e, t) in pooled.items()}
@@ -83,10 +87,12 @@ def plot(pairs: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]], path: Path)
 
 def markdown(result: dict, command: str, figure: str) -> str:
     """OUT.md: one row per bank and k."""
+    start = {"icp": "from the identity, TTCE's", "global": "from a FPFH + RANSAC registration, TTCE-global's"}
     lines = [
         "# Do generated sequences follow their conditioning motion?",
         "",
-        "Per pair (i, i + k): ICP translation (TTCE's) against the pose translation. gain = sum(t_icp . t_pose) / "
+        f"Per pair (i, i + k): ICP translation ({start[result['registration']]}) against the pose translation. "
+        "gain = sum(t_icp . t_pose) / "
         "sum(|t_pose|^2): 1 = the frames move as the poses say, 0 = they do not move. TTCE against the poses and "
         "against standing still (t_pose = 0), m.",
         "",
@@ -109,15 +115,21 @@ def run(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--bank", action="append", default=[], help="NAME=DIR (a generated bank or real sequences)")
     parser.add_argument("--out", type=Path, required=True, help="writes OUT.json, OUT.md and OUT.png")
+    parser.add_argument(
+        "--registration",
+        choices=temporal.REGISTRATIONS,
+        default="icp",
+        help="where ICP starts: icp = the identity (TTCE, LC), global = a FPFH + RANSAC registration (TTCE-global)",
+    )
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     if not args.bank:
         raise InputError("--bank: give at least one NAME=DIR")
     banks = named_banks(args.bank)
-    result: dict = {"intervals": list(INTERVALS), "banks": {}}
+    result: dict = {"intervals": list(INTERVALS), "registration": args.registration, "banks": {}}
     pairs = {}
     for name, root in banks.items():
-        ids, pairs[name] = bank_translations(root, progress=not args.no_progress)
+        ids, pairs[name] = bank_translations(root, not args.no_progress, args.registration)
         result["banks"][name] = {"path": str(root), "sequences": ids}
         result["banks"][name].update({str(k): follow_scores(*pairs[name][k]) for k in INTERVALS})
     make_folder(args.out.parent)

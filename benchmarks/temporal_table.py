@@ -11,11 +11,12 @@ segmentation.experiment.mean_std; a missing entry shows its reason, never a numb
 the interval k, one line per method and fusion variant, bars = std over seeds; the floor dashed black).
 
 OUT.json:
-    units: {ttce, ctc, frd}; intervals: {ttce: [3, 4], ctc: [1, 2, 3, 4]}
+    units: {ttce, ttce_global, ctc, frd}; intervals: {ttce: [3, 4], ttce_global: [3, 4], ctc: [1, 2, 3, 4]}
     methods.NAME and fusion.VARIANT, each:
         sources: [evaluation.json paths, one per seed], seeds: their count
         ttce.K / ctc.K: {mean, std, n, per_seed} (per_seed aligned with sources, null where a seed lacks the number),
-            or ttce / ctc: {missing: reason} when no seed has one
+            or ttce / ctc: {missing: reason} when no seed has one; ttce_global (TTCE with ICP from a global
+            registration, `u4d evaluate --metrics ttce_global`) likewise, absent when no source computed it
         frd: {mean, std, n, per_seed} or {missing: reason}; absent when no source's table1 has frd
         missing: {source: reason} for the seeds whose temporal metrics are missing (absent when none)
     figure: the PNG's file name (beside OUT.json)
@@ -34,9 +35,12 @@ from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder, read_j
 from u4d_aug.viz import plt, save_figure
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "temporal"
-INTERVALS = {"ttce": ("3", "4"), "ctc": ("1", "2", "3", "4")}  # u4d_aug.metrics.temporal TTCE_/CTC_INTERVALS
+# u4d_aug.metrics.temporal TTCE_/CTC_INTERVALS
+INTERVALS = {"ttce": ("3", "4"), "ttce_global": ("3", "4"), "ctc": ("1", "2", "3", "4")}
+HEADS = {"ttce": "TTCE", "ttce_global": "TTCE-global", "ctc": "CTC"}
 UNITS = {
     "ttce": "m (ICP translation error against the conditioning poses)",
+    "ttce_global": "m (the same, ICP started from a FPFH + RANSAC registration instead of the identity)",
     "ctc": "m^2 (chamfer of frames aligned with their poses)",
     "frd": "FRD (table1 of u4d evaluate)",
 }
@@ -113,6 +117,8 @@ def summarize(sources: list[tuple[Path, dict]]) -> dict:
     entry: dict = {"sources": [str(path) for path, _ in sources], "seeds": len(sources)}
     banks = [result["table2"]["bank"] for _, result in sources]
     for metric, ks in INTERVALS.items():
+        if metric == "ttce_global" and not any(metric in bank for bank in banks):
+            continue  # an optional column: absent unless some seed computed it
         reasons = [temporal_reason(bank, metric) for bank in banks]
         if all(r is not None for r in reasons):
             entry[metric] = {"missing": "; ".join(dict.fromkeys(reasons))}
@@ -155,14 +161,18 @@ def _fmt(stat: dict) -> str:
 def markdown_table(entries: dict, label: str) -> list[str]:
     """One markdown table (rows = entries, columns = TTCE/CTC per k and FRD) and the reasons of its missing cells."""
     with_frd = any("frd" in e for e in entries.values())
-    cols = [f"TTCE k={k} (m) ↓" for k in INTERVALS["ttce"]] + [f"CTC k={k} (m²) ↓" for k in INTERVALS["ctc"]]
+    metrics = [m for m in INTERVALS if m != "ttce_global" or any(m in e for e in entries.values())]
+    cols = [f"{HEADS[m]} k={k} ({'m²' if m == 'ctc' else 'm'}) ↓" for m in metrics for k in INTERVALS[m]]
     cols += ["FRD ↓"] if with_frd else []
     lines = [f"| {label} | seeds | " + " | ".join(cols) + " |", "|---" * (len(cols) + 2) + "|"]
     notes = []
     for name, entry in entries.items():
         cells = []
-        for metric in ("ttce", "ctc"):
-            if "missing" in entry[metric]:
+        for metric in metrics:
+            if metric not in entry:
+                cells += ["missing"] * len(INTERVALS[metric])
+                notes.append(f"- {name}: {HEADS[metric]} missing: not computed")
+            elif "missing" in entry[metric]:
                 cells += ["missing"] * len(INTERVALS[metric])
                 notes.append(f"- {name}: {metric.upper()} missing: {entry[metric]['missing']}")
             else:
@@ -173,7 +183,7 @@ def markdown_table(entries: dict, label: str) -> list[str]:
             if "missing" in frd:
                 notes.append(f"- {name}: FRD missing: {frd['missing']}")
         for source, reason in entry.get("missing", {}).items():
-            if all("missing" not in entry[m] for m in INTERVALS):  # only some seeds lack numbers
+            if all("missing" not in entry.get(m, {}) for m in metrics):  # only some seeds lack numbers
                 notes.append(f"- {name}: seed `{source}` has no temporal metrics: {reason}")
         seeds = str(entry["seeds"]) + (" (< 2)" if entry["seeds"] < 2 else "")
         if label == "method" and name == "floor":
@@ -188,7 +198,9 @@ def to_markdown(table: dict) -> str:
         "# Temporal consistency (Table 2) and MoST fusion ablation",
         "",
         "Mean ± std over seeds (sample std, ddof 1; 0 for one seed). TTCE in metres: ICP translation error of "
-        "frames k apart against the conditioning (ground-truth) poses. CTC in m²: chamfer distance (squared "
+        "frames k apart against the conditioning (ground-truth) poses, ICP from the identity (LC); TTCE-global: "
+        "the same with ICP started from a FPFH + RANSAC registration (not LC), where a column is shown. "
+        "CTC in m²: chamfer distance (squared "
         "nearest-neighbour) of frames k apart aligned with those poses. Lower is better. "
         "`floor` = held-out real sequences scored like a generator.",
         "",

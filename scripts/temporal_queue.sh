@@ -87,9 +87,9 @@ world() {  # the simulated world and the uncertainty segmentor's probabilities o
     touch "$DATA/sim_seg_probs/done"
   fi
 }
-score() {  # BANK OUT: TTCE k = 3, 4, CTC k = 1..4 and FRD against the held-out places
+score() {  # BANK OUT: TTCE k = 3, 4 (ICP from the identity and from a global registration), CTC k = 1..4 and FRD
   [ -f "$2/evaluation.json" ] || u4d evaluate --bank "$1" --real "$DATA/sim_seg" --real-sequences 88-99 \
-    --metrics ttce,ctc,frd --extractor-frd "$FRD" --json --md --out "$2" --no-progress
+    --metrics ttce,ttce_global,ctc,frd --extractor-frd "$FRD" --json --md --out "$2" --no-progress
 }
 budget() {  # OUT RUN...: each net's steps and training minutes (its log) and the host, beside the evaluation
   "$PY" - "$@" <<'PYEOF'
@@ -125,7 +125,7 @@ floor() {  # the held-out real sequences 88-99 as the bank: their own TTCE / CTC
   mkdir -p "$T/floor/sequences"
   for s in $(seq 88 99); do ln -sfn "$(realpath "$DATA/sim_seg/sequences/$s")" "$T/floor/sequences/$s"; done
   [ -f "$FLOOR/evaluation.json" ] || u4d evaluate --bank "$T/floor" --real "$DATA/sim_seg" \
-    --real-sequences 88-99 --metrics ttce,ctc --json --md --out "$FLOOR" --no-progress
+    --real-sequences 88-99 --metrics ttce,ttce_global,ctc --json --md --out "$FLOOR" --no-progress
 }
 
 # The tasks, in the order the queues take them: "KIND ARGS..." with done_KIND (its result exists), ready_KIND (its

@@ -41,7 +41,12 @@ def test_a_moving_bank_follows_and_a_static_one_does_not(tmp_path: Path) -> None
         assert abs(s["gain"]) < 0.05 and s["ttce_still"] < 0.02
         assert s["ttce_poses"] == pytest.approx(s["pose_m"] / 3, rel=0.1)  # all motion is along x: |t| / 3
     assert result["figure"] == "follow.png" and (tmp_path / "res" / "follow.png").stat().st_size > 0
-    assert "| static | 3 |" in (tmp_path / "res" / "follow.md").read_text()
+    assert "| static | 3 |" in (tmp_path / "res" / "follow.md").read_text() and result["registration"] == "icp"
+    argv = ["--bank", f"moving={moving}", "--registration", "global", "--out", str(tmp_path / "res" / "global")]
+    assert follow.main(argv) == 0
+    result = json.loads((tmp_path / "res" / "global.json").read_text())
+    assert result["registration"] == "global" and result["banks"]["moving"]["3"]["gain"] == pytest.approx(1, abs=0.05)
+    assert "FPFH + RANSAC" in (tmp_path / "res" / "global.md").read_text()
 
 
 def test_bad_banks_are_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

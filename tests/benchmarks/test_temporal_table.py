@@ -84,7 +84,8 @@ def test_table_numbers_and_markdown(runs, tmp_path):
     assert set(result["fusion"]) == {"gating", "add"}
     assert result["fusion"]["gating"]["ttce"]["3"]["mean"] == pytest.approx(0.4)
     assert result["fusion"]["add"]["ttce"]["3"] == {"mean": 0.6, "std": 0.0, "n": 1, "per_seed": [0.6]}
-    assert result["intervals"] == {"ttce": [3, 4], "ctc": [1, 2, 3, 4]}
+    assert result["intervals"] == {"ttce": [3, 4], "ttce_global": [3, 4], "ctc": [1, 2, 3, 4]}
+    assert "ttce_global" not in most and "TTCE-global k=3" not in (tmp_path / "results" / "temporal.md").read_text()
     md = (tmp_path / "results" / "temporal.md").read_text()
     assert "## Table 2" in md and "## MoST fusion ablation" in md and "metres" in md and "m²" in md
     assert "| u4d_most | 2 | 0.3 ± 0.14 | 1.3 ± 0.14 |" in md
@@ -94,6 +95,23 @@ def test_table_numbers_and_markdown(runs, tmp_path):
     assert "- fusion/add (1 seed): `" in md and "- methods/u4d_most (2 seeds): `" in md
     png = (tmp_path / "results" / "temporal.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+
+
+def test_ttce_global_is_a_column_where_a_seed_computed_it(tmp_path):
+    scored = evaluation(0.2, 0.1)
+    scored["table2"]["bank"]["ttce_global"] = {"3": 0.05, "4": 0.07}
+    with_global = write(tmp_path / "g", scored)
+    without = write(tmp_path / "p", evaluation(0.4, 0.3))
+    out = tmp_path / "t"
+    assert table.main(["--method", f"a={with_global}", "--method", f"b={without}", "--out", str(out)]) == 0
+    result = json.loads((tmp_path / "t.json").read_text())["methods"]
+    assert result["a"]["ttce_global"]["4"] == {"mean": 0.07, "std": 0.0, "n": 1, "per_seed": [0.07]}
+    assert "ttce_global" not in result["b"]
+    md = (tmp_path / "t.md").read_text()
+    assert "| TTCE-global k=3 (m) ↓ | TTCE-global k=4 (m) ↓ |" in md
+    assert "| a | 1 (< 2) | 0.2 ± 0 | 1.2 ± 0 | 0.05 ± 0 | 0.07 ± 0 | 0.1 ± 0 |" in md
+    assert "| b | 1 (< 2) | 0.4 ± 0 | 1.4 ± 0 | missing | missing | 0.3 ± 0 |" in md
+    assert "- b: TTCE-global missing: not computed" in md
 
 
 def test_one_seed_missing_of_two_keeps_the_other(tmp_path):

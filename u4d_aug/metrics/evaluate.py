@@ -26,14 +26,14 @@ from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder
 from u4d_aug.metrics import bev, temporal
 from u4d_aug.progress import progress_bar
 
-METRICS = ("frd", "fpd", "jsd", "mmd", "points", "rangejs", "intensityjs", "ttce", "ctc")
+METRICS = ("frd", "fpd", "jsd", "mmd", "points", "rangejs", "intensityjs", "ttce", "ttce_global", "ctc")
 TABLE1 = ("frd", "fpd", "jsd", "mmd", "points", "rangejs", "intensityjs")
 STATISTICS = ("points", "rangejs", "intensityjs")  # Table-1 entries read from the scans' own statistics
 RANGE_BINS = np.arange(0.0, 81.0, 1.0)  # 1 m bins over 0-80 m for the range-histogram JS distance
 # 0.02 bins over the layout's [0, 1] intensity for the intensity-histogram JS distance (a segmentor reads intensity
 # as a feature: a bank whose intensities sit elsewhere is a domain shift that the geometric metrics do not see)
 INTENSITY_BINS = np.linspace(0.0, 1.0, 51)
-TABLE2 = ("ttce", "ctc")
+TABLE2 = ("ttce", "ttce_global", "ctc")  # ttce_global: TTCE with ICP from a global registration (not LC)
 
 
 def parse_metrics(text: str) -> tuple[str, ...]:
@@ -182,19 +182,24 @@ def _temporal_table(
                 return {"missing": f"{folder / name} not found: temporal metrics need ground-truth poses"}
         if np.any(np.diff(frames) != 1):
             return {"missing": f"{folder}: frames are not consecutive; temporal intervals need consecutive frames"}
-    ttce_scores, ctc_scores, seconds = [], [], {"ttce": 0.0, "ctc": 0.0}
+    ttce_scores, global_scores, ctc_scores = [], [], []
+    seconds = {"ttce": 0.0, "ttce_global": 0.0, "ctc": 0.0}
     for seq, frames in progress_bar(by_seq.items(), desc=what, unit="sequence", enabled=progress, leave=False):
         scans, poses = temporal.load_kitti_sequence(root / "sequences" / seq, frames)
         if "ttce" in metrics:
             start = time.perf_counter()
             ttce_scores.append(temporal.ttce(scans, poses))
             seconds["ttce"] += time.perf_counter() - start
+        if "ttce_global" in metrics:
+            start = time.perf_counter()
+            global_scores.append(temporal.ttce(scans, poses, registration="global"))
+            seconds["ttce_global"] += time.perf_counter() - start
         if "ctc" in metrics:
             start = time.perf_counter()
             ctc_scores.append(temporal.ctc(scans, poses))
             seconds["ctc"] += time.perf_counter() - start
     table: dict[str, Any] = {"sequences": sorted(by_seq), "scans": len(entries)}
-    for name, scores in (("ttce", ttce_scores), ("ctc", ctc_scores)):
+    for name, scores in (("ttce", ttce_scores), ("ttce_global", global_scores), ("ctc", ctc_scores)):
         if name in metrics:
             merged = temporal.merge_interval_scores(scores)
             table[name] = {str(k): _finite(v) for k, v in merged.mean.items()}
@@ -242,6 +247,11 @@ def evaluate(
                 "max_correspondence_m": temporal.MAX_CORRESPONDENCE,
                 "voxel_size_m": temporal.TTCE_VOXEL_SIZE,
                 "min_range_m": temporal.MIN_RANGE,
+            },
+            "ttce_global": {
+                "intervals": list(temporal.TTCE_INTERVALS),
+                "feature_voxel_m": temporal.GLOBAL_VOXEL_SIZE,
+                "ransac_iterations": temporal.GLOBAL_RANSAC_ITERATIONS,
             },
             "ctc": {"intervals": list(temporal.CTC_INTERVALS), "min_range_m": temporal.MIN_RANGE},
         },  # fmt: skip
@@ -326,7 +336,10 @@ def to_markdown(result: dict[str, Any]) -> str:
         lines += ["## Table 2: temporal consistency", ""]
         ttce_k = [str(k) for k in result["config"]["ttce"]["intervals"]]
         ctc_k = [str(k) for k in result["config"]["ctc"]["intervals"]]
-        cols = [f"TTCE k={k} (m) ↓" for k in ttce_k] + [f"CTC k={k} (m²) ↓" for k in ctc_k]
+        scored = [name for name in TABLE2 if name in result["config"]["metrics"]]
+        head = {"ttce": "TTCE", "ttce_global": "TTCE-global", "ctc": "CTC"}
+        columns = [(name, k) for name in scored for k in (ctc_k if name == "ctc" else ttce_k)]
+        cols = [f"{head[n]} k={k} ({'m²' if n == 'ctc' else 'm'}) ↓" for n, k in columns]
         lines += ["| | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
         notes = []
         for side in ("bank", "real"):
@@ -335,9 +348,9 @@ def to_markdown(result: dict[str, Any]) -> str:
                 lines.append(f"| {side} | " + " | ".join("—" for _ in cols) + " |")
                 notes.append(f"- {side} temporal metrics missing: {table['missing']}")
                 continue
-            values = [table.get("ttce", {}).get(k) for k in ttce_k] + [table.get("ctc", {}).get(k) for k in ctc_k]
+            values = [table.get(name, {}).get(k) for name, k in columns]
             lines.append(f"| {side} | " + " | ".join(_fmt(v) for v in values) + " |")
-            pairs = {name: table.get(f"{name}_pairs") for name in ("ttce", "ctc") if f"{name}_pairs" in table}
+            pairs = {name: table.get(f"{name}_pairs") for name in TABLE2 if f"{name}_pairs" in table}
             notes.append(f"- {side}: sequences {', '.join(table['sequences'])}, {table['scans']} scans, pairs {pairs}")
         lines += ["", *notes, ""]
     lines += ["## Config", "", "```json", json.dumps(result["config"], indent=1), "```", ""]

@@ -43,7 +43,7 @@ def synthetic(tmp_path_factory):
 
 
 def test_real_vs_real_is_zero_and_temporal_is_small(kitti_root):
-    result = evaluate(kitti_root, kitti_root, ("jsd", "mmd", "ttce", "ctc"), max_scans=5)
+    result = evaluate(kitti_root, kitti_root, ("jsd", "mmd", "ttce", "ttce_global", "ctc"), max_scans=5)
     assert result["counts"] == {"bank": 5, "real": 5}
     assert result["table1"]["jsd"]["value"] == pytest.approx(0.0, abs=1e-12)
     assert result["table1"]["mmd"]["value"] == pytest.approx(0.0, abs=1e-9)
@@ -51,11 +51,13 @@ def test_real_vs_real_is_zero_and_temporal_is_small(kitti_root):
     # ICP recovers the ground-truth motion of the real sequence: TTCE 0.018 / 0.009 m on frames 0-5
     assert set(bank["ttce"]) == {"3", "4"} and all(v < 0.05 for v in bank["ttce"].values())
     assert bank["ttce_pairs"] == {"3": 2, "4": 1}
+    assert all(v < 0.05 for v in bank["ttce_global"].values()) and bank["ttce_global_pairs"] == {"3": 2, "4": 1}
     # consecutive real frames are not identical, so the chamfer grows with the interval (m^2)
     ctc = [bank["ctc"][k] for k in "1234"]
     assert 0.0 < ctc[0] < ctc[3]
     text = to_markdown(result)
     assert "Table 1" in text and "Table 2" in text and "TTCE k=3" in text and "(5 scans)" in text
+    assert "TTCE-global k=4 (m)" in text
 
 
 def test_synthetic_bank_tables_hashes_and_missing_poses(synthetic):

@@ -94,6 +94,27 @@ def test_ttce_synthetic_motion_is_recovered(rng: np.random.Generator) -> None:
     assert scores.mean[1] < 1e-3
 
 
+def test_global_registration_finds_what_icp_from_the_identity_misses(
+    sequence: tuple[list[np.ndarray], np.ndarray],
+) -> None:
+    scans, _ = sequence
+    # frame 0 of seq 00 seen from 5 poses 2 m apart, turning: frames 4 apart are 8 m apart, beyond ICP's reach
+    poses = np.stack([_pose(0.02 * i, (2.0 * i, 0.1 * i, 0.0)) for i in range(5)])
+    world = scans[0][:, :3].astype(np.float64)
+    frames = [(world - pose[:3, 3]) @ pose[:3, :3] for pose in poses]  # T_i^-1 applied to frame 0's points
+    lc = ttce(frames, poses, intervals=(4,))
+    found = ttce(frames, poses, intervals=(4,), registration="global")
+    print(
+        f"TTCE k=4 over 8 m: ICP from the identity {lc.mean[4]:.3f} m, from global registration {found.mean[4]:.4f} m"
+    )
+    assert lc.mean[4] > 1.0  # ICP from the identity stops far from the 8 m step
+    assert found.mean[4] < 0.02
+    again = ttce(frames, poses, intervals=(4,), registration="global")
+    assert again.per_pair == found.per_pair  # RANSAC is seeded per pair
+    with pytest.raises(InputError, match="registration: expected one of icp, global"):
+        ttce(frames, poses, intervals=(4,), registration="ransac")  # type: ignore[arg-type]
+
+
 def test_intervals_beyond_sequence_and_merge() -> None:
     points = np.random.default_rng(0).uniform(-5, 5, (200, 3))
     scores = ctc([points, points], np.stack([np.eye(4)] * 2), intervals=(1, 3))
