@@ -249,6 +249,21 @@ def generate_u4d(
     return {"x0": second["x0"], "x0_u": first["x0_u"], "m_u_pred": first["m_u_pred"]}
 
 
+def _propagation_poses(poses: np.ndarray, n: int) -> np.ndarray:
+    """(n, L, 4, 4) float64 LiDAR poses of n sequences of L >= 2 frames; InputError else."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 4 or poses.shape[0] != n or poses.shape[1] < 2 or poses.shape[2:] != (4, 4):
+        raise InputError(f"propagation needs poses (n={n}, L >= 2, 4, 4), got {poses.shape}")
+    return poses
+
+
+def _warp_first_frames(x0: Tensor, poses: np.ndarray, cfg: DiffusionTrainConfig) -> tuple[Tensor, Tensor]:
+    """Frame 0 of each sequence x0 (n, L, 2, H, W) moved along its poses (`warp_frame0`) -> x0_u, m_u (n, L, ...)."""
+    sensor = get_sensor(cfg.sensor)
+    warped = [warp_frame0(x0[i, 0], poses[i], sensor, cfg.row_mode) for i in range(len(poses))]
+    return torch.stack([w[0] for w in warped]), torch.stack([w[1] for w in warped])
+
+
 def generate_u4d_propagated(
     stage1: Loaded,
     stage2: Loaded,
@@ -265,16 +280,12 @@ def generate_u4d_propagated(
     """L-frame U4D sequences that follow their ego motion: `generate_u4d` draws frame 0, `warp_frame0` moves it into
     frames 1..L-1 along `poses` (n, L, 4, 4), stage 2 completes the pixels it does not reach; the warped pixels are
     kept as they are -> dict(x0, x0_u, m_u_pred) (n, L, ...), m_u_pred the warped region."""
-    poses = np.asarray(poses, dtype=np.float64)
-    if poses.ndim != 4 or poses.shape[0] != n or poses.shape[1] < 2 or poses.shape[2:] != (4, 4):
-        raise InputError(f"propagation needs poses (n={n}, L >= 2, 4, 4), got {poses.shape}")
+    poses = _propagation_poses(poses, n)
     frames = poses.shape[1]
     first = generate_u4d(
         stage1, stage2, n, steps, generator, sampler, stage1_steps, frames, grid, motion, mask_fraction
     )
-    sensor = get_sensor(stage2[1].sensor)
-    warped = [warp_frame0(first["x0"][i, 0], poses[i], sensor, stage2[1].row_mode) for i in range(n)]
-    x0_u, m_u = torch.stack([w[0] for w in warped]), torch.stack([w[1] for w in warped])  # (n, L, 2|1, H, W)
+    x0_u, m_u = _warp_first_frames(first["x0"], poses, stage2[1])  # (n, L, 2|1, H, W)
     motion2 = motion if stage2[1].net.pose_dim else None
     second = complete(stage2, x0_u, m_u, steps, generator, sampler, grid=grid, motion=motion2)
     x0 = torch.where(m_u.bool(), x0_u.to(second["x0"].device), second["x0"])
@@ -313,14 +324,10 @@ def generate_baseline_propagated(
     pixels it does not reach by replacement (`replace_known`) -> dict(x0, x0_u, m_u_pred) (n, L, ...), m_u_pred the
     warped region. The single-stage counterpart of `generate_u4d_propagated`."""
     _check_stage(net, "baseline", "baseline")
-    poses = np.asarray(poses, dtype=np.float64)
-    if poses.ndim != 4 or poses.shape[0] != n or poses.shape[1] < 2 or poses.shape[2:] != (4, 4):
-        raise InputError(f"propagation needs poses (n={n}, L >= 2, 4, 4), got {poses.shape}")
+    poses = _propagation_poses(poses, n)
     frames = poses.shape[1]
     first = generate_baseline(net, n, steps, generator, sampler, frames, grid, motion)["x0"]  # (n, L, 2, H, W)
-    sensor = get_sensor(net[1].sensor)
-    warped = [warp_frame0(first[i, 0], poses[i], sensor, net[1].row_mode) for i in range(n)]
-    x0_u, m_u = torch.stack([w[0] for w in warped]), torch.stack([w[1] for w in warped])  # (n, L, 2|1, H, W)
+    x0_u, m_u = _warp_first_frames(first, poses, net[1])  # (n, L, 2|1, H, W)
     second = _sample(net, (n, frames), steps, generator, None, sampler, grid, motion, known=(x0_u, m_u)).x0
     x0 = torch.where(m_u.bool().to(second.device), x0_u.to(second.device), second)  # exact where known
     return {"x0": x0, "x0_u": x0_u, "m_u_pred": m_u}
