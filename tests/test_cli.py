@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 from u4d_aug.cli import CONFIGS_DIR, DELEGATED, EXAMPLES, main
-from u4d_aug.data.formats import read_kitti_scan
+from u4d_aug.data.formats import read_kitti_scan, read_poses
+from u4d_aug.demo import sequence_motion
+from u4d_aug.trajectory import poses_from_motion
 
 
 def test_help_lists_every_command(capsys):
@@ -104,6 +106,15 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert arms["mt+u4d"]["miou"]["mean"] != arms["mt"]["miou"]["mean"]  # the bank's scans changed the training
     assert [(c["arm"], c["reference"]) for c in results["contrasts"]] == [("mt+u4d", "mt"), ("mt+u4d", "mt+baseline")]
     assert "## Contrasts (points)" in (out / "downstream" / "results.md").read_text()
+    # 4D: one sequence from the shipped MoST nets along the demo's drive, written with exactly those poses; its frames
+    # follow them (TTCE-global measured 0.0X m; frames that stand still score ~1.7 m: temporal_follow_global_s1.md)
+    manifest = json.loads((out / "bank_4d" / "manifest.json").read_text())
+    assert manifest["complete"] and manifest["frames"] == 5 and manifest["sampling"]["propagate"] is True
+    written = read_poses(out / "bank_4d" / "sequences" / "00" / "poses.txt")
+    np.testing.assert_allclose(written, poses_from_motion(sequence_motion()), atol=1e-5)
+    temporal = json.loads((out / "eval_4d" / "evaluation.json").read_text())["table2"]
+    assert temporal["bank"]["ttce_global"]["3"] < 0.5 and temporal["real"]["ttce_global"]["3"] < 0.5, temporal
+    assert (out / "sequence_4d.png").is_file()
     # the report: both tables with the measured numbers, the figures it links exist, a wall time per step
     report = (out / "report.md").read_text()
     assert "**Toy scale.**" in report and "benchmarks/results/downstream/" in report
@@ -116,7 +127,8 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert "generated.png" in linked and all((out / name).is_file() for name in linked)
     step_rows = [line for line in report.split("## Wall time")[1].splitlines() if re.match(r"\| \d+ \| ", line)]
     printed = [line for line in capsys.readouterr().out.splitlines() if re.match(r"\[\d+/\d+\] ", line)]
-    assert len(step_rows) == len(printed) >= 15 and "downstream, toy size" in step_rows[-1]
+    assert len(step_rows) == len(printed) >= 18 and "downstream, toy size" in step_rows[-1]
+    assert "| generated (U4D+MoST, propagated) | " in report and "sequence_4d.png" in linked
 
 
 # ---------------------------------------------------------------------------------------------------- conventions

@@ -23,7 +23,7 @@ from u4d_aug.cmdline import (
     split_verbosity,
 )
 from u4d_aug.errors import InputError
-from u4d_aug.io import atomic_write_text, check_output_file, dumps_json
+from u4d_aug.io import atomic_save_npy, atomic_write_text, check_output_file, dumps_json
 from u4d_aug.presets import configs_root
 from u4d_aug.runlock import run_lock
 
@@ -81,8 +81,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print json instead of a table")
     p.set_defaults(func=run_info)
 
-    p = _command(sub, "show", "render one scan: range image + BEV to PNG, .ply export, projection stats")
-    p.add_argument("scan", type=Path, help="a KITTI .bin or a nuScenes .pcd.bin")
+    p = _command(sub, "show", "render one scan (range image + BEV, .ply, projection stats) or one sequence's frames")
+    p.add_argument(
+        "scan",
+        type=Path,
+        help="a KITTI .bin, a nuScenes .pcd.bin, or a SemanticKITTI sequence folder (velodyne/ + "
+        "poses.txt + calib.txt, as `u4d generate frames=L` writes): its frames and a BEV of them moved by their poses",
+    )
     p.add_argument("--sensor", default=None, help="hdl64 | hdl32 | sensor yaml (default: from the file type)")
     p.add_argument("--width", type=int, default=None, help="range-image width (default: the sensor's)")
     p.add_argument("--row-mode", choices=["beam", "linear"], default="beam")
@@ -305,7 +310,7 @@ def run_demo(args: argparse.Namespace) -> int:
 
     import yaml
 
-    from u4d_aug.demo import demo_experiment, demo_report, demo_steps
+    from u4d_aug.demo import demo_experiment, demo_report, demo_steps, sequence_motion
     from u4d_aug.weights import shipped_weights
 
     real = args.real or Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "semantickitti"
@@ -325,6 +330,7 @@ def run_demo(args: argparse.Namespace) -> int:
     timings = []
     with run_lock(args.out):  # one demo per output folder; each step locks its own sub-folder too
         atomic_write_text(args.out / "downstream.yaml", yaml.safe_dump(demo_experiment(args.out, args.seed)))
+        atomic_save_npy(args.out / "motion_4d.npy", sequence_motion())
         for number, step in enumerate(steps, start=1):
             command = _resume_if_started(step.command)
             print(f"\n[{number}/{len(steps)}] {step.title}\n$ u4d {' '.join(command)}", flush=True)
@@ -357,6 +363,8 @@ def run_show(args: argparse.Namespace) -> int:
     from u4d_aug.data.sensors import get_sensor
     from u4d_aug.range_view import project, roundtrip_stats, scatter_to_image
 
+    if args.scan.is_dir():
+        return _show_sequence(args)
     scan = read_scan(args.scan)
     points, labels = scan.points, scan.labels
     sensor = get_sensor(args.sensor or scan.sensor)
@@ -398,11 +406,48 @@ def run_show(args: argparse.Namespace) -> int:
     if args.ply is not None:
         _write_ply(args.ply, points, labels)
         stats["ply"] = str(args.ply)
-    if args.json:
+    _print_stats(stats, args.json)
+    return 0
+
+
+def _print_stats(stats: dict, as_json: bool) -> None:
+    """`u4d show`'s statistics: json, or one `key: value` line each."""
+    if as_json:
         print(dumps_json(stats, indent=2))
     else:
         for key, value in stats.items():
             print(f"{key}: {value}")
+
+
+def _show_sequence(args: argparse.Namespace) -> int:
+    """`u4d show SEQUENCE_DIR`: every frame's depth image and a BEV of the frames moved by their poses (--png)."""
+    import torch
+
+    from u4d_aug.data.sensors import get_sensor
+    from u4d_aug.metrics.temporal import load_kitti_sequence
+    from u4d_aug.range_view import project
+
+    if args.ply is not None:
+        raise InputError(f"{args.scan}: --ply exports one scan; give one of its velodyne/*.bin files")
+    check_output_file(args.png, "picture")
+    scans, poses = load_kitti_sequence(args.scan)
+    sensor = get_sensor(args.sensor or "hdl64")
+    width = sensor.width if args.width is None else args.width
+    depths = [project(torch.from_numpy(s), sensor, sensor.height, width, args.row_mode).depth.numpy() for s in scans]
+    relative = np.linalg.solve(poses[0], poses)[:, :3, 3]  # (L, 3) sensor positions in frame 0
+    stats = {
+        "sequence": str(args.scan),
+        "frames": len(scans),
+        "points": [int(len(s)) for s in scans],
+        "path_m": float(np.linalg.norm(np.diff(relative, axis=0), axis=1).sum()),
+        "last_position_m": [round(float(v), 3) for v in relative[-1]],
+    }
+    if args.png is not None:
+        from u4d_aug.viz import plot_sequence
+
+        plot_sequence(args.png, depths, scans, poses, title=f"{args.scan}  {len(scans)} frames, {sensor.name}")
+        stats["png"] = str(args.png)
+    _print_stats(stats, args.json)
     return 0
 
 

@@ -2,8 +2,10 @@
 
 The demo simulates a small world, trains every net for seconds (to show the training loops run), generates its two
 banks at 64x1024 with the shipped nets of `weights/` (trained for hours; the seconds-long nets would give noise),
-scores them (BEV JSD/MMD, FRD/FPD with the shipped extractors), runs the four downstream arms at toy size and
-writes OUT/report.md: both tables, the figures and each step's wall time, every number marked toy-scale.
+scores them (BEV JSD/MMD, FRD/FPD with the shipped extractors), generates one 5-frame 4D sequence along a given ego
+motion with the shipped MoST nets (frame 0 propagated) and scores its TTCE-global / CTC, runs the four downstream
+arms at toy size and writes OUT/report.md: the tables, the figures and each step's wall time, every number marked
+toy-scale.
 """
 
 from __future__ import annotations
@@ -12,12 +14,17 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
+from u4d_aug.trajectory import straight_motion
+
 # The presets the demo runs with, named as `u4d` takes them from any folder (tests/test_presets_lookup.py).
 DEMO_PRESETS = {
     "seg": "seg/tiny",
     "diffusion": "u4d/demo",
     "generate": "u4d/generate_hdl64",
     "generate_toy": "u4d/generate_cpu",
+    "generate_4d": "u4d/generate_hdl64_most",
     "experiment_base": "seg/tiny_semi",
 }
 SEQUENCES, FRAMES = 3, 6  # the demo world: sequences 00-01 train, 02 is held out
@@ -25,6 +32,9 @@ ARM_STEPS = 12  # training steps of each downstream arm (the mean teacher from s
 BANK_SCANS = 8  # scans per bank: ~1 min of generation per method at 64x1024 on 2 cores
 TOY_BANK_SCANS = 4  # without shipped nets: the seconds-trained nets' 32x256 scans
 METHODS = ("u4d", "baseline")
+# the 4D step (with the shipped MoST nets): one sequence of L frames along the issue's example drive
+SEQUENCE_FRAMES, SEQUENCE_STEP_M, SEQUENCE_YAW_DEG = 5, 1.2, 3.0  # 1.2 m per frame, turning left 3 degrees per frame
+SEQUENCE_REAL = "02"  # the demo world's held-out sequence: the real side of TTCE / CTC
 # where the full-size results live, relative to the repository root
 FULL_RESULTS = {
     "generation": "benchmarks/results/generation_64x1024.md",
@@ -127,11 +137,35 @@ def demo_steps(out: Path, seed: int, real: Path, weights: dict[str, Path] | None
                   "--metrics", "jsd,mmd,frd,fpd,points", *extractors, "--json", "--md", "--out",
                   str(out / f"eval_{method}")])
         )  # fmt: skip
+    if weights and "u4d_most_stage1" in weights and "u4d_most_stage2" in weights:
+        steps += sequence_steps(out, seed, weights)
     steps.append(
         Step("downstream", "downstream, toy size: sup-only vs MT+LaserMix vs + baseline bank vs + U4D bank "
              "(mIoU, ECE on sequence 02)", ["experiment", str(out / "downstream.yaml"), "--no-progress"])
     )  # fmt: skip
     return steps
+
+
+def sequence_steps(out: Path, seed: int, weights: dict[str, Path]) -> list[Step]:
+    """4D: one U4D+MoST sequence along `motion_4d.npy` (written by `run_demo`), its figure, its TTCE-global / CTC."""
+    bank = out / "bank_4d"
+    drive = f"{SEQUENCE_FRAMES} frames, {SEQUENCE_STEP_M} m per frame turning left {SEQUENCE_YAW_DEG:g} deg"
+    return [
+        Step("generate-4d", f"4D: one U4D+MoST sequence of {drive}, frame 0 propagated along the motion",
+             ["generate", DEMO_PRESETS["generate_4d"], "num=1", f"frames={SEQUENCE_FRAMES}", f"seed={seed}",
+              f"motion_file={out / 'motion_4d.npy'}", f"stage1={weights['u4d_most_stage1']}",
+              f"stage2={weights['u4d_most_stage2']}", "--out", str(bank)]),
+        Step("show-4d", "picture of the sequence: its frames and a BEV of them moved by their poses",
+             ["show", str(bank / "sequences" / "00"), "--png", str(out / "sequence_4d.png")]),
+        Step("evaluate-4d", f"temporal metrics of the sequence (TTCE-global, CTC; real: sequence {SEQUENCE_REAL})",
+             ["evaluate", "--bank", str(bank), "--real", str(out / "world"), "--real-sequences", SEQUENCE_REAL,
+              "--metrics", "ttce_global,ctc", "--json", "--md", "--out", str(out / "eval_4d")]),
+    ]  # fmt: skip
+
+
+def sequence_motion() -> np.ndarray:
+    """(L, 4) x, y, z, yaw of the demo's 4D drive (`u4d_aug.trajectory.straight_motion`)."""
+    return straight_motion(SEQUENCE_FRAMES, SEQUENCE_STEP_M, np.deg2rad(SEQUENCE_YAW_DEG))
 
 
 def demo_experiment(out: Path, seed: int) -> dict:
@@ -229,6 +263,29 @@ def downstream_table(out: Path) -> list[str]:
     return lines
 
 
+def sequence_table(out: Path) -> list[str]:
+    """Markdown lines: TTCE-global and CTC of the generated sequence against the demo world's real sequence."""
+    result = _read_json(out / "eval_4d" / "evaluation.json")
+    if result is None:
+        return ["The 4D step did not run (it needs the shipped 4D nets `weights/u4d_most_stage*.pt`)."]
+    table = result.get("table2", {})
+    keys = [("ttce_global", "3"), ("ttce_global", "4"), *[("ctc", k) for k in "1234"]]
+    lines = [
+        "| sequence | TTCE-global k=3 (m) | k=4 (m) | CTC k=1 (m²) | k=2 | k=3 | k=4 |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for side, name in (("bank", "generated (U4D+MoST, propagated)"), ("real", f"real (sequence {SEQUENCE_REAL})")):
+        values = [table.get(side, {}).get(metric, {}).get(k) for metric, k in keys]
+        lines.append(f"| {name} | " + " | ".join("-" if v is None else f"{v:.3f}" for v in values) + " |")
+    lines += [
+        "",
+        "TTCE-global: ICP (started from a global registration) between frames k apart against the poses the "
+        "sequence was generated for; CTC: chamfer distance of frames aligned by those poses. One sequence: read "
+        "it as a check that the frames follow their motion, not as a score.",
+    ]
+    return lines
+
+
 def demo_report(out: Path, timings: list[tuple[Step, float]], weights: dict[str, Path] | None) -> str:
     """OUT/report.md: wall time per step, the generation table, the four-arm table, the figures, the full results."""
     total = sum(seconds for _, seconds in timings)
@@ -247,12 +304,17 @@ def demo_report(out: Path, timings: list[tuple[Step, float]], weights: dict[str,
         "",
         *downstream_table(out),
         "",
+        "## 4D: a sequence that follows its ego motion (one sequence)",
+        "",
+        *sequence_table(out),
+        "",
         "## Figures",
         "",
     ]
     figures = {
         "frame0.png": "a simulated scan: range image and BEV",
         "generated.png": "uncertainty map of a real scan, then real vs U4D (stage 1, stage 2) vs baseline",
+        "sequence_4d.png": "the generated 4D sequence: its frames, and a BEV of them moved by their poses",
         "reliability.png": "reliability diagram of the seconds-trained segmentor",
         "sim_vs_real.png": "the simulated world against the real scans",
     }

@@ -155,3 +155,41 @@ def plot_gate_weights(
     ax.set_title(title or "MoST gate weights", fontsize=9)
     ax.legend(fontsize=8, loc="upper right")
     return save_figure(fig, path)
+
+
+def plot_sequence(
+    path: str | Path, depth_images: list[np.ndarray], clouds: list[np.ndarray], poses: np.ndarray, title: str = ""
+) -> Path:
+    """An L-frame sequence: each frame's depth image, above a BEV of every frame moved into frame 0 by its pose.
+
+    `clouds` (N_i, >=3) in their own sensor frames, `poses` (L, 4, 4) sensor-to-world (TTCE/CTC's T_i): coloured by
+    frame, static structure overlaps where the frames follow their poses and shows L copies where they do not; the
+    sensor positions T_0^-1 T_i are the white path.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    frames = len(clouds)
+    if not frames or len(depth_images) != frames or poses.shape != (frames, 4, 4):
+        raise ValueError(
+            f"plot_sequence: {len(depth_images)} depth images, {frames} clouds, poses {poses.shape}; expected L each"
+        )
+    relative = np.linalg.solve(poses[0], poses)  # (L, 4, 4) frame i -> frame 0
+    palette = plt.get_cmap("tab10")(np.arange(frames) % 10)[:, :3]
+    fig = plt.figure(figsize=(19, max(1.6 * frames, 7.0)))
+    grid = fig.add_gridspec(frames, 2, width_ratios=[12, 6.5], wspace=0.05, hspace=0.4)
+    finite = np.concatenate([d[d > 0].ravel() for d in depth_images] + [np.ones(1)])
+    top = float(np.percentile(finite, 99))
+    for i, depth in enumerate(depth_images):
+        ax = fig.add_subplot(grid[i, 0])
+        draw_range_image(ax, np.where(depth > 0, depth, np.nan), f"frame {i}: depth [m]", vmin=0, vmax=top)
+        ax.title.set_color(palette[i])
+    moved = [np.asarray(c)[:, :3] @ relative[i, :3, :3].T + relative[i, :3, 3] for i, c in enumerate(clouds)]
+    colors = np.concatenate([np.tile(palette[i], (len(m), 1)) for i, m in enumerate(moved)])
+    order = np.random.default_rng(0).permutation(len(colors))  # frames interleaved, so no frame hides the others
+    bev = fig.add_subplot(grid[:, 1])
+    heading = "BEV: every frame moved into frame 0 by its pose\n(colour = frame; white = the sensor's path)"
+    draw_bev(bev, np.concatenate(moved)[order], colors[order], extent=40.0, title=heading)
+    path_xy = relative[:, :2, 3]
+    bev.plot(path_xy[:, 0], path_xy[:, 1], color="white", linewidth=1.0, marker="o", markersize=3)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return save_figure(fig, path)

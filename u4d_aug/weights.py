@@ -200,11 +200,13 @@ def stored_row_mean(state: dict, source: str) -> tuple[Tensor, dict] | None:
 SHIPPED_DIR = Path(__file__).resolve().parents[1] / "weights"
 SHIPPED_GENERATORS = ("u4d_stage1", "u4d_stage2", "baseline")
 SHIPPED_OPTIONAL = ("extractor_frd", "extractor_fpd", "uncertainty_segmentor")
+# the 4D sequence nets (configs/u4d/cpu_hdl64_most.yaml: MoST + ego-motion input), optional as well
+SHIPPED_SEQUENCE = ("u4d_most_stage1", "u4d_most_stage2", "baseline_most")
 
 
 def shipped_weights(root: Path = SHIPPED_DIR) -> dict[str, Path] | None:
     """{role: file} of the shipped nets under `root`, or None when any of the three generators is absent."""
-    found = {name: root / f"{name}.pt" for name in (*SHIPPED_GENERATORS, *SHIPPED_OPTIONAL)}
+    found = {name: root / f"{name}.pt" for name in (*SHIPPED_GENERATORS, *SHIPPED_OPTIONAL, *SHIPPED_SEQUENCE)}
     found = {name: path for name, path in found.items() if path.is_file()}
     if not all(name in found for name in SHIPPED_GENERATORS):
         return None

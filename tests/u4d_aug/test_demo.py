@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from u4d_aug.demo import Step, demo_report, full_results
+import numpy as np
+
+from u4d_aug.demo import Step, demo_report, demo_steps, full_results, sequence_motion, sequence_table
 
 
 def write_outputs(out: Path) -> None:
@@ -44,6 +46,7 @@ def test_report_tables_say_what_ran_and_why_a_metric_is_absent(tmp_path):
     linked = [line.split("](")[1].rstrip(")") for line in lines if "](" in line]
     assert linked == ["generated.png", "downstream/reliability_mt.png"]  # only figures that exist
     assert "## Wall time of this run (50 s)" in report and "| 2 | downstream | 44.8 |" in report
+    assert "The 4D step did not run" in report  # no eval_4d written
     # without shipped nets the report says the banks are the seconds-trained nets' and FPD/FRD reasons come from there
     assert "No shipped nets were found" in demo_report(tmp_path, timings, None)
 
@@ -54,3 +57,27 @@ def test_full_results_are_marked_until_they_exist(tmp_path):
     text = full_results(tmp_path)
     assert text.count("(not measured yet)") == 2
     assert text.endswith("downstream `benchmarks/results/downstream/`")
+
+
+def test_sequence_table_and_steps(tmp_path):
+    table2 = {
+        "bank": {"ttce_global": {"3": 0.0214, "4": 0.0377}, "ctc": {"1": 0.26, "2": 0.35, "3": 0.47, "4": 0.63}},
+        "real": {"ttce_global": {"3": 0.031}, "ctc": {"1": 0.06}},  # k = 4 absent (too few real frames)
+    }
+    (tmp_path / "eval_4d").mkdir()
+    (tmp_path / "eval_4d" / "evaluation.json").write_text(json.dumps({"table2": table2}))
+    lines = sequence_table(tmp_path)
+    assert "| generated (U4D+MoST, propagated) | 0.021 | 0.038 | 0.260 | 0.350 | 0.470 | 0.630 |" in lines
+    assert "| real (sequence 02) | 0.031 | - | 0.060 | - | - | - |" in lines
+    # the steps run only with the shipped 4D nets, and generate along the motion file the demo writes
+    weights = {"u4d_stage1": Path("a.pt"), "u4d_stage2": Path("b.pt"), "baseline": Path("c.pt")}
+    keys = [step.key for step in demo_steps(tmp_path, 0, tmp_path / "none", weights)]
+    assert "generate-4d" not in keys
+    weights |= {"u4d_most_stage1": Path("m1.pt"), "u4d_most_stage2": Path("m2.pt")}
+    steps = {step.key: step for step in demo_steps(tmp_path, 0, tmp_path / "none", weights)}
+    generate = steps["generate-4d"].command
+    assert f"motion_file={tmp_path / 'motion_4d.npy'}" in generate and "stage1=m1.pt" in generate
+    assert list(steps).index("evaluate-4d") == list(steps).index("generate-4d") + 2  # show-4d between
+    motion = sequence_motion()  # 1.2 m per frame, 3 degrees left per frame
+    assert motion.shape == (5, 4) and np.allclose(np.diff(motion[:, 3]), np.deg2rad(3.0))
+    assert np.allclose(np.linalg.norm(np.diff(motion[:, :2], axis=0), axis=1), 1.2)

@@ -35,7 +35,14 @@ from u4d_aug.metrics.extractors import extract_features, load_extractor, train_e
 from u4d_aug.pipeline import complete, generate_baseline, generate_u4d, load_generator
 from u4d_aug.train import CHECKPOINT_KIND
 from u4d_aug.train import train as train_diffusion
-from u4d_aug.weights import SHIPPED_DIR, WEIGHTS_FORMAT, shipped_weights
+from u4d_aug.weights import (
+    SHIPPED_DIR,
+    SHIPPED_GENERATORS,
+    SHIPPED_OPTIONAL,
+    SHIPPED_SEQUENCE,
+    WEIGHTS_FORMAT,
+    shipped_weights,
+)
 
 STAGES = ("stage1", "stage2", "baseline")
 CPU = torch.device("cpu")
@@ -240,7 +247,10 @@ def test_diffusion_export_stores_the_row_mean_of_its_training_images(diffusion, 
 def test_shipped_generators_carry_their_row_mean():
     shipped = shipped_weights(SHIPPED_DIR)
     assert shipped is not None
-    for name, key in (("u4d_stage1", "x0_u"), ("u4d_stage2", "x0"), ("baseline", "x0")):
+    nets = [("u4d_stage1", "x0_u"), ("u4d_stage2", "x0"), ("baseline", "x0")]
+    sequence = [("u4d_most_stage1", "x0_u"), ("u4d_most_stage2", "x0"), ("baseline_most", "x0")]  # the 4D nets
+    nets += [(name, key) for name, key in sequence if name in shipped]
+    for name, key in nets:
         state = torch.load(shipped[name], weights_only=True)
         mean, info = weights.stored_row_mean(state, name)
         assert info["key"] == key and mean.shape == (2, state["config"]["height"], 1), name
@@ -278,8 +288,11 @@ def test_shipped_files_match_the_hashes_and_sizes_their_readme_records():
         state = torch.load(path, weights_only=True)
         assert state["hash"] == rows[name][0], name
         assert abs(path.stat().st_size / 1e6 - rows[name][1]) < 0.1, name
-    assert sum(p.stat().st_size for p in shipped.values()) <= 25e6  # what the demo and generate read by default
-    assert sum(p.stat().st_size for p in files.values()) <= 60e6  # the experiments' nets included
+    single = [shipped[name] for name in (*SHIPPED_GENERATORS, *SHIPPED_OPTIONAL) if name in shipped]
+    assert sum(p.stat().st_size for p in single) <= 25e6  # what the demo and generate read by default
+    sequence = [shipped[name] for name in SHIPPED_SEQUENCE if name in shipped]
+    assert sum(p.stat().st_size for p in sequence) <= 21e6  # the 4D nets of generate_hdl64_most.yaml
+    assert sum(p.stat().st_size for p in files.values()) <= 70e6  # the experiments' nets included
     for kind in ("frd", "fpd"):
         extractor = load_extractor(shipped[f"extractor_{kind}"])
         assert extractor.kind == kind and (extractor.height, extractor.width) == (64, 1024)
