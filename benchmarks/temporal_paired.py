@@ -11,11 +11,13 @@ every method). For every bank after the first (the reference) and every interval
 them (the pooled mean of `u4d evaluate`, since every sequence has the same frames), a 95 % bootstrap interval
 resampling sequences (pairs within a sequence share frames, so sequences are the independent unit), and the share
 of sequences where the reference scores lower. The banks must hold the same sequences with the same poses.
+`--metrics` picks among ttce, ttce_global (ICP started from a FPFH + RANSAC registration: `u4d evaluate --metrics
+ttce_global`, ~8 s per generated pair) and ctc; default ttce,ctc.
 
 Writes OUT.json and OUT.md:
-    reference: NAME; banks: {NAME: path}; sequences: [ids]; boot: resamples; seed
-    means.NAME.ttce.K / .ctc.K: the bank's mean (equal to `u4d evaluate`'s table2 for that bank)
-    paired.NAME.ttce.K / .ctc.K: {mean_diff, ci_low, ci_high, reference_lower_share, n} for NAME - reference
+    reference: NAME; banks: {NAME: path}; sequences: [ids]; boot: resamples; seed; metrics: [names]
+    means.NAME.METRIC.K: the bank's mean (equal to `u4d evaluate`'s table2 for that bank)
+    paired.NAME.METRIC.K: {mean_diff, ci_low, ci_high, reference_lower_share, n} for NAME - reference
 """
 
 from __future__ import annotations
@@ -32,14 +34,26 @@ from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder
 from u4d_aug.metrics import temporal
 from u4d_aug.progress import progress_bar
 
-METRICS = {"ttce": temporal.TTCE_INTERVALS, "ctc": temporal.CTC_INTERVALS}
-UNITS = {"ttce": "m", "ctc": "m^2"}
+METRICS = {"ttce": temporal.TTCE_INTERVALS, "ttce_global": temporal.TTCE_INTERVALS, "ctc": temporal.CTC_INTERVALS}
+DEFAULT_METRICS = ("ttce", "ctc")
+UNITS = {"ttce": "m", "ttce_global": "m", "ctc": "m^2"}
 
 
-def sequence_scores(sequence_dir: Path) -> tuple[np.ndarray, dict[str, dict[int, float]]]:
+def sequence_scores(
+    sequence_dir: Path, metrics: tuple[str, ...] = DEFAULT_METRICS
+) -> tuple[np.ndarray, dict[str, dict[int, float]]]:
     """(poses (T, 4, 4), {metric: {k: mean over the sequence's pairs}}) of one SemanticKITTI-layout sequence."""
     scans, poses = temporal.load_kitti_sequence(sequence_dir)
-    scores = {"ttce": temporal.ttce(scans, poses).mean, "ctc": temporal.ctc(scans, poses).mean}
+    scores = {}
+    for metric in metrics:
+        if metric == "ttce":
+            scores[metric] = temporal.ttce(scans, poses).mean
+        elif metric == "ttce_global":
+            scores[metric] = temporal.ttce(scans, poses, registration="global").mean
+        elif metric == "ctc":
+            scores[metric] = temporal.ctc(scans, poses).mean
+        else:
+            raise InputError(f"--metrics: unknown metric {metric!r}; expected some of {', '.join(METRICS)}")
     return poses, scores
 
 
@@ -61,7 +75,9 @@ def paired_difference(reference: np.ndarray, other: np.ndarray, boot: int, rng: 
     }
 
 
-def score_banks(banks: dict[str, Path], progress: bool = True) -> tuple[list[str], dict]:
+def score_banks(
+    banks: dict[str, Path], progress: bool = True, metrics: tuple[str, ...] = DEFAULT_METRICS
+) -> tuple[list[str], dict]:
     """Sequence ids and {bank: {metric: {k: (S,) per-sequence scores}}}; raises unless every bank matches the first."""
     names = list(banks)
     first = banks[names[0]]
@@ -73,9 +89,9 @@ def score_banks(banks: dict[str, Path], progress: bool = True) -> tuple[list[str
         found = sequence_ids(root)
         if found != ids:
             raise InputError(f"{root / 'sequences'}: sequences {found} differ from {first / 'sequences'}'s {ids}")
-        table = {m: {k: [] for k in ks} for m, ks in METRICS.items()}
+        table = {m: {k: [] for k in METRICS[m]} for m in metrics}
         for seq in progress_bar(ids, desc=name, unit="sequence", enabled=progress, leave=False):
-            poses, scores = sequence_scores(root / "sequences" / seq)
+            poses, scores = sequence_scores(root / "sequences" / seq, metrics)
             if seq not in reference_poses:
                 reference_poses[seq] = poses
             elif poses.shape != reference_poses[seq].shape or not np.allclose(poses, reference_poses[seq], atol=1e-6):
@@ -83,18 +99,24 @@ def score_banks(banks: dict[str, Path], progress: bool = True) -> tuple[list[str
                     f"{root / 'sequences' / seq / 'poses.txt'}: poses differ from "
                     f"{first / 'sequences' / seq / 'poses.txt'}; paired scores need banks drawn with the same seed"
                 )
-            for metric, ks in METRICS.items():
-                for k in ks:
+            for metric in metrics:
+                for k in METRICS[metric]:
                     table[metric][k].append(scores[metric][k])
         per_bank[name] = {m: {k: np.asarray(v) for k, v in t.items()} for m, t in table.items()}
     return ids, per_bank
 
 
-def report(banks: dict[str, Path], boot: int = 10000, seed: int = 0, progress: bool = True) -> dict:
+def report(
+    banks: dict[str, Path],
+    boot: int = 10000,
+    seed: int = 0,
+    progress: bool = True,
+    metrics: tuple[str, ...] = DEFAULT_METRICS,
+) -> dict:
     """The OUT.json dictionary: bank means and paired differences against the first bank."""
     if len(banks) < 2:
         raise InputError("--bank: give at least two banks (the first is the reference)")
-    ids, per_bank = score_banks(banks, progress)
+    ids, per_bank = score_banks(banks, progress, metrics)
     reference = next(iter(banks))
     rng = np.random.default_rng(seed)
     means = {
@@ -115,7 +137,8 @@ def report(banks: dict[str, Path], boot: int = 10000, seed: int = 0, progress: b
         "sequences": ids,
         "boot": boot,
         "seed": seed,
-        "units": UNITS,
+        "metrics": list(metrics),
+        "units": {m: UNITS[m] for m in metrics},
         "means": means,
         "paired": paired,
     }
@@ -133,8 +156,9 @@ def _cell(entry: dict) -> str:
 def markdown(result: dict, command: str) -> str:
     """OUT.md: the means and the paired differences against the reference."""
     ref = result["reference"]
-    columns = [(m, k) for m, ks in METRICS.items() for k in ks]
-    header = "| | " + " | ".join(f"{m.upper()} k={k} ({UNITS[m]})" for m, k in columns) + " |"
+    columns = [(m, k) for m in result["metrics"] for k in METRICS[m]]
+    heads = {"ttce": "TTCE", "ttce_global": "TTCE-global", "ctc": "CTC"}
+    header = "| | " + " | ".join(f"{heads[m]} k={k} ({UNITS[m]})" for m, k in columns) + " |"
     rule = "|---" * (len(columns) + 1) + "|"
     lines = [
         "# Paired temporal differences",
@@ -171,12 +195,17 @@ def run(argv: list[str] | None = None) -> int:
     parser.add_argument("--boot", type=int, default=10000, help="bootstrap resamples of the sequences")
     parser.add_argument("--seed", type=int, default=0, help="seed of the bootstrap")
     parser.add_argument("--out", type=Path, required=True, help="writes OUT.json and OUT.md")
+    parser.add_argument("--metrics", default=",".join(DEFAULT_METRICS), help=f"some of {','.join(METRICS)}")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     if args.boot < 100:
         raise InputError(f"--boot: expected at least 100 resamples, got {args.boot}")
+    metrics = tuple(m.strip() for m in args.metrics.split(",") if m.strip())
+    unknown = [m for m in metrics if m not in METRICS]
+    if unknown or not metrics:
+        raise InputError(f"--metrics {args.metrics!r}: expected a comma list of {', '.join(METRICS)}")
     banks = named_banks(args.bank)
-    result = report(banks, args.boot, args.seed, progress=not args.no_progress)
+    result = report(banks, args.boot, args.seed, progress=not args.no_progress, metrics=metrics)
     make_folder(args.out.parent)
     command = "python benchmarks/temporal_paired.py " + " ".join(sys.argv[1:] if argv is None else argv)
     text = markdown(result, command)

@@ -126,3 +126,23 @@ def test_banks_with_other_poses_or_sequences_are_refused(
     assert paired.main(["--bank", f"a={tmp_path}", "--bank", "b=c", "--out", str(tmp_path / "x")]) == 2
     assert "is not a folder" in capsys.readouterr().err
     assert not (tmp_path / "x.json").exists()
+
+
+def test_global_registration_metric_is_paired_like_the_others(banks: dict[str, Path], tmp_path: Path) -> None:
+    """--metrics ttce_global: the same pairing with ICP from a global registration (u4d evaluate's TTCE-global)."""
+    out = tmp_path / "global"
+    args = ["--bank", f"exact={banks['exact']}", "--bank", f"drifting={banks['drifting']}", "--boot", "200"]
+    assert paired.main([*args, "--metrics", "ttce_global", "--out", str(out), "--no-progress"]) == 0
+    result = json.loads((tmp_path / "global.json").read_text())
+    assert result["metrics"] == ["ttce_global"] and set(result["means"]["exact"]) == {"ttce_global"}
+    for k in ("3", "4"):
+        pooled = temporal.merge_interval_scores(
+            temporal.ttce(*temporal.load_kitti_sequence(banks["exact"] / "sequences" / s), registration="global")
+            for s in result["sequences"]
+        )
+        # RANSAC on open3d's threads is not bit-repeatable: the same score to well under a centimetre
+        assert result["means"]["exact"]["ttce_global"][k] == pytest.approx(pooled.mean[int(k)], abs=2e-3)
+        assert result["means"]["exact"]["ttce_global"][k] < 0.05  # exact frames: the registration finds the poses
+        assert result["paired"]["drifting"]["ttce_global"][k]["mean_diff"] > 0.1  # 0.6 m of drift per axis
+    assert "TTCE-global k=3 (m)" in (tmp_path / "global.md").read_text()
+    assert paired.main([*args, "--metrics", "ttce,chamfer", "--out", str(out)]) == 2
