@@ -180,7 +180,7 @@ CASES = [
     ("info-nuscenes-as-kitti", ["info", "{root_nuscenes}"], "like a nuScenes scan"),
     # show
     ("show-missing-scan", ["show", "{missing}"], "not found"),
-    ("show-folder-as-scan", ["show", "{dir}"], "is a folder; expected a KITTI scan file"),
+    ("show-folder-as-scan", ["show", "{dir}"], "no velodyne/ folder (expected a scan file or a SemanticKITTI sequence"),
     ("show-short-bin", ["show", "{short_bin}"], "is not a multiple of 16"),
     ("show-short-pcd", ["show", "{short_pcd}"], "is not a multiple of 20"),
     ("show-nuscenes-as-kitti", ["show", "{nuscenes_bin}"], "name it *.pcd.bin"),

@@ -430,6 +430,11 @@ def _show_sequence(args: argparse.Namespace) -> int:
     if args.ply is not None:
         raise InputError(f"{args.scan}: --ply exports one scan; give one of its velodyne/*.bin files")
     check_output_file(args.png, "picture")
+    if not (args.scan / "velodyne").is_dir():
+        raise InputError(
+            f"{args.scan}: no velodyne/ folder (expected a scan file or a SemanticKITTI sequence folder with "
+            "velodyne/, poses.txt and calib.txt)"
+        )
     scans, poses = load_kitti_sequence(args.scan)
     sensor = get_sensor(args.sensor or "hdl64")
     width = sensor.width if args.width is None else args.width

@@ -202,8 +202,10 @@ def test_training_records_heldout_scores(trained, tmp_path):
         )
         assert heldout == again
     # road holds 54% of the held-out pixels: a net predicting one class scores <= 0.54 and IoU 0 on the other
-    # fpd at 40 steps: accuracy 0.87 on an AMD EPYC host, one class (0.46) on an Intel Xeon one; at 100 there 0.74
-    for kind, steps in (("frd", 30), ("fpd", 100)):
+    # fpd at 40 steps: accuracy 0.87 on an AMD EPYC host, one class (0.46) on an Intel Xeon one; at 100 there 0.74,
+    # on a later AMD EPYC host one class again (0.47); at 200 steps 0.86 there (the tiny point net's float rounding
+    # decides when it leaves the one-class plateau, so it gets steps to spare)
+    for kind, steps in (("frd", 30), ("fpd", 200)):
         cfg = extractor_config(trained["root"], tmp_path / kind)
         cfg.train.steps, cfg.train.lr = steps, 1e-2
         heldout = torch.load(train_extractor(kind, cfg)[0], weights_only=False)["heldout"]
