@@ -8,7 +8,8 @@ Each DIR holds the evaluation.json of `u4d evaluate --json --out DIR` (u4d_aug/m
 adds a seed. A method's score is its "table2.bank" side (for the real floor, the bank is the held-out real sequences)
 and "table1.frd". Nothing is recomputed. Writes OUT.json and OUT.md (two tables, mean ± std over seeds, ddof 1 as
 segmentation.experiment.mean_std; a missing entry shows its reason, never a number) and OUT.png (TTCE and CTC against
-the interval k, one line per method and fusion variant, bars = std over seeds; the floor dashed black).
+the interval k, one line per method and fusion variant, bars = std over seeds; the floor dashed black; TTCE-global
+in a third panel where computed).
 
 OUT.json:
     units: {ttce, ttce_global, ctc, frd}; intervals: {ttce: [3, 4], ttce_global: [3, 4], ctc: [1, 2, 3, 4]}
@@ -222,12 +223,15 @@ def to_markdown(table: dict) -> str:
 
 
 def plot_intervals(table: dict, path: Path) -> Path:
-    """OUT.png: TTCE (left) and CTC (right) mean against k per method (solid) and fusion variant (dotted), ± std."""
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
-    for ax, metric in zip(axes, ("ttce", "ctc")):
+    """OUT.png: TTCE, TTCE-global (where computed) and CTC mean against k per method (solid) and fusion variant
+    (dotted), ± std."""
+    entries = [entry for part in ("methods", "fusion") for entry in table[part].values()]
+    metrics = [m for m in INTERVALS if m != "ttce_global" or any(m in entry for entry in entries)]
+    fig, axes = plt.subplots(1, len(metrics), figsize=(5 * len(metrics), 3.8))
+    for ax, metric in zip(axes, metrics):
         for part, style in (("methods", "-"), ("fusion", ":")):
             for name, entry in table[part].items():
-                if "missing" in entry[metric]:
+                if metric not in entry or "missing" in entry[metric]:
                     continue
                 stats = [(int(k), entry[metric][k]) for k in INTERVALS[metric]]
                 points = [(k, s["mean"], s["std"]) for k, s in stats if s.get("mean") is not None]
@@ -242,8 +246,8 @@ def plot_intervals(table: dict, path: Path) -> Path:
                 )  # fmt: skip
         ax.set_xticks([int(k) for k in INTERVALS[metric]])
         ax.set_xlabel("interval k (frames apart)")
-        ax.set_ylabel("TTCE (m)" if metric == "ttce" else "CTC (m²)")
-        ax.set_title(f"{metric.upper()} ↓, mean ± std over seeds", fontsize=10)
+        ax.set_ylabel(f"{HEADS[metric]} (m²)" if metric == "ctc" else f"{HEADS[metric]} (m)")
+        ax.set_title(f"{HEADS[metric]} ↓, mean ± std over seeds", fontsize=10)
         ax.grid(alpha=0.3)
     legend = {label: handle for ax in axes for handle, label in zip(*ax.get_legend_handles_labels())}
     if legend:  # every line once, also one that has only CTC or only TTCE
