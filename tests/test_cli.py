@@ -107,7 +107,7 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert [(c["arm"], c["reference"]) for c in results["contrasts"]] == [("mt+u4d", "mt"), ("mt+u4d", "mt+baseline")]
     assert "## Contrasts (points)" in (out / "downstream" / "results.md").read_text()
     # 4D: one sequence from the shipped MoST nets along the demo's drive, written with exactly those poses; its frames
-    # follow them (TTCE-global measured 0.0X m; frames that stand still score ~1.7 m: temporal_follow_global_s1.md)
+    # follow them (TTCE-global k = 3 measured 0.052 m; static frames score ~1.7 m: temporal_follow_global_s1.md)
     manifest = json.loads((out / "bank_4d" / "manifest.json").read_text())
     assert manifest["complete"] and manifest["frames"] == 5 and manifest["sampling"]["propagate"] is True
     written = read_poses(out / "bank_4d" / "sequences" / "00" / "poses.txt")

@@ -426,6 +426,7 @@ def _show_sequence(args: argparse.Namespace) -> int:
     from u4d_aug.data.sensors import get_sensor
     from u4d_aug.metrics.temporal import load_kitti_sequence
     from u4d_aug.range_view import project
+    from u4d_aug.trajectory import relative_motion
 
     if args.ply is not None:
         raise InputError(f"{args.scan}: --ply exports one scan; give one of its velodyne/*.bin files")
@@ -439,7 +440,7 @@ def _show_sequence(args: argparse.Namespace) -> int:
     sensor = get_sensor(args.sensor or "hdl64")
     width = sensor.width if args.width is None else args.width
     depths = [project(torch.from_numpy(s), sensor, sensor.height, width, args.row_mode).depth.numpy() for s in scans]
-    relative = np.linalg.solve(poses[0], poses)[:, :3, 3]  # (L, 3) sensor positions in frame 0
+    relative = relative_motion(poses)[:, :3].astype(np.float64)  # (L, 3) sensor positions in frame 0
     stats = {
         "sequence": str(args.scan),
         "frames": len(scans),

@@ -32,7 +32,7 @@ ARM_STEPS = 12  # training steps of each downstream arm (the mean teacher from s
 BANK_SCANS = 8  # scans per bank: ~1 min of generation per method at 64x1024 on 2 cores
 TOY_BANK_SCANS = 4  # without shipped nets: the seconds-trained nets' 32x256 scans
 METHODS = ("u4d", "baseline")
-# the 4D step (with the shipped MoST nets): one sequence of L frames along the issue's example drive
+# the 4D step (with the shipped MoST nets): one sequence of L frames along a fixed drive
 SEQUENCE_FRAMES, SEQUENCE_STEP_M, SEQUENCE_YAW_DEG = 5, 1.2, 3.0  # 1.2 m per frame, turning left 3 degrees per frame
 SEQUENCE_REAL = "02"  # the demo world's held-out sequence: the real side of TTCE / CTC
 # where the full-size results live, relative to the repository root
