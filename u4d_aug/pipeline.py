@@ -328,9 +328,37 @@ def generate_baseline_propagated(
     frames = poses.shape[1]
     first = generate_baseline(net, n, steps, generator, sampler, frames, grid, motion)["x0"]  # (n, L, 2, H, W)
     x0_u, m_u = _warp_first_frames(first, poses, net[1])  # (n, L, 2|1, H, W)
-    second = _sample(net, (n, frames), steps, generator, None, sampler, grid, motion, known=(x0_u, m_u)).x0
-    x0 = torch.where(m_u.bool().to(second.device), x0_u.to(second.device), second)  # exact where known
+    x0 = inpaint(net, x0_u, m_u, steps, generator, sampler, grid, motion)["x0"]
     return {"x0": x0, "x0_u": x0_u, "m_u_pred": m_u}
+
+
+def inpaint(
+    net: Loaded,
+    x0_u: Tensor,
+    m_u: Tensor,
+    steps: int,
+    generator: Generators,
+    sampler: Sampler = "ddim",
+    grid: Grid = "time",
+    motion: Tensor | None = None,
+) -> dict[str, Tensor]:
+    """The baseline's completion: x0 (B, [L,] 2, H, W) of the unconditional net with x̂0 pinned to x0_u where m_u is 1
+    (`replace_known`, RePaint-style without resampling) and x0_u exactly there; the single-stage counterpart of
+    `complete`."""
+    _check_stage(net, "baseline", "baseline")
+    cfg = net[1]
+    if (
+        x0_u.dim() not in (4, 5)
+        or x0_u.shape[-3:] != (2, cfg.height, cfg.width)
+        or m_u.shape != (*x0_u.shape[:-3], 1, cfg.height, cfg.width)
+    ):
+        raise InputError(
+            f"the baseline was trained on {cfg.height}x{cfg.width} images: expected x0_u (B, [L,] 2, H, W) and m_u "
+            f"(B, [L,] 1, H, W), got x0_u {tuple(x0_u.shape)}, m_u {tuple(m_u.shape)}"
+        )
+    sample = _sample(net, tuple(x0_u.shape[:-3]), steps, generator, None, sampler, grid, motion, known=(x0_u, m_u))
+    x0 = torch.where(m_u.bool().to(sample.x0.device), x0_u.to(sample.x0.device), sample.x0)  # exact where known
+    return {"x0": x0, "x0_u": x0_u, "m_u": m_u}
 
 
 def to_points(x0: Tensor, sensor: Sensor | str, row_mode: RowMode = "beam") -> list[np.ndarray]:

@@ -20,6 +20,7 @@ from u4d_aug.pipeline import (
     generate_baseline,
     generate_stage1,
     generate_u4d,
+    inpaint,
     load_generator,
     mask_from_logits,
     to_points,
@@ -86,6 +87,23 @@ def test_stage2_output_depends_on_its_condition(random_ema_checkpoints):
     m_u[:, :, 4:8, 10:30] = 1.0
     filled = complete(stage2, x0_u, m_u, 3, torch.Generator().manual_seed(0))["x0"]
     assert float((filled - empty).abs().max()) > 1e-3
+
+
+def test_inpaint_keeps_the_known_pixels_and_fills_the_rest_from_them(random_ema_checkpoints):
+    baseline = load_generator(random_ema_checkpoints["baseline"])
+    x0_u = torch.full((1, 2, 16, 64), -1.0)
+    m_u = torch.zeros(1, 1, 16, 64)
+    x0_u[:, :, 4:12, 10:40] = 0.3
+    m_u[:, :, 4:12, 10:40] = 1.0
+    out = inpaint(baseline, x0_u, m_u, 3, torch.Generator().manual_seed(0))
+    assert torch.equal(out["x0"][:, :, 4:12, 10:40], x0_u[:, :, 4:12, 10:40])  # exact where known
+    free = generate_baseline(baseline, 1, 3, torch.Generator().manual_seed(0))["x0"]
+    unknown = ~m_u.bool().expand_as(x0_u)
+    assert float((out["x0"] - free)[unknown].abs().max()) > 1e-3  # the known pixels steer the others
+    with pytest.raises(InputError, match="16x64"):
+        inpaint(baseline, torch.zeros(1, 2, 8, 64), torch.zeros(1, 1, 8, 64), 2, torch.Generator())
+    with pytest.raises(InputError, match="baseline"):
+        inpaint(load_generator(random_ema_checkpoints["stage2"]), x0_u, m_u, 2, torch.Generator())
 
 
 def test_wrong_stage_or_size_is_an_input_error(random_ema_checkpoints):
