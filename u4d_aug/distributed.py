@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 from dataclasses import dataclass
 
@@ -110,6 +111,13 @@ def budget_fraction(elapsed_seconds: float, max_minutes: float) -> float:
 
 
 def cleanup() -> None:
-    """Leave the process group if one was joined."""
+    """Leave the process group if one was joined, once nothing of this process still holds it.
+
+    A DistributedDataParallel wrapper sits in reference cycles, so its reducer (which keeps the group alive) would
+    otherwise be freed at interpreter exit, after `destroy_process_group`: gloo's threads then end in a C++
+    `terminate called without an active exception` (SIGABRT) on a rank that finished fine. Collecting first frees
+    it here, while the group is still whole.
+    """
     if dist.is_available() and dist.is_initialized():
+        gc.collect()
         dist.destroy_process_group()

@@ -96,3 +96,35 @@ def test_two_process_training_then_sharded_generation(tmp_path: Path):
     assert read_manifest(single)["samples"] == manifest["samples"]  # seeds and file digests
     for path in scans:
         assert path.read_bytes() == (single / path.relative_to(bank)).read_bytes(), path.name
+
+
+def test_cleanup_frees_a_ddp_wrapper_before_leaving_the_group(tmp_path: Path):
+    # a DDP wrapper lives in reference cycles; left to the interpreter's exit its reducer would outlive the group
+    import gc
+    import weakref
+
+    import torch.distributed as dist
+
+    from u4d_aug.distributed import cleanup
+
+    dist.init_process_group("gloo", init_method=f"file://{tmp_path / 'store'}", rank=0, world_size=1)
+
+    def train_once() -> weakref.ref:
+        model = torch.nn.parallel.DistributedDataParallel(torch.nn.Linear(3, 2))
+        model(torch.randn(4, 3)).sum().backward()
+        loop = {"model": model}
+        loop["loop"] = loop  # the wrapper in a reference cycle (its own hooks make one on a first construction)
+        return weakref.ref(model.reducer)
+
+    enabled = gc.isenabled()
+    gc.disable()  # as between two automatic collections: only the cycle collector frees the wrapper
+    try:
+        reducer = train_once()
+        assert reducer() is not None  # still held by its cycles after the function returned
+        cleanup()
+        assert reducer() is None and not dist.is_initialized()
+    finally:
+        if enabled:
+            gc.enable()
+        if dist.is_initialized():
+            dist.destroy_process_group()
