@@ -26,6 +26,7 @@ from u4d_aug.data.datasets import (
 from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.errors import InputError
 from u4d_aug.nn.unet import crop_columns
+from u4d_aug.propagate import warp_frame0
 from u4d_aug.range_view import project, to_image
 from u4d_aug.seeding import derived_seed
 from u4d_aug.stage import DiffusionTrainConfig
@@ -41,6 +42,8 @@ class RangeImages:
     With cfg.frames = L > 1, item i stacks the L scans of window i of a `SequenceDataset` (one sequence,
     frame_stride apart): x0 (L, 2, H, W), x0_u (L, 2, H, W), m_u (L, 1, H, W); poses are not needed.
     x0_u and m_u are recomputed per scan for strategy 'random' (seeded by `generator`), cached otherwise.
+    With cfg.propagated_share > 0 (stage 2), a window drawn by `generator` with that probability is conditioned
+    instead on frame 0 moved along its poses (x0_u, m_u of `propagate.warp_frame0`; frame 0 wholly known).
     """
 
     def __init__(self, cfg: DiffusionTrainConfig) -> None:
@@ -56,8 +59,9 @@ class RangeImages:
         check_beams(self.scans.load_points(*first), self.sensor, f"{cfg.data_root}: scan {'/'.join(first)}")
         self.windows: SequenceDataset | NuscenesSequenceDataset | None = None
         if cfg.frames > 1:
+            with_poses = cfg.net.pose_dim > 0 or cfg.propagated_share > 0
             self.windows = open_sequences(
-                cfg.data_root, cfg.frames, cfg.sequences, cfg.frame_stride, cfg.net.pose_dim > 0, *layout
+                cfg.data_root, cfg.frames, cfg.sequences, cfg.frame_stride, with_poses, *layout
             )
         self.needs_probs = cfg.diffusion.stage in ("stage1", "stage2") and cfg.uncertainty.strategy != "none"
         if self.needs_probs and not cfg.probs_root:
@@ -84,10 +88,14 @@ class RangeImages:
             return self.scan_images(seq, frames[0], generator)
         items = [self.scan_images(seq, frame, generator) for frame in frames]
         out = {key: torch.stack([item[key] for item in items]) for key in items[0]}  # (L, C, H, W) each
+        start = self.windows.windows[index][1]
+        positions = list(range(start, start + self.cfg.frames * self.cfg.frame_stride, self.cfg.frame_stride))
         if self.cfg.net.pose_dim:  # the ego motion of the window's frames, (L, 4) in the first frame's sensor frame
-            start = self.windows.windows[index][1]
-            positions = list(range(start, start + self.cfg.frames * self.cfg.frame_stride, self.cfg.frame_stride))
             out["motion"] = torch.from_numpy(relative_motion(self.windows.poses[seq][positions]))
+        share = self.cfg.propagated_share
+        if share > 0 and generator is not None and float(torch.rand((), generator=generator)) < share:
+            poses = self.windows.poses[seq][positions]  # (L, 4, 4)
+            out["x0_u"], out["m_u"] = warp_frame0(out["x0"][0], poses, self.sensor, self.cfg.row_mode)
         return out
 
     def scan_images(self, seq: str, frame: str, generator: torch.Generator | None = None) -> dict[str, Tensor]:

@@ -73,6 +73,10 @@ class DiffusionTrainConfig:
     frames: int = 1  # L: scans per item; > 1 trains on L-frame windows of one sequence, (B, L, C, H, W)
     frame_stride: int = 1  # frames between the scans of a window
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
+    # stage 2 on L-frame windows: the share of windows (drawn per window and step) whose condition is frame 0 moved
+    # along the window's poses (`propagate.warp_frame0`, what `generate ... propagate=true` hands stage 2) instead
+    # of each frame's P_u; 0 = P_u only (the paper's condition)
+    propagated_share: float = 0.0
     net: UNetConfig = field(default_factory=UNetConfig)
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
     optim: DiffusionOptimConfig = field(default_factory=DiffusionOptimConfig)
@@ -116,6 +120,13 @@ class DiffusionTrainConfig:
             )
         if self.frames < 1 or self.frame_stride < 1:
             raise InputError(f"frames and frame_stride must be >= 1, got {self.frames}, {self.frame_stride}")
+        if not 0.0 <= self.propagated_share <= 1.0:
+            raise InputError(f"key 'propagated_share' must be in [0, 1], got {self.propagated_share}")
+        if self.propagated_share > 0 and (self.diffusion.stage != "stage2" or self.frames < 2):
+            raise InputError(
+                "key 'propagated_share': the propagated condition is stage 2's on windows of frames >= 2, got "
+                f"stage {self.diffusion.stage} with frames={self.frames}"
+            )
         check_finite_config(self)
         check_positive(self, "log_every", "checkpoint_every", "sample_steps")
         check_positive(self, "keep_checkpoints", "sample_every", "max_minutes", "ema_warmup_steps", allow_zero=True)

@@ -1,12 +1,21 @@
-"""u4d_aug.batches: azimuth crops wrap around the ring; a step's batch and noise depend on (seed, step, rank) only."""
+"""u4d_aug.batches: azimuth crops wrap around the ring; a step's batch and noise depend on (seed, step, rank) only;
+stage 2's propagated condition."""
 
 from __future__ import annotations
 
+import dataclasses
+
+import pytest
 import torch
 
-from tests.tiny_nets import diffusion_config
-from tests.tiny_worlds import write_tiny_world
+from tests.tiny_nets import TINY_MOST, diffusion_config
+from tests.tiny_worlds import write_posed_world, write_tiny_world
 from u4d_aug.batches import RangeImages, crop_batch, training_batch
+from u4d_aug.config import load_config
+from u4d_aug.data.sensors import get_sensor
+from u4d_aug.errors import InputError
+from u4d_aug.propagate import warp_frame0
+from u4d_aug.stage import DiffusionTrainConfig
 
 
 def test_crop_batch_wraps_around_the_ring():
@@ -31,3 +40,34 @@ def test_a_steps_batch_and_noise_depend_on_seed_step_and_rank_only(tmp_path):
     for other in ((5, 1), (6, 0)):  # another rank or step draws other crops and noise
         x0, offsets, noise = draws[other][0]
         assert not torch.equal(noise, a_noise) and not (torch.equal(offsets, a_offsets) and torch.equal(x0, a_x0))
+
+
+def test_propagated_share_conditions_windows_on_frame_0_moved_along_their_poses(tmp_path):
+    world = (tmp_path / "world", tmp_path / "probs")
+    poses = write_posed_world(*world, num_scans=3)
+    config = load_config(DiffusionTrainConfig, TINY_MOST, [f"data_root={world[0]}", f"probs_root={world[1]}"])
+    stage2 = dataclasses.replace(config, diffusion=dataclasses.replace(config.diffusion, stage="stage2"))
+    sensor = get_sensor(stage2.sensor)
+
+    always = RangeImages(dataclasses.replace(stage2, propagated_share=1.0))
+    item = always.__getitem__(0, torch.Generator().manual_seed(0))  # window of frames 0, 1
+    x0_u, m_u = warp_frame0(item["x0"][0], poses[:2], sensor, stage2.row_mode)
+    assert torch.equal(item["x0_u"], x0_u) and torch.equal(item["m_u"], m_u)
+    assert item["m_u"][0].all() and 0.3 < float(item["m_u"][1].mean()) < 1.0  # frame 1: the part frame 0 reaches
+    plain = RangeImages(stage2)[0]  # share 0: each frame's P_u, as the paper trains
+    assert not torch.equal(plain["m_u"], item["m_u"]) and float(plain["m_u"].mean()) < 0.5
+    assert torch.equal(always[0]["m_u"], plain["m_u"])  # no generator (row means, figures): P_u
+
+    half = RangeImages(dataclasses.replace(stage2, propagated_share=0.5))
+    picks = [
+        bool(half.__getitem__(0, torch.Generator().manual_seed(seed))["m_u"][0].all()) for seed in range(40)
+    ]  # fmt: skip
+    assert 10 < sum(picks) < 30  # about half the draws, decided by the generator
+    again = [bool(half.__getitem__(0, torch.Generator().manual_seed(s))["m_u"][0].all()) for s in range(40)]
+    assert again == picks
+
+    for bad, why in ((["propagated_share=1.5"], "in \\[0, 1\\]"), (["propagated_share=0.5", "frames=1"], "frames")):
+        with pytest.raises(InputError, match=why):
+            load_config(DiffusionTrainConfig, TINY_MOST, ["diffusion.stage=stage2", *bad])
+    with pytest.raises(InputError, match="stage baseline"):
+        load_config(DiffusionTrainConfig, TINY_MOST, ["propagated_share=0.5"])
