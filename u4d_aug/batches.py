@@ -126,8 +126,9 @@ def row_mean(cfg: DiffusionTrainConfig, key: str = "x0", count: int = 32, seed: 
     """(C, H, 1) mean of the `key` images (x0, or x0_u for stage 1) of `count` evenly spaced training items, over
     items, frames and columns: the MMSE estimate of a range image at vanishing SNR, per row (`sampling.mean_start`).
     `seed` draws P_u where the net's uncertainty strategy is random (the selection ablation)."""
-    if key == "x0":  # full scans: no uncertainty (and no probability files) needed
-        cfg = dataclasses.replace(cfg, diffusion=dataclasses.replace(cfg.diffusion, stage="baseline"))
+    if key == "x0":  # full scans: no uncertainty (and no probability files, nor a stage-2 condition) needed
+        baseline = dataclasses.replace(cfg.diffusion, stage="baseline")
+        cfg = dataclasses.replace(cfg, diffusion=baseline, propagated_share=0.0)
     images = RangeImages(cfg)
     step = max(1, len(images) // count)
     generator = torch.Generator().manual_seed(seed)

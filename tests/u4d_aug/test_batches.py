@@ -10,7 +10,7 @@ import torch
 
 from tests.tiny_nets import TINY_MOST, diffusion_config
 from tests.tiny_worlds import write_posed_world, write_tiny_world
-from u4d_aug.batches import RangeImages, crop_batch, training_batch
+from u4d_aug.batches import RangeImages, crop_batch, row_mean, training_batch
 from u4d_aug.config import load_config
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.errors import InputError
@@ -65,6 +65,9 @@ def test_propagated_share_conditions_windows_on_frame_0_moved_along_their_poses(
     assert 10 < sum(picks) < 30  # about half the draws, decided by the generator
     again = [bool(half.__getitem__(0, torch.Generator().manual_seed(s))["m_u"][0].all()) for s in range(40)]
     assert again == picks
+
+    # the mean start's x0 mean does not depend on the condition (it is read as a baseline's, without one)
+    assert torch.equal(row_mean(dataclasses.replace(stage2, propagated_share=0.5)), row_mean(stage2))
 
     for bad, why in ((["propagated_share=1.5"], "in \\[0, 1\\]"), (["propagated_share=0.5", "frames=1"], "frames")):
         with pytest.raises(InputError, match=why):
