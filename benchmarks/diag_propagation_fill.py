@@ -73,8 +73,11 @@ def real_window(item: dict, cfg, probs_root: Path) -> dict[str, Tensor]:
     }
 
 
-def fill(loaded, x0_u: Tensor, m_u: Tensor, motion: Tensor, steps: int, sampler: str, seed: int) -> Tensor:
-    """One net's completion of a window (L, 2, H, W) around x0_u where m_u is 1, known pixels kept exactly."""
+def fill(
+    loaded, x0_u: Tensor, m_u: Tensor, motion: Tensor, steps: int, sampler: str, seed: int, pin: bool = False
+) -> Tensor:
+    """One net's completion of a window (L, 2, H, W) around x0_u where m_u is 1, known pixels kept exactly; `pin`:
+    stage 2's x̂0 pinned to them at every step too (`complete(pin_known=True)`)."""
     net, cfg = loaded
     sequence = cfg.frames > 1  # a MoST net takes the window as one (1, L, ...) sequence, others frame by frame
     batch_u, batch_m = (x0_u[None], m_u[None]) if sequence else (x0_u, m_u)
@@ -82,7 +85,7 @@ def fill(loaded, x0_u: Tensor, m_u: Tensor, motion: Tensor, steps: int, sampler:
     generator = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         if cfg.diffusion.stage == "stage2":
-            x0 = complete(loaded, batch_u, batch_m, steps, generator, sampler, "time", pose)["x0"]
+            x0 = complete(loaded, batch_u, batch_m, steps, generator, sampler, "time", pose, pin)["x0"]
         elif cfg.diffusion.stage == "baseline":
             x0 = inpaint(loaded, batch_u, batch_m, steps, generator, sampler, "time", pose)["x0"]
         else:
@@ -131,7 +134,9 @@ def to_markdown(result: dict) -> str:
         f"# Filling around propagation vs around P_u ({result['windows']} real windows of {result['frames']} frames, "
         f"{result['root']} {' '.join(result['sequences'])})",
         "",
-        f"{result['sampler']}, {result['steps']} steps, mean start below log-SNR {result['mean_start_below']}; "
+        f"{result['sampler']}, {result['steps']} steps, mean start below log-SNR {result['mean_start_below']}"
+        + ("; stage 2's x̂0 pinned to the known pixels at every step" if result["pin_known"] else "")
+        + "; "
         "frames 1..L-1, unknown pixels, against the real frame. known = share of pixels given; returns = return / "
         "no-return agreement; MAE = mean |depth error| where both return; seam = mean depth step across known-unknown "
         "neighbours (real: the same pairs in the real frame). Mean ± std over windows.",
@@ -159,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mean-start-below", type=float, default=-10.0, help="mean start (generate_hdl64.yaml)")
     parser.add_argument("--mean-data-root", default="", help="scans for a net's mean image when its file has none")
     parser.add_argument("--seed", type=int, default=0, help="window i is filled from seed + i by every net")
+    parser.add_argument("--pin-known", action="store_true", help="stage 2: x̂0 pinned to the known pixels every step")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "propagation_fill")
     args = parser.parse_args(argv)
@@ -191,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
             for name, (loaded, _) in nets.items():
                 for condition in CONDITIONS:
                     x0_u, m_u = window[condition]
-                    generated = fill(loaded, x0_u, m_u, motion, args.steps, args.sampler, args.seed + w)
+                    generated = fill(loaded, x0_u, m_u, motion, args.steps, args.sampler, args.seed + w, args.pin_known)
                     rows[name][condition].append(fill_scores(generated[1:], window["x0"][1:], m_u[1:], max_range))
             print(f"window {w + 1}/{len(firsts)} (sequence {seq}) filled by {len(nets)} nets", flush=True)
     except InputError as exc:
@@ -207,6 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         "steps": args.steps,
         "sampler": args.sampler,
         "mean_start_below": args.mean_start_below,
+        "pin_known": args.pin_known,
         "seed": args.seed,
         "nets": {
             name: {"weights": str(path)} | {c: summary(rows[name][c]) for c in CONDITIONS}

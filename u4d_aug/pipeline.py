@@ -189,10 +189,12 @@ def complete(
     sampler: Sampler = "ddim",
     grid: Grid = "time",
     motion: Tensor | None = None,
+    pin_known: bool = False,
 ) -> dict[str, Tensor]:
     """Stage 2: x0 (B, [L,] 2, H, W) ~ p(x0 | x0_u (B, [L,] 2, H, W), m_u (B, [L,] 1, H, W)), e.g. from real scans.
 
-    `motion` (B, L, 4): the ego motion of each frame, for nets trained with it (net.pose_dim)."""
+    `motion` (B, L, 4): the ego motion of each frame, for nets trained with it (net.pose_dim). `pin_known`: x̂0 is
+    also pinned to x0_u where m_u is 1 at every step (`replace_known`, as the baseline's `inpaint`)."""
     _check_stage(stage2, "stage2", "stage 2")
     net, cfg = stage2
     if (
@@ -206,7 +208,8 @@ def complete(
         )
     device = next(net.parameters()).device
     cond = stage_cond(x0_u.to(device), m_u.to(device))  # (B, [L,] 3, H, W)
-    sample = _sample(stage2, tuple(x0_u.shape[:-3]), steps, generator, cond, sampler, grid, motion)
+    known = (x0_u, m_u) if pin_known else None
+    sample = _sample(stage2, tuple(x0_u.shape[:-3]), steps, generator, cond, sampler, grid, motion, known)
     return {"x0": sample.x0, "x0_u": x0_u, "m_u": m_u}
 
 
@@ -276,10 +279,12 @@ def generate_u4d_propagated(
     grid: Grid = "time",
     motion: Tensor | None = None,
     mask_fraction: float | None = None,
+    pin_known: bool = False,
 ) -> dict[str, Tensor]:
     """L-frame U4D sequences that follow their ego motion: `generate_u4d` draws frame 0, `warp_frame0` moves it into
-    frames 1..L-1 along `poses` (n, L, 4, 4), stage 2 completes the pixels it does not reach; the warped pixels are
-    kept as they are -> dict(x0, x0_u, m_u_pred) (n, L, ...), m_u_pred the warped region."""
+    frames 1..L-1 along `poses` (n, L, 4, 4), stage 2 completes the pixels it does not reach (`pin_known`: with its
+    x̂0 pinned to the warped pixels at every step); the warped pixels are kept as they are -> dict(x0, x0_u,
+    m_u_pred) (n, L, ...), m_u_pred the warped region."""
     poses = _propagation_poses(poses, n)
     frames = poses.shape[1]
     first = generate_u4d(
@@ -287,7 +292,7 @@ def generate_u4d_propagated(
     )
     x0_u, m_u = _warp_first_frames(first["x0"], poses, stage2[1])  # (n, L, 2|1, H, W)
     motion2 = motion if stage2[1].net.pose_dim else None
-    second = complete(stage2, x0_u, m_u, steps, generator, sampler, grid=grid, motion=motion2)
+    second = complete(stage2, x0_u, m_u, steps, generator, sampler, grid=grid, motion=motion2, pin_known=pin_known)
     x0 = torch.where(m_u.bool(), x0_u.to(second["x0"].device), second["x0"])
     return {"x0": x0, "x0_u": x0_u, "m_u_pred": m_u}
 

@@ -88,6 +88,13 @@ def test_stage2_output_depends_on_its_condition(random_ema_checkpoints):
     filled = complete(stage2, x0_u, m_u, 3, torch.Generator().manual_seed(0))["x0"]
     assert float((filled - empty).abs().max()) > 1e-3
 
+    # pinned: x̂0 is the known pixels at every step, so the sample ends on them there and the rest follows
+    pinned = complete(stage2, x0_u, m_u, 3, torch.Generator().manual_seed(0), pin_known=True)["x0"]
+    known = m_u.bool().expand_as(x0_u)
+    assert torch.allclose(pinned[known], x0_u[known], atol=1e-5)
+    assert not torch.allclose(filled[known], x0_u[known], atol=1e-3)  # not so without the pin
+    assert float((pinned - filled)[~known].abs().max()) > 1e-4
+
 
 def test_inpaint_keeps_the_known_pixels_and_fills_the_rest_from_them(random_ema_checkpoints):
     baseline = load_generator(random_ema_checkpoints["baseline"])
