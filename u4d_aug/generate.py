@@ -128,8 +128,9 @@ class GenerateConfig:
     # (u4d_aug.propagate) and completed where it does not reach (u4d: by stage 2; baseline: by inpainting with the
     # same net), so the frames follow the poses (two sampler passes)
     propagate: bool = False
-    # u4d mode with propagate: stage 2's x̂0 is also pinned to the propagated pixels at every sampler step (as the
-    # baseline's inpainting), which joins its fill to them (benchmarks/results/propagation_fill_pinned_*.md)
+    # with propagate, u4d mode: stage 2's x̂0 is also pinned to the propagated pixels at every sampler step, as the
+    # baseline's inpainting always is (a no-op in baseline mode); it joins the fill to them
+    # (benchmarks/results/propagation_fill_pinned_*.md)
     propagate_pin: bool = False
     # for other codebases (`u4d export`, done once every sample is written): all-ignore .label files (value 0)
     # beside the scans, and mmdetection3d's semantickitti_infos_train.pkl in the bank
@@ -227,14 +228,11 @@ def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info
             "propagate: moves frame 0 along each sequence's ego motion, so it needs mode=u4d or baseline, "
             f"frames >= 2 and nets with an ego-motion input (net.pose_dim > 0); got mode={cfg.mode}, frames={frames}"
         )
-    if cfg.propagate_pin and not (cfg.propagate and cfg.mode == "u4d"):
-        raise InputError(
-            f"propagate_pin: pins stage 2 to the propagated pixels, so it needs mode=u4d and propagate=true; got "
-            f"mode={cfg.mode}, propagate={cfg.propagate}"
-        )
+    if cfg.propagate_pin and not cfg.propagate:
+        raise InputError("propagate_pin: pins stage 2 to the propagated pixels, so it needs propagate=true")
     if cfg.propagate:  # like the other sampling options: banks written before it stay compatible
         identity["sampling"]["propagate"] = True
-    if cfg.propagate_pin:
+    if cfg.propagate_pin and cfg.mode == "u4d":  # the baseline's inpainting pins them anyway
         identity["sampling"]["propagate_pin"] = True
     check_compatible(Path(out), identity)
     layout = BankLayout(Path(out), frames)
