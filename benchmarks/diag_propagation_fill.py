@@ -86,10 +86,8 @@ def fill(
     with torch.no_grad():
         if cfg.diffusion.stage == "stage2":
             x0 = complete(loaded, batch_u, batch_m, steps, generator, sampler, "time", pose, pin)["x0"]
-        elif cfg.diffusion.stage == "baseline":
+        else:  # `inpaint` refuses any net but a baseline
             x0 = inpaint(loaded, batch_u, batch_m, steps, generator, sampler, "time", pose)["x0"]
-        else:
-            raise InputError(f"{cfg.diffusion.stage} net: expected a stage2 or baseline net (the fillers)")
     x0 = x0[0] if sequence else x0
     return torch.where(m_u.bool(), x0_u, x0.to(x0_u.dtype))
 
