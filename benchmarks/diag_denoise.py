@@ -3,9 +3,10 @@
     python benchmarks/diag_denoise.py --root data/sim_eval --probs data/sim_eval_probs --sequences 00 --num 4 \
         --out benchmarks/results/denoise_64x1024.json
 
-Each net (`--nets NAME=WEIGHTS ...`; default the shipped baseline, U4D stage 2 and stage 1) reads the first `--num`
-scans of ROOT's SEQUENCES as its training target: the scan's range image x0 (the baseline; stage 2, conditioned on
-the scan's own P_u from --probs) or x0_u, the P_u pixels (stage 1). The target is noised to x_t = α x0 + σ ε at each
+Each net (`--nets NAME=WEIGHTS ...`; default the shipped baseline, U4D stage 2 and stage 1; a one-net u4d checkpoint
+as `NAME=WEIGHTS@stage1` or `@stage2` for one of its two tasks) reads the first `--num` scans of ROOT's SEQUENCES as
+its training target: the scan's range image x0 (the baseline; stage 2, conditioned on the scan's own P_u from
+--probs) or x0_u, the P_u pixels (stage 1). The target is noised to x_t = α x0 + σ ε at each
 log-SNR of --log-snr (ε drawn from --seed, the same for every net) and the net called once: x̂0 = clamp((x_t − σ ε̂)/α).
 Reported on the pixels holding a return: the mean |x̂0 − x0| beside the noise it started from, mean |x_t/α − x0| (a
 net that removes nothing scores the same), and the roughness (`range_view.image_roughness`) of x̂0 against x0's.
@@ -22,11 +23,11 @@ from pathlib import Path
 import torch
 
 from u4d_aug.batches import RangeImages, stage_inputs
-from u4d_aug.diffusion import alpha_sigma, log_snr, stage_cond
+from u4d_aug.diffusion import STAGE1_TASK, STAGE2_TASK, alpha_sigma, log_snr, stage_cond
 from u4d_aug.errors import InputError
 from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json, atomic_write_text
-from u4d_aug.pipeline import load_generator
+from u4d_aug.pipeline import denoiser, load_generator
 from u4d_aug.range_view import NO_RETURN, image_roughness
 
 REPO = Path(__file__).resolve().parents[1]
@@ -38,15 +39,16 @@ LOG_SNRS = [0.0, 2.0, 5.0, 8.0, 11.0, 14.0]
 
 
 def targets(
-    cfg, root: Path, probs: Path | None, sequences: list[str], num: int
+    cfg, root: Path, probs: Path | None, sequences: list[str], num: int, role: str | None = None
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """(target (N, 2, H, W), net condition or None) of the first `num` scans, as the net's stage trains on them."""
-    stage = cfg.diffusion.stage
+    """(target (N, 2, H, W), net condition or None) of the first `num` scans, as the net's stage (a u4d net: the
+    stage `role`) trains on them."""
+    stage = role if cfg.diffusion.stage == "u4d" else cfg.diffusion.stage
     probs_root = str(probs) if probs is not None else ""
     view = dataclasses.replace(
         cfg, data_root=str(root), probs_root=probs_root, sequences=sequences, frames=1, cache_images=False
     )
-    images = RangeImages(view)
+    images = RangeImages(view)  # a u4d net's view reads x0, x0_u and m_u
     items = [images[i] for i in range(min(num, len(images)))]
     batch = {key: torch.stack([item[key] for item in items]) for key in items[0]}
     target, cond, m_u = stage_inputs(stage, batch)
@@ -54,6 +56,7 @@ def targets(
 
 
 def denoise_rows(net, target: torch.Tensor, cond, lams: list[float], seed: int) -> list[dict]:
+    # net: a denoise function (`pipeline.denoiser`): ε̂ (and an extra output) of (x_t, log-SNR, cond)
     """One ε̂ call per log-SNR on the noised target: x̂0's error and roughness against the noise it started from."""
     valid = target[:, 0] > NO_RETURN
     generator = torch.Generator().manual_seed(seed)
@@ -63,7 +66,8 @@ def denoise_rows(net, target: torch.Tensor, cond, lams: list[float], seed: int) 
         eps = torch.randn(target.shape, generator=generator)
         x_t = alpha * target + sigma * eps
         with torch.no_grad():
-            eps_hat = net(x_t, torch.full((target.shape[0],), lam), cond)[0]
+            out = net(x_t, torch.full((target.shape[0],), lam), cond)
+            eps_hat = out[0] if isinstance(out, tuple) else out
         x0_hat = ((x_t - sigma * eps_hat) / alpha).clamp(-1.0, 1.0)
         rows.append(
             {
@@ -122,9 +126,15 @@ def main(argv: list[str] | None = None) -> int:
         for spec in args.nets:
             name, sep, path = spec.rpartition("=")
             if not sep or not name or not path:
-                raise InputError(f"--nets {spec!r}: expected NAME=WEIGHTS")
-            net, cfg = load_generator(path)
-            target, cond = targets(cfg, args.root, args.probs, args.sequences, args.num)
+                raise InputError(f"--nets {spec!r}: expected NAME=WEIGHTS[@stage1|@stage2]")
+            path, _, role = path.partition("@")
+            loaded = load_generator(path)
+            cfg = loaded[1]
+            if (cfg.diffusion.stage == "u4d") != (role in ("stage1", "stage2")):
+                raise InputError(f"--nets {spec!r}: @stage1 or @stage2 names the task of a one-net u4d checkpoint")
+            task = {"stage1": STAGE1_TASK, "stage2": STAGE2_TASK}.get(role)
+            target, cond = targets(cfg, args.root, args.probs, args.sequences, args.num, role or None)
+            net = denoiser(loaded, (target.shape[0],), task=task)
             nets[name] = {
                 "weights": path,
                 "stage": cfg.diffusion.stage,

@@ -63,7 +63,7 @@ class RangeImages:
             self.windows = open_sequences(
                 cfg.data_root, cfg.frames, cfg.sequences, cfg.frame_stride, with_poses, *layout
             )
-        self.needs_probs = cfg.diffusion.stage in ("stage1", "stage2") and cfg.uncertainty.strategy != "none"
+        self.needs_probs = cfg.diffusion.stage in ("stage1", "stage2", "u4d") and cfg.uncertainty.strategy != "none"
         if self.needs_probs and not cfg.probs_root:
             raise InputError(
                 f"probs_root: stage {cfg.diffusion.stage} needs the probability files of `u4d seg-predict`"
@@ -137,15 +137,20 @@ def row_mean(cfg: DiffusionTrainConfig, key: str = "x0", count: int = 32, seed: 
     return stacked.reshape(-1, *stacked.shape[-3:]).mean(dim=(0, 3)).unsqueeze(-1)
 
 
-def row_mean_key(cfg: DiffusionTrainConfig) -> str:
-    """The images a net's mean start is the mean of: x0_u (the uncertain region) for stage 1, x0 otherwise."""
-    return "x0_u" if cfg.diffusion.stage == "stage1" else "x0"
+def row_mean_key(cfg: DiffusionTrainConfig, role: str | None = None) -> str:
+    """The images a net's mean start is the mean of: x0_u (the uncertain region) for stage 1 (a u4d net's stage-1
+    role), x0 otherwise."""
+    stage = cfg.diffusion.stage
+    return "x0_u" if stage == "stage1" or (stage == "u4d" and role == "stage1") else "x0"
 
 
-def net_row_mean(cfg: DiffusionTrainConfig, data_root: str = "", probs_root: str = "") -> tuple[Tensor, dict]:
-    """`row_mean` of the images a net learns (x0_u for stage 1, x0 otherwise) from its training scans, or from
-    `data_root` / `probs_root` when set, and where it was read: {key, data_root, sequences[, probs_root]}."""
-    key = row_mean_key(cfg)
+def net_row_mean(
+    cfg: DiffusionTrainConfig, data_root: str = "", probs_root: str = "", role: str | None = None
+) -> tuple[Tensor, dict]:
+    """`row_mean` of the images a net learns (x0_u for stage 1 or a u4d net's stage-1 `role`, x0 otherwise) from its
+    training scans, or from `data_root` / `probs_root` when set, and where it was read: {key, data_root, sequences[,
+    probs_root]}."""
+    key = row_mean_key(cfg, role)
     cfg = dataclasses.replace(cfg, data_root=data_root or cfg.data_root, probs_root=probs_root or cfg.probs_root)
     source = {"key": key, "data_root": cfg.data_root, "sequences": cfg.sequences}
     if key == "x0_u":
@@ -190,12 +195,23 @@ def crop_batch(batch: dict[str, Tensor], offsets: Tensor, crop_width: int) -> di
 
 
 def stage_inputs(stage: str, batch: dict) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """(x0, cond, m_u) of GaussianDiffusion.forward: stage 1 learns x0 := x0_u; stage 2 reads x0_u, m_u."""
+    """(x0, cond, m_u) of GaussianDiffusion.forward: stage 1 learns x0 := x0_u; stage 2 and u4d read x0_u, m_u."""
     if stage == "stage1":
         return batch["x0_u"], None, batch["m_u"]
-    if stage == "stage2":
+    if stage in ("stage2", "u4d"):
         return batch["x0"], batch["x0_u"], batch["m_u"]
     return batch["x0"], None, None
+
+
+def crop_loss_weight(cfg: DiffusionTrainConfig, device: torch.device) -> Tensor | None:
+    """(crop_width,) column weights of the losses: 0 on the `crop_margin` columns at each edge of a crop, else 1
+    (None: no margin)."""
+    if not cfg.crop_margin:
+        return None
+    weight = torch.ones(cfg.crop_width, device=device)
+    weight[: cfg.crop_margin] = 0.0
+    weight[-cfg.crop_margin :] = 0.0
+    return weight
 
 
 def training_batch(

@@ -52,7 +52,11 @@ def min_snr_weight(log_snr: Tensor, gamma: float | None) -> Tensor:
 class DiffusionConfig:
     """Diffusion stage and loss terms (paper §2: L_u for stage 1, L_c for stage 2; R2DM for the baseline)."""
 
-    stage: Literal["stage1", "stage2", "baseline"] = "baseline"
+    # stage1 / stage2: one U4D stage per net; u4d: one net for both stages (the paper's unified latent
+    # representation), told apart by a task embedding, both tasks in every batch; baseline: R2DM's single stage
+    stage: Literal["stage1", "stage2", "baseline", "u4d"] = "baseline"
+    # what the net predicts: eps (ε, R2DM) or v = α ε − σ x0 (Salimans & Ho 2022); samplers read ε̂ either way
+    parameterization: Literal["eps", "v"] = "eps"
     min_snr_gamma: float | None = 5.0  # None turns Min-SNR weighting off
     mask_weight: float = 1.0  # λ of L_u = ε-MSE + λ · BCE(m_u, m_p) (stage 1 only)
     mask_pos_weight: float = 1.0  # BCE weight of positive (uncertain) pixels; m_u is sparse
@@ -64,20 +68,59 @@ class DiffusionConfig:
     # training draws t ~ U(0, train_t_max): 1 is the whole schedule (R2DM); below 1 a fine-tune of the low-noise end,
     # where a few-step sampler's last x̂0 is made (0.1: log-SNR >= 3.7)
     train_t_max: float = 1.0
+    # stage u4d: the share of each batch's samples that train the stage-1 task (the first round(share · B) of the
+    # batch; the rest train stage 2), so every batch trains both tasks
+    stage1_share: float = 0.5
 
     def __post_init__(self) -> None:
-        if self.stage not in ("stage1", "stage2", "baseline"):
-            raise InputError(f"diffusion.stage must be one of 'stage1', 'stage2', 'baseline', got {self.stage!r}")
+        if self.stage not in STAGES:
+            raise InputError(f"diffusion.stage must be one of {', '.join(map(repr, STAGES))}, got {self.stage!r}")
+        if self.parameterization not in ("eps", "v"):
+            raise InputError(f"diffusion.parameterization must be 'eps' or 'v', got {self.parameterization!r}")
+        if not 0.0 < self.stage1_share < 1.0:
+            raise InputError(f"diffusion.stage1_share must be in (0, 1), got {self.stage1_share}")
         if self.min_snr_gamma is not None and self.min_snr_gamma <= 0:
             raise InputError(f"diffusion.min_snr_gamma must be > 0 or null, got {self.min_snr_gamma}")
         if self.mask_weight < 0 or self.mask_pos_weight <= 0:
             raise InputError("diffusion.mask_weight must be >= 0 and diffusion.mask_pos_weight > 0")
         if self.most_cv_weight < 0:
             raise InputError(f"diffusion.most_cv_weight must be >= 0, got {self.most_cv_weight}")
-        if self.cond_noise < 0 or (self.cond_noise > 0 and self.stage != "stage2"):
-            raise InputError(f"diffusion.cond_noise must be >= 0, and 0 unless stage=stage2, got {self.cond_noise}")
+        if self.cond_noise < 0 or (self.cond_noise > 0 and self.stage not in ("stage2", "u4d")):
+            raise InputError(
+                f"diffusion.cond_noise must be >= 0, and 0 unless stage=stage2 or u4d, got {self.cond_noise}"
+            )
         if not 0.0 < self.train_t_max <= 1.0:
             raise InputError(f"diffusion.train_t_max must be in (0, 1], got {self.train_t_max}")
+
+
+STAGES: tuple[str, ...] = ("stage1", "stage2", "baseline", "u4d")
+STAGE1_TASK, STAGE2_TASK = 0, 1  # the task ids of a u4d net's two stages (net.num_tasks = 2)
+
+
+def net_heads(stage: str) -> tuple[bool, int, int]:
+    """(mask head, condition channels, tasks) of the net a stage trains: stage 1 has the mask head, stage 2 reads
+    concat(x0_u, m_u), a u4d net has both and a task embedding for its two stages."""
+    if stage == "u4d":
+        return True, 3, 2
+    return stage == "stage1", 3 if stage == "stage2" else 0, 0
+
+
+def stage1_count(batch: int, share: float) -> int:
+    """How many of a u4d batch's samples train stage 1: round(share · B), at least 1 and at most B − 1."""
+    if batch < 2:
+        raise InputError(f"stage u4d trains both stages in every batch: batch_size must be >= 2, got {batch}")
+    return min(batch - 1, max(1, round(share * batch)))
+
+
+def empty_condition(like: Tensor) -> Tensor:
+    """The stage-1 task's condition of a u4d net, shaped like stage 2's (..., 3, H, W): no x0_u (−1), empty m_u (0)."""
+    return torch.cat([torch.full_like(like[..., :2, :, :], -1.0), torch.zeros_like(like[..., :1, :, :])], dim=-3)
+
+
+def eps_from_v(x_t: Tensor, lam: Tensor, v: Tensor) -> Tensor:
+    """ε̂ = σ x_t + α v̂ of a v-prediction (v = α ε − σ x0, Salimans & Ho 2022) at log-SNR lam (B,) or ()."""
+    alpha, sigma = alpha_sigma(lam.reshape(-1).view(-1, *([1] * (x_t.dim() - 1))).to(x_t.dtype))
+    return sigma * x_t + alpha * v
 
 
 def noisy_condition(x0_u: Tensor, m_u: Tensor, max_std: float, generator: torch.Generator | None) -> Tensor:
@@ -106,8 +149,7 @@ class GaussianDiffusion(nn.Module):
         net_cfg = getattr(net, "cfg", None)
         self.most = bool(getattr(net_cfg, "most", False))  # the net has MoST blocks: gate noise and the CV term
         if net_cfg is not None:  # catch a net built for another stage before the first step, not at step 1
-            want_mask = cfg.stage == "stage1"
-            want_cond = 3 if cfg.stage == "stage2" else 0
+            want_mask, want_cond, want_tasks = net_heads(cfg.stage)
             if bool(net_cfg.mask_head) != want_mask:
                 raise InputError(f"diffusion.stage={cfg.stage} needs net.mask_head={str(want_mask).lower()}")
             if net_cfg.cond_channels != want_cond:
@@ -115,6 +157,8 @@ class GaussianDiffusion(nn.Module):
                     f"diffusion.stage={cfg.stage} needs net.cond_channels={want_cond} "
                     f"(stage 2 reads x0_u and m_u), got {net_cfg.cond_channels}"
                 )
+            if getattr(net_cfg, "num_tasks", 0) != want_tasks:
+                raise InputError(f"diffusion.stage={cfg.stage} needs net.num_tasks={want_tasks}")
 
     def forward(
         self,
@@ -124,61 +168,90 @@ class GaussianDiffusion(nn.Module):
         generator: torch.Generator | None = None,
         crop_offsets: Tensor | None = None,
         poses: Tensor | None = None,
+        loss_weight: Tensor | None = None,
     ) -> dict[str, Tensor]:
         """Losses for clean x0 (B, [L,] 2, H, W) in [-1, 1].
 
         crop_offsets (B,): the inputs are azimuth crops starting at these panorama columns (`RangeUNet.forward`).
         poses (B, [L,] P): each frame's ego motion, for nets with net.pose_dim = P > 0.
+        loss_weight (W,): per-column weight of the losses (0 on the columns of a crop's margin), None = all 1.
         stage1: x0 is x0_u, m_u (B, [L,] 1, H, W) is the BCE target; the net sees only x_t.
         stage2: x0 is the full scan, cond is x0_u and m_u its mask; the net sees concat(x_t, x0_u, m_u).
+        u4d: x0 is the full scan, cond x0_u, m_u its mask; the first `stage1_count` samples train stage 1 (target
+        x0_u, an empty condition, task 0, the BCE), the others stage 2 (target x0 given x0_u, m_u, task 1).
         baseline: x0 is the full scan, no condition.
-        Returns {"loss": total (with grad), "eps_mse": weighted ε term, "mask_bce": BCE (stage 1),
-        "most_cv": Σ CV² of the MoST gate importances (nets with MoST; weighted by most_cv_weight in "loss")}.
+        Returns {"loss": total (with grad), "eps_mse": weighted ε (or v) term, "mask_bce": BCE (stage 1, u4d),
+        "most_cv": Σ CV² of the MoST gate importances (nets with MoST; weighted by most_cv_weight in "loss")};
+        u4d also logs "eps_mse_stage1" and "eps_mse_stage2".
         t, ε and the MoST gate noise are drawn from `generator` (torch's default generator if None).
         """
         stage = self.cfg.stage
-        net_cond = None
-        if stage == "stage2":
+        net_cond, task, bce_target, ones = None, None, None, slice(None)
+        if stage in ("stage2", "u4d"):
             if cond is None or m_u is None:
-                raise ValueError("GaussianDiffusion(stage2): needs cond=x0_u and m_u")
+                raise ValueError(f"GaussianDiffusion({stage}): needs cond=x0_u and m_u")
             net_cond = stage_cond(cond, m_u)
         elif stage == "stage1":
             if m_u is None:
                 raise ValueError("GaussianDiffusion(stage1): needs m_u, the target of the mask head")
             if cond is not None:
                 raise ValueError("GaussianDiffusion(stage1): stage 1 is unconditional, got cond")
+            bce_target = m_u
         elif cond is not None or m_u is not None:
             raise ValueError("GaussianDiffusion(baseline): the baseline is unconditional, got cond/m_u")
 
         batch = x0.shape[0]
+        if stage == "u4d":  # stage-1 samples first: their target is x0_u, their condition empty
+            first = stage1_count(batch, self.cfg.stage1_share)
+            ones = slice(0, first)
+            x0 = torch.cat([cond[ones], x0[first:]])
+            task = torch.cat([torch.full((first,), STAGE1_TASK), torch.full((batch - first,), STAGE2_TASK)])
+            task = task.to(x0.device)
+            bce_target = m_u[ones]
         draw_device = generator.device if generator is not None else x0.device
         t = torch.rand(batch, generator=generator, device=draw_device).to(x0.device) * self.cfg.train_t_max  # (B,)
         eps = torch.randn(x0.shape, generator=generator, device=draw_device).to(x0.device, x0.dtype)
         lam = log_snr(t)  # (B,)
         alpha, sigma = alpha_sigma(lam.view(batch, *([1] * (x0.dim() - 1))))
         x_t = alpha * x0 + sigma * eps
-        if stage == "stage2" and self.cfg.cond_noise > 0:  # drawn after t and ε: runs without it are unchanged
+        if stage in ("stage2", "u4d") and self.cfg.cond_noise > 0:  # drawn after t and ε: runs without it unchanged
             net_cond = stage_cond(noisy_condition(cond, m_u, self.cfg.cond_noise, generator), m_u)
+        if stage == "u4d":
+            net_cond = torch.cat([empty_condition(net_cond[ones]), net_cond[first:]])
 
-        if crop_offsets is not None or poses is not None:
-            eps_pred, mask_logits = self.net(
-                x_t, lam, net_cond, generator=generator, crop_offsets=crop_offsets, poses=poses
-            )
-        elif self.most:
-            eps_pred, mask_logits = self.net(x_t, lam, net_cond, generator=generator)
+        kwargs = {}
+        if crop_offsets is not None:
+            kwargs["crop_offsets"] = crop_offsets
+        if poses is not None:
+            kwargs["poses"] = poses
+        if task is not None:
+            kwargs["task"] = task
+        if self.most:
+            kwargs["generator"] = generator
+        pred, mask_logits = self.net(x_t, lam, net_cond, **kwargs)
+        if self.cfg.parameterization == "v":
+            target = alpha * eps - sigma * x0
+            weight = min_snr_weight(lam, self.cfg.min_snr_gamma) * torch.exp(lam) / (torch.exp(lam) + 1.0)
         else:
-            eps_pred, mask_logits = self.net(x_t, lam, net_cond)
-        mse = (eps_pred.float() - eps.float()).square().flatten(1).mean(dim=1)  # (B,)
-        eps_loss = (min_snr_weight(lam, self.cfg.min_snr_gamma) * mse).mean()
+            target, weight = eps, min_snr_weight(lam, self.cfg.min_snr_gamma)
+        mse = _mean_per_sample((pred.float() - target.float()).square(), loss_weight)  # (B,)
+        eps_loss = (weight * mse).mean()
         losses = {"eps_mse": eps_loss}
+        if stage == "u4d":
+            losses["eps_mse_stage1"] = (weight * mse)[ones].mean()
+            losses["eps_mse_stage2"] = (weight * mse)[first:].mean()
         loss = eps_loss
-        if stage == "stage1":
+        if bce_target is not None:
             if mask_logits is None:
-                raise ValueError("GaussianDiffusion(stage1): the net has no mask head")
+                raise ValueError(f"GaussianDiffusion({stage}): the net has no mask head")
             pos_weight = torch.tensor(self.cfg.mask_pos_weight, device=x0.device)
             bce = F.binary_cross_entropy_with_logits(
-                mask_logits.float(), m_u.to(mask_logits.device, torch.float32), pos_weight=pos_weight
+                mask_logits[ones].float(),
+                bce_target.to(mask_logits.device, torch.float32),
+                pos_weight=pos_weight,
+                reduction="none",
             )
+            bce = _mean_per_sample(bce, loss_weight).mean()
             losses["mask_bce"] = bce
             loss = loss + self.cfg.mask_weight * bce
         if self.most:
@@ -188,3 +261,11 @@ class GaussianDiffusion(nn.Module):
         losses = {k: v.detach() for k, v in losses.items()}
         losses["loss"] = loss
         return losses
+
+
+def _mean_per_sample(values: Tensor, column_weight: Tensor | None) -> Tensor:
+    """(B, ...) -> (B,) mean over everything but the batch; with a (W,) column weight, its weighted mean."""
+    if column_weight is None:
+        return values.flatten(1).mean(dim=1)
+    weight = column_weight.to(values.device, values.dtype).expand_as(values)
+    return (values * weight).flatten(1).sum(dim=1) / weight.flatten(1).sum(dim=1).clamp(min=1e-12)

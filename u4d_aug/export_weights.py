@@ -46,12 +46,14 @@ def checkpoint_file(path: Path) -> Path:
     return newest_checkpoint(path) if path.is_dir() else path
 
 
-def training_row_mean(state: dict, source: Path, data_root: str = "", probs_root: str = "") -> dict | None:
+def training_row_mean(
+    state: dict, source: Path, data_root: str = "", probs_root: str = "", role: str | None = None
+) -> dict | None:
     """A diffusion stage's `row_mean` entry (`u4d_aug.weights`): `batches.net_row_mean` of its training checkpoint;
     None (and a warning) when its training scans cannot be read, as then `u4d generate mean_start_below=...` reads
     them itself."""
     try:
-        mean, found = net_row_mean(config_from_checkpoint(state, str(source)), data_root, probs_root)
+        mean, found = net_row_mean(config_from_checkpoint(state, str(source)), data_root, probs_root, role)
     except (InputError, OSError) as exc:
         logger.warning("%s: no row_mean stored, its training scans cannot be read (%s); see --data-root", source, exc)
         return None
@@ -102,6 +104,10 @@ def export_weights(
         mean = training_row_mean(state, source, data_root, probs_root)
         if mean is not None:
             exported["row_mean"] = mean
+        if config.get("diffusion", {}).get("stage") == "u4d":  # one net for both stages: stage 1's x0_u mean too
+            mean = training_row_mean(state, source, data_root, probs_root, role="stage1")
+            if mean is not None:
+                exported["row_mean_stage1"] = mean
     atomic_torch_save(out, exported)
     return exported
 

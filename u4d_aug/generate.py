@@ -86,6 +86,8 @@ class GenerateConfig:
     """What to generate and with which checkpoints (checkpoint files or run folders: newest step_*.pt)."""
 
     mode: Mode = "u4d"
+    # u4d and complete modes: one net for both stages (train-diffusion stage=u4d), in place of stage1 / stage2
+    net: str = ""
     stage1: str = ""  # u4d mode
     stage2: str = ""  # u4d and complete modes
     baseline: str = ""  # baseline mode
@@ -155,8 +157,12 @@ class GenerateConfig:
 def _checkpoint_paths(cfg: GenerateConfig) -> dict[str, Path]:
     needed = {"u4d": ("stage1", "stage2"), "baseline": ("baseline",), "complete": ("stage2",)}[cfg.mode]
     paths = {}
+    if cfg.net and cfg.mode == "baseline":
+        raise InputError("net: a one-net u4d checkpoint serves modes u4d and complete; baseline mode reads baseline")
+    if cfg.net and (cfg.stage1 or cfg.stage2):
+        raise InputError("net: a one-net u4d checkpoint replaces stage1 and stage2; set one or the other")
     for name in needed:
-        value = getattr(cfg, name)
+        value = cfg.net or getattr(cfg, name)
         if not value:
             raise InputError(f"{name}: mode {cfg.mode} needs the {name} checkpoint path")
         path = Path(value)
@@ -206,7 +212,7 @@ def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info
     if cfg.mean_start_below is not None:  # banks written before the mean start stay compatible
         identity["sampling"]["mean_start_below"] = cfg.mean_start_below
         for name, (net, net_cfg) in list(nets.items()):
-            mean, mean_sources[name] = training_mean(net_cfg, name, cfg, paths[name])
+            mean, mean_sources[name] = training_mean(net_cfg, name, cfg, paths[name])  # name: the role
             nets[name] = (MeanStart(net, mean.to(info.device), cfg.mean_start_below), net_cfg)
     main = nets["stage2"] if "stage2" in nets else nets["baseline"]
     sensor = get_sensor(main[1].sensor)
@@ -418,10 +424,10 @@ def training_mean(net_cfg: DiffusionTrainConfig, name: str, cfg: GenerateConfig,
     mean_data_root when set, else the one stored in its weights file `path` (`u4d export-weights`), else read from
     the training scans its config names; an InputError naming the keys to set when none of these is there."""
     if not cfg.mean_data_root and not Path(path).is_dir():
-        stored = stored_row_mean(load_checkpoint(Path(path), "diffusion checkpoint"), str(path))
+        stored = stored_row_mean(load_checkpoint(Path(path), "diffusion checkpoint"), str(path), name)
         if stored is not None:
             mean, source = stored
-            key = row_mean_key(net_cfg)
+            key = row_mean_key(net_cfg, name)
             if source.get("key") != key or mean.shape[1] != net_cfg.height:
                 raise InputError(
                     f"{path}: row_mean: expected the {key} mean of {net_cfg.height} rows, got {source.get('key')} "
@@ -429,7 +435,7 @@ def training_mean(net_cfg: DiffusionTrainConfig, name: str, cfg: GenerateConfig,
                 )
             return mean, {**source, "stored_in": str(path)}
     try:
-        return net_row_mean(net_cfg, cfg.mean_data_root, cfg.mean_probs_root)
+        return net_row_mean(net_cfg, cfg.mean_data_root, cfg.mean_probs_root, name)
     except (InputError, OSError) as exc:
         raise InputError(
             f"mean_start_below: the {name} net's mean image is read from its training scans ({exc}); set "

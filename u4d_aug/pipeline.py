@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from u4d_aug.data.sensors import Sensor, get_sensor
-from u4d_aug.diffusion import stage_cond
+from u4d_aug.diffusion import STAGE1_TASK, STAGE2_TASK, empty_condition, eps_from_v, stage_cond
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.io import load_checkpoint
@@ -28,7 +28,16 @@ from u4d_aug.nn.unet import RangeUNet
 from u4d_aug.propagate import warp_frame0
 from u4d_aug.range_view import RowMode, unproject
 from u4d_aug.run import newest_checkpoint
-from u4d_aug.sampling import SAMPLER_NAMES, Generators, Grid, Sample, check_grid, mean_start, replace_known
+from u4d_aug.sampling import (
+    SAMPLER_NAMES,
+    DenoiseFn,
+    Generators,
+    Grid,
+    Sample,
+    check_grid,
+    mean_start,
+    replace_known,
+)
 from u4d_aug.sampling import sample as sample_named
 from u4d_aug.stage import DiffusionTrainConfig, build_net, config_from_checkpoint
 from u4d_aug.weights import is_exported, load_exported
@@ -76,13 +85,49 @@ class MeanStart(nn.Module):
 
 
 def _check_stage(loaded: Loaded, stage: str, role: str) -> None:
-    if loaded[1].diffusion.stage != stage:
-        raise InputError(f"{role}: expected a {stage} checkpoint, got {loaded[1].diffusion.stage}")
+    """A net for `role`: a checkpoint of that stage, or a u4d net (both stages in one) for stage 1 or stage 2."""
+    got = loaded[1].diffusion.stage
+    if got != stage and not (got == "u4d" and stage in ("stage1", "stage2")):
+        raise InputError(f"{role}: expected a {stage} (or one-net u4d) checkpoint, got {got}")
 
 
 def _batch_shape(n: int, frames: int) -> tuple[int, ...]:
     """(n,) for single scans, (n, L) for L-frame sequences."""
     return (n,) if frames == 1 else (n, frames)
+
+
+def denoiser(
+    loaded: Loaded, batch_shape: tuple[int, ...], motion: Tensor | None = None, task: int | None = None
+) -> DenoiseFn:
+    """The ε̂ function a sampler calls for a loaded net, built from the inside out: the net with its per-sample
+    inputs (ego motion (*batch_shape, P), `task` of a u4d net: STAGE1_TASK runs with the empty condition), ε̂ from a
+    v-prediction, the mean start of a `MeanStart` net."""
+    net, cfg = loaded
+    device = next(net.parameters()).device
+    inner, start = (net.net, net) if isinstance(net, MeanStart) else (net, None)
+    inputs: dict = {}
+    if cfg.net.pose_dim:  # the net reads each frame's ego motion: bind it into the sampler's denoise function
+        if motion is None or tuple(motion.shape) != (*batch_shape, cfg.net.pose_dim):
+            got = None if motion is None else tuple(motion.shape)
+            raise InputError(
+                f"this {cfg.diffusion.stage} net is conditioned on ego motion: expected motion {(*batch_shape, 4)} "
+                f"(x, y, z, yaw per frame, u4d_aug.trajectory), got {got}"
+            )
+        inputs["poses"] = motion.to(device, torch.float32)
+    elif motion is not None:
+        raise InputError(f"this {cfg.diffusion.stage} net has no ego-motion input (net.pose_dim = 0); drop motion")
+    if cfg.diffusion.stage == "u4d":
+        if task not in (STAGE1_TASK, STAGE2_TASK):
+            raise InputError(
+                f"a u4d net samples stage 1 (task {STAGE1_TASK}) or stage 2 (task {STAGE2_TASK}), got {task}"
+            )
+        inputs["task"] = task
+    denoise = functools.partial(_with_inputs, inner, inputs) if inputs else inner
+    if cfg.diffusion.parameterization == "v":
+        denoise = functools.partial(_eps_of_v, denoise)
+    if start is not None:
+        denoise = mean_start(denoise, start.mean, start.below)
+    return denoise
 
 
 def _sample(
@@ -95,24 +140,14 @@ def _sample(
     grid: Grid = "time",
     motion: Tensor | None = None,
     known: tuple[Tensor, Tensor] | None = None,
+    task: int | None = None,
 ) -> Sample:
-    """`sampler` on the loaded net; `known` (x0 (*batch, C, H, W), mask (*batch, 1, H, W)) pins x̂0 where mask is 1
-    (`replace_known`)."""
+    """`sampler` on the loaded net (`denoiser`); `known` (x0 (*batch, C, H, W), mask (*batch, 1, H, W)) pins x̂0
+    where mask is 1 (`replace_known`); `task`: which stage a u4d net runs."""
     net, cfg = loaded
     device = next(net.parameters()).device
     shape = (*batch_shape, cfg.net.in_channels, cfg.height, cfg.width)
-    denoise = net
-    if cfg.net.pose_dim:  # the net reads each frame's ego motion: bind it into the sampler's denoise function
-        if motion is None or tuple(motion.shape) != (*batch_shape, cfg.net.pose_dim):
-            got = None if motion is None else tuple(motion.shape)
-            raise InputError(
-                f"this {cfg.diffusion.stage} net is conditioned on ego motion: expected motion {(*batch_shape, 4)} "
-                f"(x, y, z, yaw per frame, u4d_aug.trajectory), got {got}"
-            )
-        poses = motion.to(device, torch.float32)
-        denoise = functools.partial(_with_poses, net, poses)
-    elif motion is not None:
-        raise InputError(f"this {cfg.diffusion.stage} net has no ego-motion input (net.pose_dim = 0); drop motion")
+    denoise = denoiser(loaded, batch_shape, motion, task)
     if known is not None:
         denoise = replace_known(denoise, known[0].to(device), known[1].to(device))
     if sampler not in SAMPLER_NAMES:
@@ -124,9 +159,20 @@ def _sample(
     return sample_named(sampler, denoise, shape, steps, generator, cond=cond, device=device, grid=grid)
 
 
-def _with_poses(net: RangeUNet, poses: Tensor, x_t: Tensor, log_snr: Tensor, cond: Tensor | None):
-    """The denoise function of a pose-conditioned net: ε̂, mask logits of (x_t, log-SNR, cond) given the poses."""
-    return net(x_t, log_snr, cond, poses=poses)
+def _with_inputs(net: RangeUNet, inputs: dict, x_t: Tensor, log_snr: Tensor, cond: Tensor | None):
+    """The denoise function of a net with per-sample inputs (`poses`, `task`): ε̂, mask logits of (x_t, log-SNR,
+    cond); a u4d net's stage-1 task gets the empty condition."""
+    if inputs.get("task") == STAGE1_TASK and cond is None:
+        cond = empty_condition(x_t)
+    return net(x_t, log_snr, cond, **inputs)
+
+
+def _eps_of_v(denoise, x_t: Tensor, log_snr: Tensor, cond: Tensor | None):
+    """ε̂ (and the extra output) of a v-predicting denoise function (`diffusion.eps_from_v`)."""
+    out = denoise(x_t, log_snr, cond)
+    v, extra = out if isinstance(out, tuple) else (out, None)
+    eps = eps_from_v(x_t, torch.as_tensor(log_snr, device=x_t.device).expand(x_t.shape[0]), v)
+    return (eps, extra) if isinstance(out, tuple) else eps
 
 
 def mask_from_logits(logits: Tensor, pos_weight: float = 1.0) -> Tensor:
@@ -172,7 +218,7 @@ def generate_stage1(
     """
     _check_stage(stage1, "stage1", "stage 1")
     shape = _batch_shape(n, frames or stage1[1].frames)
-    sample = _sample(stage1, shape, steps, generator, None, sampler, grid, motion)
+    sample = _sample(stage1, shape, steps, generator, None, sampler, grid, motion, task=STAGE1_TASK)
     m_u = mask_from_logits(sample.extra, stage1[1].diffusion.mask_pos_weight)  # (n, [L,] 1, H, W), last step
     if mask_fraction is not None:
         m_u = cap_mask(m_u, sample.extra, mask_fraction)
@@ -209,7 +255,7 @@ def complete(
     device = next(net.parameters()).device
     cond = stage_cond(x0_u.to(device), m_u.to(device))  # (B, [L,] 3, H, W)
     known = (x0_u, m_u) if pin_known else None
-    sample = _sample(stage2, tuple(x0_u.shape[:-3]), steps, generator, cond, sampler, grid, motion, known)
+    sample = _sample(stage2, tuple(x0_u.shape[:-3]), steps, generator, cond, sampler, grid, motion, known, STAGE2_TASK)
     return {"x0": sample.x0, "x0_u": x0_u, "m_u": m_u}
 
 

@@ -17,7 +17,7 @@ from u4d_aug.config import config_from_dict
 from u4d_aug.data.datasets import DATASET_FORMATS
 from u4d_aug.data.nuscenes import NUSCENES_VERSION
 from u4d_aug.data.sensors import get_sensor
-from u4d_aug.diffusion import DiffusionConfig
+from u4d_aug.diffusion import DiffusionConfig, net_heads
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.nn.unet import RangeUNet, UNetConfig
@@ -39,18 +39,25 @@ class UncertaintyConfig:
 
 @dataclass
 class DiffusionOptimConfig:
-    """AdamW with linear warm-up (R2DM: lr 1e-4, batch 8, no weight decay, grad-norm clip 1)."""
+    """AdamW with linear warm-up, then a constant lr or a cosine decay to min_lr_ratio · lr at the run's last step
+    (R2DM: lr 1e-4, batch 8, no weight decay, grad-norm clip 1, cosine decay to 0)."""
 
     lr: float = 1e-4
     betas: tuple[float, float] = (0.9, 0.99)
     weight_decay: float = 0.0
     warmup_steps: int = 100
     grad_clip: float = 1.0  # max grad norm; 0 = off
+    schedule: Literal["constant", "cosine"] = "constant"  # after the warm-up
+    min_lr_ratio: float = 0.0  # cosine: the lr at the last step, as a share of lr
 
     def __post_init__(self) -> None:
         check_finite_config(self, "optim.")
         check_positive(self, "lr", prefix="optim.")
         check_positive(self, "weight_decay", "warmup_steps", "grad_clip", allow_zero=True, prefix="optim.")
+        if self.schedule not in ("constant", "cosine"):
+            raise InputError(f"optim.schedule must be 'constant' or 'cosine', got {self.schedule!r}")
+        if not 0.0 <= self.min_lr_ratio <= 1.0:
+            raise InputError(f"optim.min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
         if not all(0.0 <= beta < 1.0 for beta in self.betas):
             raise InputError(f"optim.betas must be in [0, 1), got {list(self.betas)}")
 
@@ -70,6 +77,9 @@ class DiffusionTrainConfig:
     width: int = 1024
     row_mode: RowMode = "beam"
     crop_width: int = 0  # > 0: train on random azimuth crops of this many columns (sampling stays full width); 0 = off
+    # crops: the columns at each edge of a crop that the losses skip. A crop is padded as a ring of its own, so its
+    # edges meet at a seam that the full panorama never has; the margin keeps that seam out of what the net learns
+    crop_margin: int = 0
     frames: int = 1  # L: scans per item; > 1 trains on L-frame windows of one sequence, (B, L, C, H, W)
     frame_stride: int = 1  # frames between the scans of a window
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
@@ -101,11 +111,8 @@ class DiffusionTrainConfig:
     def __post_init__(self) -> None:
         # a new net config, not an edit of the given one: a config copied with another stage (dataclasses.replace)
         # shares its net config with the original, whose net may already be built from it
-        self.net = dataclasses.replace(
-            self.net,
-            mask_head=self.diffusion.stage == "stage1",
-            cond_channels=3 if self.diffusion.stage == "stage2" else 0,
-        )
+        mask_head, cond_channels, num_tasks = net_heads(self.diffusion.stage)
+        self.net = dataclasses.replace(self.net, mask_head=mask_head, cond_channels=cond_channels, num_tasks=num_tasks)
         if self.data_format not in DATASET_FORMATS:
             raise InputError(f"data_format must be one of {', '.join(DATASET_FORMATS)}, got {self.data_format!r}")
         if self.steps < 1 or self.batch_size < 1:
@@ -118,11 +125,21 @@ class DiffusionTrainConfig:
                 f"crop_width must be 0 (off) or a multiple of {factor} (the net's downsampling) up to width "
                 f"{self.width}, got {self.crop_width}"
             )
+        if self.crop_margin < 0 or (self.crop_margin and 4 * self.crop_margin >= (self.crop_width or self.width)):
+            raise InputError(
+                f"crop_margin must be >= 0 and below a quarter of crop_width {self.crop_width}, got {self.crop_margin}"
+            )
+        if self.crop_margin and not self.crop_width:
+            raise InputError("crop_margin: the margin of azimuth crops needs crop_width > 0")
+        if self.diffusion.stage == "u4d" and self.batch_size < 2:
+            raise InputError(
+                f"stage u4d trains both stages in every batch: batch_size must be >= 2, got {self.batch_size}"
+            )
         if self.frames < 1 or self.frame_stride < 1:
             raise InputError(f"frames and frame_stride must be >= 1, got {self.frames}, {self.frame_stride}")
         if not 0.0 <= self.propagated_share <= 1.0:
             raise InputError(f"key 'propagated_share' must be in [0, 1], got {self.propagated_share}")
-        if self.propagated_share > 0 and (self.diffusion.stage != "stage2" or self.frames < 2):
+        if self.propagated_share > 0 and (self.diffusion.stage not in ("stage2", "u4d") or self.frames < 2):
             raise InputError(
                 "key 'propagated_share': the propagated condition is stage 2's on windows of frames >= 2, got "
                 f"stage {self.diffusion.stage} with frames={self.frames}"

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import math
 import time
 from pathlib import Path
 
@@ -23,7 +24,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from u4d_aug.batches import RangeImages, stage_inputs, training_batch
+from u4d_aug.batches import RangeImages, crop_loss_weight, stage_inputs, training_batch
 from u4d_aug.config import add_run_arguments, load_config, parse_override
 from u4d_aug.diffusion import GaussianDiffusion
 from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, cleanup, init_distributed
@@ -47,9 +48,16 @@ from u4d_aug.validate import check_finite_loss
 logger = logging.getLogger(__name__)
 
 
-def learning_rate(step: int, cfg: DiffusionOptimConfig) -> float:
-    """Linear warm-up over warmup_steps, then constant (R2DM)."""
-    return cfg.lr * min(1.0, (step + 1) / max(1, cfg.warmup_steps))
+def learning_rate(step: int, cfg: DiffusionOptimConfig, steps: int, time_fraction: float = 0.0) -> float:
+    """Linear warm-up over warmup_steps, then constant, or a cosine from lr down to min_lr_ratio · lr at the last of
+    `steps` (R2DM's decay) or once `time_fraction` of a wall-clock budget is used, whichever comes first."""
+    warm = min(1.0, (step + 1) / max(1, cfg.warmup_steps))
+    if cfg.schedule == "constant" or step < cfg.warmup_steps:
+        return cfg.lr * warm
+    progress = (step - cfg.warmup_steps) / max(1, steps - 1 - cfg.warmup_steps)  # 0 after warm-up .. 1 at the end
+    progress = max(progress, time_fraction)
+    floor = cfg.min_lr_ratio
+    return cfg.lr * (floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress))))
 
 
 def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress: bool = True) -> dict:
@@ -78,6 +86,7 @@ def train_locked(cfg: DiffusionTrainConfig, info: DistInfo, resume: str | Path |
     restore(start, cfg, net, optimizer, ema, ignore=("out",))
     begin_run(out, cfg, start, info)
     model = distributed(diffusion, info)
+    loss_weight = crop_loss_weight(cfg, info.device)  # (crop_width,) 0 on a crop's margins; None: every column
 
     record, window, gate_window, gate_plot = {}, [], [], []  # gates: (M, 2) per step since the last log / plot
     clock, tic = Clock(cfg.max_minutes, start.elapsed), time.perf_counter()
@@ -88,11 +97,11 @@ def train_locked(cfg: DiffusionTrainConfig, info: DistInfo, resume: str | Path |
     for step in bar:
         batch, offsets, generator = training_batch(images, cfg, step, info.rank, info.device)
         x0, cond, m_u = stage_inputs(cfg.diffusion.stage, batch)
-        lr = learning_rate(step, optim)
+        lr = learning_rate(step, optim, cfg.steps, clock.fraction() if optim.schedule == "cosine" else 0.0)
         for group in optimizer.param_groups:
             group["lr"] = lr
 
-        losses = model(x0, cond, m_u, generator, offsets, batch.get("motion"))
+        losses = model(x0, cond, m_u, generator, offsets, batch.get("motion"), loss_weight)
         check_finite_loss(losses["loss"], step + 1)
         optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
@@ -214,7 +223,9 @@ def _save_sample_png(net: RangeUNet, cfg: DiffusionTrainConfig, images: RangeIma
 
     generator = torch.Generator().manual_seed(cfg.seed)
     device = next(net.parameters()).device
-    if cfg.diffusion.stage == "stage2":
+    if cfg.diffusion.stage == "u4d":
+        x0 = pipeline.generate_u4d((net, cfg), (net, cfg), 1, cfg.sample_steps, generator, "ddpm")["x0"]
+    elif cfg.diffusion.stage == "stage2":
         first = images[0]
         x0 = pipeline.complete(
             (net, cfg),

@@ -115,8 +115,11 @@ def uncertain_range_view(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """P_u projected: x0_u (2, H, W) in [-1, 1] (−1 off P_u), m_u (1, H, W) float {0, 1}, entropy image (H, W).
 
-    The entropy image shows H(p) of the point that wins each pixel in the full scan (NaN where no return);
-    it is the uncertainty map of the figures and of the generated banks.
+    Both come from the projection of the full scan: m_u marks the pixels whose shown (nearest) point is in P_u and
+    x0_u is the full scan's image x0 there, so x0_u = x0 · m_u exactly (−1 elsewhere) and stage 2 is conditioned on
+    what the full-scan image holds, not on P_u points that a nearer point hides. The entropy image shows H(p) of the
+    point that wins each pixel in the full scan (NaN where no return); it is the uncertainty map of the figures and
+    of the generated banks.
     """
     points_t = torch.as_tensor(points).float()
     probs_t = torch.as_tensor(probs)
@@ -127,9 +130,11 @@ def uncertain_range_view(
     height = sensor.height if height is None else height
     width = sensor.width if width is None else width
     selected = select_uncertain(probs_t, k, strategy, generator)  # (K,)
-    projection_u = project(points_t[selected], sensor, height, width, row_mode)
-    x0_u = to_image(projection_u, sensor)  # (2, H, W)
-    m_u = projection_u.mask.unsqueeze(0).float()  # (1, H, W)
     projection = project(points_t, sensor, height, width, row_mode)
+    x0 = to_image(projection, sensor)  # (2, H, W)
+    in_p_u = torch.zeros(points_t.shape[0], dtype=torch.bool)
+    in_p_u[selected] = True
+    m_u = scatter_to_image(in_p_u, projection, fill=False).unsqueeze(0).float()  # (1, H, W)
+    x0_u = torch.where(m_u.bool(), x0, torch.full_like(x0, -1.0))
     entropy_image = scatter_to_image(entropy(probs_t), projection, fill=float("nan"))  # (H, W)
     return x0_u, m_u, entropy_image

@@ -13,7 +13,8 @@ one float16 scale per group (absmax, as GGML's Q8_0 blocks), about a quarter of 
 `int8: {name: shape}` and the loaders expand those tensors back before use.
 A diffusion stage's file may also carry `row_mean` = {key, mean (C, H, 1) float32, source}: the per-row mean of its
 training images (`batches.row_mean`) that `u4d generate mean_start_below=...` starts from, so that the mean start
-needs no training scans where the weights are used (`stored_row_mean`).
+needs no training scans where the weights are used (`stored_row_mean`); a one-net u4d file carries the x0 mean as
+`row_mean` and its stage-1 task's x0_u mean as `row_mean_stage1`.
 """
 
 from __future__ import annotations
@@ -184,11 +185,13 @@ def load_exported(net: torch.nn.Module, state: dict, source: str) -> None:
         )
 
 
-def stored_row_mean(state: dict, source: str) -> tuple[Tensor, dict] | None:
-    """(mean (C, H, 1) float32, {key, source...}) of an exported diffusion stage's `row_mean`, or None without one."""
-    if not is_exported(state) or "row_mean" not in state:
+def stored_row_mean(state: dict, source: str, role: str | None = None) -> tuple[Tensor, dict] | None:
+    """(mean (C, H, 1) float32, {key, source...}) of an exported diffusion stage's `row_mean` (a one-net u4d file:
+    `row_mean_stage1` for its stage-1 `role`), or None without one."""
+    name = "row_mean_stage1" if role == "stage1" and "row_mean_stage1" in state else "row_mean"
+    if not is_exported(state) or name not in state:
         return None
-    entry = state["row_mean"]
+    entry = state[name]
     mean = entry.get("mean") if isinstance(entry, dict) else None
     if not isinstance(mean, Tensor) or mean.ndim != 3 or mean.shape[-1] != 1 or not mean.is_floating_point():
         raise InputError(f"{source}: row_mean: expected {{key, mean: a (C, H, 1) float tensor, source}}")

@@ -105,8 +105,8 @@ def test_manifest_digests_find_a_sample_truncated_by_hand_and_it_is_generated_ag
 
 def real_uncertainty(root: Path, probs_root: Path, frame: str, k: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
     """(m_u (16, 64) bool, entropy map (16, 64)) of scan 00/FRAME, computed apart from the library in float64:
-    the projection of the round(k N) points of highest entropy (k = uncertainty.k of configs/u4d/tiny.yaml), and
-    the entropy of the point each pixel of the whole scan shows (NaN where none)."""
+    the pixels of the whole scan's projection whose shown point is among the round(k N) points of highest entropy
+    (k = uncertainty.k of configs/u4d/tiny.yaml), and the entropy of the point each pixel shows (NaN where none)."""
     points = read_kitti_scan(root / "sequences" / "00" / "velodyne" / f"{frame}.bin")
     probs = np.load(probs_root / "sequences" / "00" / "probs" / f"{frame}.npy").astype(np.float64)
     h = -(probs * np.log(np.where(probs > 0, probs, 1.0))).sum(axis=1)  # (N,) nats
@@ -114,8 +114,10 @@ def real_uncertainty(root: Path, probs_root: Path, frame: str, k: float = 0.1) -
     order = np.argsort(-h, kind="stable")
     assert h[order[count - 1]] - h[order[count]] > 1e-5  # no near-tie at the cut: float32 picks the same points
     sensor = get_sensor("hdl64")
-    mask = project(torch.from_numpy(points[order[:count]]), sensor, 16, 64, "linear").mask.numpy()
     winner = project(torch.from_numpy(points), sensor, 16, 64, "linear").winner.numpy()
+    selected = np.zeros(len(points), dtype=bool)
+    selected[order[:count]] = True
+    mask = (winner >= 0) & selected[np.maximum(winner, 0)]
     return mask, np.where(winner >= 0, h[np.maximum(winner, 0)], np.nan)
 
 

@@ -41,7 +41,7 @@ def two_ranks_in_one_process(cfg: DiffusionTrainConfig) -> tuple[list[float], to
     losses = []
     for step in range(cfg.steps):
         for group in optimizer.param_groups:
-            group["lr"] = learning_rate(step, cfg.optim)
+            group["lr"] = learning_rate(step, cfg.optim, cfg.steps)
         optimizer.zero_grad(set_to_none=True)
         per_rank = []
         for rank in range(2):

@@ -11,7 +11,7 @@ import torch
 from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.data.sensors import hdl64
 from u4d_aug.errors import InputError
-from u4d_aug.range_view import project
+from u4d_aug.range_view import project, to_image
 from u4d_aug.uncertainty import entropy, load_probs, select_uncertain, uncertain_range_view
 
 
@@ -82,19 +82,26 @@ def test_confidence_random_none_strategies():
         select_uncertain(probs, 3, "most")  # type: ignore[arg-type]
 
 
-def test_m_u_marks_exactly_the_pixels_of_the_selected_points():
+def test_m_u_marks_the_pixels_p_u_wins_and_x0_u_is_x0_there():
     sensor = hdl64()
     points = _ring_points(3000)
     probs = _random_probs(3000, 19, seed=2)
     x0_u, m_u, entropy_image = uncertain_range_view(points, probs, sensor, 64, 256, "beam", k=200)
     assert x0_u.shape == (2, 64, 256) and m_u.shape == (1, 64, 256) and entropy_image.shape == (64, 256)
     chosen = select_uncertain(probs, 200, "entropy")
-    pixels = project(points, sensor, 64, 256, "beam").pixel[chosen]
-    expected = torch.zeros(64 * 256)
-    expected[pixels[pixels >= 0]] = 1.0
-    assert torch.equal(m_u.flatten(), expected)
+    full = project(points, sensor, 64, 256, "beam")
+    # m_u: the pixels whose shown point (of the full scan) is in P_u; x0_u = x0 · m_u exactly, -1 elsewhere
+    in_p_u = torch.zeros(points.shape[0], dtype=torch.bool)
+    in_p_u[chosen] = True
+    expected = (full.winner >= 0) & in_p_u[full.winner.clamp(min=0)]
+    assert torch.equal(m_u[0].bool(), expected)
+    x0 = to_image(full, sensor)
+    assert torch.equal(x0_u[:, m_u[0] == 1], x0[:, m_u[0] == 1])
+    assert torch.equal(x0_u, torch.where(m_u.bool(), x0, torch.full_like(x0, -1.0)))
     assert bool((x0_u[:, m_u[0] == 0] == -1).all())
-    assert bool((x0_u[0, m_u[0] == 1] > -1).all())
+    # a P_u point hidden behind a nearer point outside P_u does not enter m_u
+    hidden = chosen[~expected.flatten()[full.pixel[chosen].clamp(min=0)]]
+    assert len(hidden) > 0
     # the entropy image holds the entropy of the winning point and NaN where there is no return
     full = project(points, sensor, 64, 256, "beam")
     h = entropy(probs)

@@ -45,6 +45,9 @@ class UNetConfig:
     most_gate_noise: float = 0.5  # std of the Gaussian noise on the gate logits in training
     most_fusion: Fusion = "gating"  # how a MoST block joins its branches: gating | cascade | add | concat
     pose_dim: int = 0  # > 0: each frame's ego motion (e.g. dx, dy, dz, dyaw from u4d_aug.trajectory) conditions it
+    # > 0: the net serves that many tasks, told apart by a learned task embedding added to the noise-level embedding
+    # (U4D's one net for both stages: task 0 = stage 1, the uncertain region; task 1 = stage 2, the completion)
+    num_tasks: int = 0
 
     def __post_init__(self) -> None:
         if self.base_channels < 1:
@@ -72,6 +75,8 @@ class UNetConfig:
                 )
         if self.pose_dim < 0:
             raise InputError(f"net.pose_dim must be >= 0 (0 = no ego-motion condition), got {self.pose_dim}")
+        if self.num_tasks < 0:
+            raise InputError(f"net.num_tasks must be >= 0 (0 = one task, no task embedding), got {self.num_tasks}")
         if self.most_kernel_t < 1 or self.most_kernel_t % 2 == 0:
             raise InputError(f"net.most_kernel_t must be a positive odd number, got {self.most_kernel_t}")
         if self.most_fusion not in FUSIONS:
@@ -198,6 +203,8 @@ class RangeUNet(nn.Module):
 
         # built last for the same reason as the MoST blocks; zero-initialised output, so it starts as no condition
         self.pose_embed = PoseEmbedding(cfg.pose_dim, embed_channels) if cfg.pose_dim > 0 else None
+        # built last too: a seeded net's other weights do not depend on num_tasks
+        self.task_embed = nn.Embedding(cfg.num_tasks, embed_channels) if cfg.num_tasks > 0 else None
 
     def _most_block(self, channels: int, embed_channels: int) -> MoSTBlock:
         cfg = self.cfg
@@ -232,10 +239,12 @@ class RangeUNet(nn.Module):
         generator: torch.Generator | None = None,
         crop_offsets: Tensor | None = None,
         poses: Tensor | None = None,
+        task: Tensor | int | None = None,
     ) -> tuple[Tensor, Tensor | None]:
         """x_t (B, [L,] C_in, H, W), log_snr (B,) or (), cond (B, [L,] C_cond, H, W) -> (ε̂, mask logits).
 
         `poses` (B, [L,] pose_dim): each frame's ego motion, needed exactly when net.pose_dim > 0.
+        `task` (B,) int or one int for the batch: which task each sample is, needed exactly when net.num_tasks > 0.
         `generator` draws the MoST gate noise in training mode (torch's CPU default generator if None).
         `crop_offsets` (B,) int: x_t is an azimuth crop of width W < the net's full width starting at these columns
         of the panorama (wrapping around); the ray features are read at the crop's columns (`crop_columns`) and the
@@ -250,6 +259,12 @@ class RangeUNet(nn.Module):
             raise ValueError(f"RangeUNet: net.pose_dim = {self.cfg.pose_dim} needs poses exactly when it is > 0")
         if poses is not None and poses.shape != (*x_t.shape[:-3], self.cfg.pose_dim):
             raise ValueError(f"RangeUNet: poses must be (B, [L,] {self.cfg.pose_dim}), got {tuple(poses.shape)}")
+        if (task is None) != (self.task_embed is None):
+            raise ValueError(f"RangeUNet: net.num_tasks = {self.cfg.num_tasks} needs task exactly when it is > 0")
+        if task is not None:
+            task = torch.as_tensor(task, device=x_t.device, dtype=torch.long).reshape(-1).expand(batch)
+            if bool(((task < 0) | (task >= self.cfg.num_tasks)).any()):
+                raise ValueError(f"RangeUNet: task must be in 0..{self.cfg.num_tasks - 1}, got {task.tolist()}")
         frames = 1
         if sequence:
             # (B, L) is folded into the batch, frames of a sequence adjacent, and unfolded at the end; only the
@@ -260,7 +275,8 @@ class RangeUNet(nn.Module):
             log_snr = log_snr.repeat_interleave(frames)
             crop_offsets = crop_offsets.repeat_interleave(frames) if crop_offsets is not None else None
             poses = poses.flatten(0, 1) if poses is not None else None
-        eps, mask_logits = self._forward_frames(x_t, log_snr, cond, frames, generator, crop_offsets, poses)
+            task = task.repeat_interleave(frames) if task is not None else None
+        eps, mask_logits = self._forward_frames(x_t, log_snr, cond, frames, generator, crop_offsets, poses, task)
         if sequence:
             eps = eps.unflatten(0, (batch, frames))
             mask_logits = mask_logits.unflatten(0, (batch, frames)) if mask_logits is not None else None
@@ -275,6 +291,7 @@ class RangeUNet(nn.Module):
         generator: torch.Generator | None,
         crop_offsets: Tensor | None = None,
         poses: Tensor | None = None,
+        task: Tensor | None = None,
     ) -> tuple[Tensor, Tensor | None]:
         cfg = self.cfg
         _, channels, height, width = x_t.shape
@@ -294,6 +311,8 @@ class RangeUNet(nn.Module):
         emb = self.embed(log_snr)  # (N, E)
         if self.pose_embed is not None:
             emb = emb + self.pose_embed(poses)  # each frame its own ego motion
+        if self.task_embed is not None:
+            emb = emb + self.task_embed(task)  # (N, E): which stage this sample is
         emb = F.silu(emb)  # every ResBlock applies its own Linear after this SiLU
         h = self.stem(x_t)  # (N, C0, H, W)
         if self.ray_features is not None:
