@@ -127,7 +127,7 @@ def row_mean(cfg: DiffusionTrainConfig, key: str = "x0", count: int = 32, seed: 
     items, frames and columns: the MMSE estimate of a range image at vanishing SNR, per row (`sampling.mean_start`).
     `seed` draws P_u where the net's uncertainty strategy is random (the selection ablation)."""
     if key == "x0":  # full scans: no uncertainty (and no probability files, nor a stage-2 condition) needed
-        baseline = dataclasses.replace(cfg.diffusion, stage="baseline")
+        baseline = dataclasses.replace(cfg.diffusion, stage="baseline", cond_noise=0.0)
         cfg = dataclasses.replace(cfg, diffusion=baseline, propagated_share=0.0)
     images = RangeImages(cfg)
     step = max(1, len(images) // count)

@@ -12,7 +12,7 @@ import torch
 
 from tests.tiny_nets import diffusion_config, gen_config
 from tests.tiny_worlds import write_tiny_world
-from u4d_aug.batches import RangeImages, crop_loss_weight, stage_inputs, training_batch
+from u4d_aug.batches import RangeImages, crop_loss_weight, net_row_mean, stage_inputs, training_batch
 from u4d_aug.config import load_config
 from u4d_aug.diffusion import (
     STAGE1_TASK,
@@ -166,3 +166,12 @@ def test_v_parameterized_u4d_net_trains_and_samples(tiny_world, tmp_path):
     loaded = load_generator(out)
     result = generate_u4d(loaded, loaded, 1, 2, torch.Generator().manual_seed(0), "dpmpp2m-sde")
     assert bool(torch.isfinite(result["x0"]).all())
+
+
+def test_row_means_of_a_u4d_net_with_condition_noise(tiny_world, tmp_path):
+    cfg = diffusion_config(tiny_world, tmp_path / "run", "u4d", "diffusion.cond_noise=0.05")
+    mean_x0, source_x0 = net_row_mean(cfg, role="stage2")
+    mean_u, source_u = net_row_mean(cfg, role="stage1")
+    assert (source_x0["key"], source_u["key"]) == ("x0", "x0_u")
+    assert mean_x0.shape == mean_u.shape == (2, 16, 1)
+    assert float(mean_u.mean()) < float(mean_x0.mean())  # x0_u is empty (-1) off the uncertain region
