@@ -6,6 +6,7 @@
 # points per cell, roughness, FPD). Two queues, one per core, resumable (a killed pilot resumes from its checkpoint):
 #   CORE=A nohup bash scripts/generator_pilots.sh > ../runs/pilots_A.log 2>&1 &
 #   CORE=B nohup bash scripts/generator_pilots.sh > ../runs/pilots_B.log 2>&1 &
+# ROUND=2: the second round (the min-SNR weighting), after the first.
 # RUNS (default ../runs) holds the run folders; the world is data/sim_seg (places 00-87 train) with the uncertainty
 # segmentor's probabilities data/sim_seg_probs, the held-out scans data/sim_eval (+ data/sim_eval_probs).
 set -euo pipefail
@@ -69,7 +70,14 @@ baseline() {  # NAME STEPS [overrides...]: the R2DM-style single net
 }
 
 WIDE_STEPS=$((BUDGET * 10 / 19))  # base 24 + attention: 1.9x the base-16 step time (measured side by side)
-if [ "$CORE" = A ]; then
+ROUND=${ROUND:-1}
+if [ "$ROUND" = 2 ]; then  # the loss weighting of the high-SNR end, where every round-1 pilot left the noise in x̂0
+  if [ "$CORE" = A ]; then
+    shared shared_simple "$BUDGET" diffusion.min_snr_gamma=null
+  else
+    shared shared_gamma50 "$BUDGET" diffusion.min_snr_gamma=50
+  fi
+elif [ "$CORE" = A ]; then
   two_nets two_nets "$BUDGET"
   shared shared_cosine_margin "$BUDGET" "${COSINE[@]}" crop_margin=32
   shared shared_cosine_margin_v "$BUDGET" "${COSINE[@]}" crop_margin=32 diffusion.parameterization=v
