@@ -48,7 +48,7 @@ from u4d_aug.errors import InputError
 from u4d_aug.generate import GenerateConfig, generate_bank
 from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json, atomic_write_text, load_checkpoint
-from u4d_aug.metrics.evaluate import METRICS, evaluate
+from u4d_aug.metrics.evaluate import METRICS, evaluate, list_scans
 from u4d_aug.metrics.structure import depth_roughness, points_per_cell
 from u4d_aug.pipeline import load_generator, to_points
 from u4d_aug.range_view import project, project_batch, to_image
@@ -187,18 +187,18 @@ def score_bank(
     extractors: tuple[Path, Path],
     geometry: dict,
     teacher: tuple | None = None,
+    max_scans: int | None = None,
 ) -> dict:
     """One bank's values: `u4d evaluate`'s metrics against the reference scans (`extractors` = FRD, FPD checkpoints)
-    and the STRUCTURE metrics of the bank's own scans (`structure_scores`)."""
+    and the STRUCTURE metrics of the bank's own scans (`structure_scores`); `max_scans`: the first scans of the bank
+    (and of the reference, `evaluate`'s max_scans)."""
     table = tuple(m for m in metrics if m not in STRUCTURE)
     values: dict = {}
     if table:
-        result = evaluate(bank, reference, table, None, extractors[0], extractors[1], reference_sequences)
+        result = evaluate(bank, reference, table, max_scans, extractors[0], extractors[1], reference_sequences)
         values = {metric: result["table1"][metric]["value"] for metric in table}
     if any(m in STRUCTURE for m in metrics):
-        scans = [read_kitti_scan(path) for path in sorted(bank.glob("sequences/*/velodyne/*.bin"))]
-        if not scans:
-            raise InputError(f"{bank}: no scans under sequences/*/velodyne/")
+        scans = [read_kitti_scan(path) for _, _, path in list_scans(bank, max_scans)]
         values |= structure_scores(scans, metrics, geometry, teacher)
     return values
 
