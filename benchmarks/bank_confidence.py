@@ -5,10 +5,11 @@ The bank arms of benchmarks/results/downstream draw half of each step's unlabell
 the student on the teacher's labels where the teacher's softmax confidence reaches semi.pseudo_threshold
 (`segmentation.mean_teacher.pseudo_labels`). A teacher that is unsure on generated scans gives the student fewer and
 other labels there. Each scan is cut and augmented as the mean teacher's unlabelled stream does
-(`segmentation.semi.load_unlabeled`: data.sector_deg, data.max_points, the checkpoint's augment config), with a
-generator seeded by the scan's index; the real scans are the unlabelled part of the checkpoint's split, where the
-world's labels also give the accuracy of the kept pseudo-labels. The checkpoint is the teacher at the start of the
-mean-teacher phase: the supervised burn-in (`burn_in.pt` of a sup-only run).
+(`segmentation.teacher_view.teacher_logits`, as `segmentation.semi.load_unlabeled` does: data.sector_deg,
+data.max_points, the checkpoint's augment config), with a generator seeded by the scan's index; the real scans are
+the unlabelled part of the checkpoint's split, where the world's labels also give the accuracy of the kept
+pseudo-labels. The checkpoint is the teacher at the start of the mean-teacher phase: the supervised burn-in
+(`burn_in.pt` of a sup-only run).
 
   python benchmarks/bank_confidence.py --checkpoint RUNS/downstream_10pct/runs/sup-only/minkunet/seed2/burn_in.pt \
     --real data/sim_seg --bank mt+r2dm=banks/r2dm_hdl64_ms --bank mt+u4d=banks/u4d_hdl64_ms --scans 64 \
@@ -29,10 +30,8 @@ import numpy as np
 import torch
 
 from segmentation.config import SegTrainConfig, class_names
-from segmentation.data import augment, training_subset
-from segmentation.predict import load_checkpoint, model_from_checkpoint
 from segmentation.semi import unlabeled_stream
-from u4d_aug.config import config_from_dict
+from segmentation.teacher_view import load_teacher, teacher_logits
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder
@@ -72,9 +71,8 @@ def source_statistics(
         if intensity is not None:
             scan = scan.clone()
             scan[:, 3] = intensity
-        generator = torch.Generator().manual_seed(index)
-        keep = training_subset(scan, cfg.data.sector_deg, cfg.data.max_points, generator)
-        probs = torch.softmax(model([augment(scan[keep], generator, cfg.augment)]).float(), dim=1)  # (N', K)
+        logits, keep = teacher_logits(model, scan, cfg, torch.Generator().manual_seed(index))  # (N', K), (N',)
+        probs = torch.softmax(logits, dim=1)  # (N', K)
         confidence, labels = probs.max(dim=1)  # (N',), (N',)
         kept = confidence >= cfg.semi.pseudo_threshold
         entropy = -(probs * probs.clamp_min(1e-12).log()).sum(dim=1) / math.log(k)  # (N',) in [0, 1]
@@ -122,10 +120,8 @@ def teacher_and_sources(
 ) -> tuple[SegTrainConfig, torch.nn.Module, dict[str, ScanDataset]]:
     """The checkpoint's config (data.root = `real`, no banks), its net in eval mode, and the sources: the unlabelled
     part of its split of `real` ("real unlabelled"), then each bank."""
-    ckpt = load_checkpoint(checkpoint)
-    cfg = config_from_dict(SegTrainConfig, ckpt["config"], source=f"{checkpoint} config")
+    cfg, model = load_teacher(checkpoint)
     cfg.data.root, cfg.semi.banks = real, []
-    model = model_from_checkpoint(ckpt, torch.device("cpu"), source=str(checkpoint))
     sources = {"real unlabelled": unlabeled_stream(cfg).sources[0]}
     sources.update({name: ScanDataset(folder, None) for name, folder in banks.items()})
     return cfg, model, sources

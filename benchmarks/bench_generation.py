@@ -18,6 +18,13 @@ scores them the same way, so it is the value a perfect generator would get at th
 the floor, points per scan over the floor's raw and projected points) and the same per sampler under `samplers`;
 `sampler_ratios.<method> <metric> <headline tag>/<tag>`: each method's headline score over its score with every other
 setting (the fast sampler against the same nets' 32-step DDPM).
+What a segmentor reads (issue 68), `--metrics teacher,bev_density,roughness`, scores each bank's own scans, not
+against the reference: `methods.<name>.teacher_kept_share` / `teacher_building_share` (of the kept pseudo-labels) /
+`teacher_class_share` ({class: share}, mean over seeds) of the `--teacher` (`segmentation.teacher_view`),
+`bev_points_per_cell` (above-ground points per occupied 0.25 m BEV cell) and `ring_roughness` / `vertical_roughness`
+(`u4d_aug.metrics.structure`). Asked for any of them, the floor's scans are also scored after the trip a generated
+scan makes (project -> to_image -> unproject at the generators' H x W): `methods.floor_projected`, every metric, and
+the ratios `<method>/floor projected <key>`.
 """
 
 from __future__ import annotations
@@ -32,17 +39,19 @@ from typing import NamedTuple
 
 import numpy as np
 
+from segmentation.teacher_view import load_teacher, teacher_view
 from u4d_aug.config import load_config
 from u4d_aug.data.datasets import expand_sequences, list_frames
-from u4d_aug.data.formats import read_kitti_scan
+from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.errors import InputError
 from u4d_aug.generate import GenerateConfig, generate_bank
 from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json, atomic_write_text, load_checkpoint
-from u4d_aug.metrics.evaluate import evaluate, parse_metrics
-from u4d_aug.pipeline import load_generator
-from u4d_aug.range_view import project
+from u4d_aug.metrics.evaluate import METRICS, evaluate, list_scans
+from u4d_aug.metrics.structure import depth_roughness, points_per_cell
+from u4d_aug.pipeline import load_generator, to_points
+from u4d_aug.range_view import project, project_batch, to_image
 from u4d_aug.run import newest_checkpoint
 from u4d_aug.weights import is_exported
 
@@ -50,6 +59,14 @@ REPO = Path(__file__).resolve().parents[1]
 WEIGHTS = REPO / "weights"  # the shipped 64x1024 nets and extractors (weights/README.md)
 METHODS = ("u4d", "baseline")
 SEED_STRIDE = 100_000
+# what a segmentor reads in a scan (issue 68): the teacher's kept pseudo-labels and their class mix, above-ground points
+# per occupied BEV cell, ring / vertical roughness of the range image; scored per bank, not against the reference
+STRUCTURE = ("teacher", "bev_density", "roughness")
+STRUCTURE_KEYS = {
+    "teacher": ("teacher_kept_share", "teacher_building_share", "teacher_class_share"),
+    "bev_density": ("bev_points_per_cell",),
+    "roughness": ("ring_roughness", "vertical_roughness"),
+}
 
 
 def training_budget(run: Path) -> dict:
@@ -111,6 +128,79 @@ def projected_points(bank: Path, geometry: dict) -> float:
     if not counts:
         raise InputError(f"{bank}: no scans to project")
     return float(np.mean(counts))
+
+
+def projected_bank(bank: Path, geometry: dict, out: Path) -> Path:
+    """`bank`'s scans as a generator makes its own: projected to its range image, encoded, unprojected at the
+    bin-centre rays (`range_view.project` -> `to_image` -> `pipeline.to_points`), one folder in SemanticKITTI layout."""
+    sensor = get_sensor(geometry["sensor"])
+    paths = sorted(bank.glob("sequences/*/velodyne/*.bin"))
+    if not paths:
+        raise InputError(f"{bank}: no scans to project")
+    for path in paths:
+        target = out / path.relative_to(bank)
+        if not target.exists():
+            projection = project(
+                read_kitti_scan(path), sensor, geometry["height"], geometry["width"], geometry["row_mode"]
+            )
+            image = to_image(projection, sensor)[None]  # (1, 2, H, W)
+            write_kitti_scan(target, to_points(image, sensor, geometry["row_mode"])[0])
+    return out
+
+
+def parse_bench_metrics(text: str) -> tuple[str, ...]:
+    """'frd,teacher' -> ('frd', 'teacher'): `u4d evaluate`'s metrics and STRUCTURE; one line naming both otherwise."""
+    names = tuple(dict.fromkeys(part.strip().lower() for part in text.split(",") if part.strip()))
+    table = [name for name in names if name not in STRUCTURE]
+    if not names or (table and any(name not in METRICS for name in table)):
+        raise InputError(f"--metrics {text!r}: expected a comma-separated subset of {','.join(METRICS + STRUCTURE)}")
+    return names
+
+
+def structure_scores(
+    scans: list[np.ndarray], metrics: tuple[str, ...], geometry: dict, teacher: tuple | None = None
+) -> dict:
+    """The STRUCTURE metrics asked for of scans (N_i, 4): `segmentation.teacher_view.teacher_view` with `teacher`
+    = (cfg, net), `structure.points_per_cell`, `structure.depth_roughness` of the scans at `geometry`'s H x W."""
+    values: dict = {}
+    if "teacher" in metrics:
+        cfg, model = teacher
+        view = teacher_view(model, cfg, scans)
+        values["teacher_kept_share"] = view["kept_share"]
+        values["teacher_building_share"] = view["building_share"]
+        values["teacher_class_share"] = view["class_share"]
+    if "bev_density" in metrics:
+        values["bev_points_per_cell"] = points_per_cell(scans)
+    if "roughness" in metrics:
+        sensor = get_sensor(geometry["sensor"])
+        projection = project_batch(scans, sensor, geometry["height"], geometry["width"], geometry["row_mode"])
+        rough = depth_roughness(to_image(projection, sensor))  # pooled over the (B, 2, H, W) images
+        values["ring_roughness"], values["vertical_roughness"] = rough["ring"], rough["vertical"]
+    return values
+
+
+def score_bank(
+    bank: Path,
+    reference: Path,
+    reference_sequences: list[str] | None,
+    metrics: tuple[str, ...],
+    extractors: tuple[Path, Path],
+    geometry: dict,
+    teacher: tuple | None = None,
+    max_scans: int | None = None,
+) -> dict:
+    """One bank's values: `u4d evaluate`'s metrics against the reference scans (`extractors` = FRD, FPD checkpoints)
+    and the STRUCTURE metrics of the bank's own scans (`structure_scores`); `max_scans`: the first scans of the bank
+    (and of the reference, `evaluate`'s max_scans)."""
+    table = tuple(m for m in metrics if m not in STRUCTURE)
+    values: dict = {}
+    if table:
+        result = evaluate(bank, reference, table, max_scans, extractors[0], extractors[1], reference_sequences)
+        values = {metric: result["table1"][metric]["value"] for metric in table}
+    if any(m in STRUCTURE for m in metrics):
+        scans = [read_kitti_scan(path) for _, _, path in list_scans(bank, max_scans)]
+        values |= structure_scores(scans, metrics, geometry, teacher)
+    return values
 
 
 class SamplerSpec(NamedTuple):
@@ -179,6 +269,21 @@ def summarise(values: list[float | None]) -> dict:
     return {"mean": statistics.fmean(kept), "std": std, "values": values}
 
 
+def summarise_key(key: str, values: list) -> dict:
+    """`summarise` of one row entry; the teacher's class mix (a dict per seed) -> {class: mean share over seeds}."""
+    if key == "teacher_class_share":
+        return {name: statistics.fmean(v[name] for v in values) for name in values[0]}
+    return summarise(values)
+
+
+def columns(metrics: list[str] | tuple[str, ...]) -> list[str]:
+    """The table's columns of the metrics asked for: a STRUCTURE metric's scalar keys, else the metric itself."""
+    keys = []
+    for metric in metrics:
+        keys += [k for k in STRUCTURE_KEYS[metric] if k != "teacher_class_share"] if metric in STRUCTURE else [metric]
+    return keys
+
+
 def ratio(a: dict, b: dict) -> float | None:
     """mean(a) / mean(b), or None when either is missing."""
     if a.get("mean") is None or not b.get("mean"):
@@ -187,11 +292,14 @@ def ratio(a: dict, b: dict) -> float | None:
 
 
 HEADER = {"frd": "FRD ↓", "fpd": "FPD ↓", "jsd": "JSD ↓", "mmd": "MMD ×10⁴ ↓", "points": "points/scan",
-          "rangejs": "range JS ↓", "intensityjs": "intensity JS ↓"}  # fmt: skip
+          "rangejs": "range JS ↓", "intensityjs": "intensity JS ↓", "teacher_kept_share": "teacher kept",
+          "teacher_building_share": "building of kept", "bev_points_per_cell": "points/BEV cell",
+          "ring_roughness": "ring roughness", "vertical_roughness": "vertical roughness"}  # fmt: skip
 
 
 def table(methods: dict, metrics: list[str]) -> list[str]:
     """Markdown rows = methods, columns = metrics as mean ± std over seeds, then seconds per scan."""
+    metrics = columns(metrics)
     lines = ["| method | " + " | ".join(HEADER[m] for m in metrics) + " | s/scan |", "|---" * (len(metrics) + 2) + "|"]
     for name, row in methods.items():
         cells = []
@@ -268,7 +376,7 @@ def _fmt_ratio(value: float | None) -> str:
 def sampler_block(spec: SamplerSpec, rows: dict, speed: dict, metrics: tuple[str, ...]) -> dict:
     """Summaries of one sampler setting: methods.<name>.<metric>.{mean,std,values} and the goal ratios."""
     methods = {
-        name: {m: summarise(values[m]) for m in metrics}
+        name: {key: summarise_key(key, column) for key, column in values.items() if key != "points_projected"}
         | ({"seconds_per_scan": summarise(speed[name])} if name in speed else {})
         for name, values in rows.items()
     }
@@ -288,6 +396,10 @@ def sampler_block(spec: SamplerSpec, rows: dict, speed: dict, metrics: tuple[str
                 ratios[f"{name} points/floor projected"] = ratio(
                     methods[name]["points"], methods["floor"]["points_projected"]
                 )
+    if "floor_projected" in methods:  # what a segmentor reads, over a real scan's made like a generated one
+        for key in columns([m for m in metrics if m in STRUCTURE]):
+            for name in METHODS:
+                ratios[f"{name}/floor projected {key}"] = ratio(methods[name][key], methods["floor_projected"][key])
     return {"sampler": spec._asdict(), "methods": methods, "ratios": ratios}
 
 
@@ -333,8 +445,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mean-data-root", default="", help="where the nets' training scans are (mean_data_root)")
     parser.add_argument("--mean-probs-root", default="", help="their probabilities, for stage 1 (mean_probs_root)")
     parser.add_argument(
-        "--metrics", default="jsd,mmd,points,rangejs", help="subset of frd,fpd,jsd,mmd,points,rangejs,intensityjs"
-    )
+        "--metrics", default="jsd,mmd,points,rangejs",
+        help="subset of frd,fpd,jsd,mmd,points,rangejs,intensityjs and teacher,bev_density,roughness (what a segmentor "
+        "reads: the --teacher's kept pseudo-labels and class mix, above-ground points per 0.25 m BEV cell, ring / "
+        "vertical roughness; these also score the floor's scans made like generated ones, `floor_projected`)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--teacher", type=Path, default=WEIGHTS / "uncertainty_segmentor.pt",
+        help="(default: the shipped segmentor) the teacher of the `teacher` metric: a segmentation checkpoint",
+    )  # fmt: skip
     parser.add_argument("--extractor-frd", type=Path, default=WEIGHTS / "extractor_frd.pt", help="(default: shipped)")
     parser.add_argument("--extractor-fpd", type=Path, default=WEIGHTS / "extractor_fpd.pt", help="(default: shipped)")
     parser.add_argument("--device", default="auto")
@@ -344,18 +463,21 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.quick:
         args.num, args.seeds, args.samplers = 8, [0, 1], [SamplerSpec("ddpm", 8, 4)]
-    metrics = parse_metrics(args.metrics)
     try:
+        metrics = parse_bench_metrics(args.metrics)
+        teacher = load_teacher(args.teacher) if "teacher" in metrics else None
         training = {
             "u4d stage 1": training_budget(args.stage1),
             "u4d stage 2": training_budget(args.stage2),
             "baseline": training_budget(args.baseline),
         }
         geometry = range_geometry(args.baseline)
-        floor_rows: dict[str, list] = {m: [] for m in metrics}
+        structure = any(m in STRUCTURE for m in metrics)
+        floor_rows: dict[str, list] = {}
+        projected_rows: dict[str, list] = {}
         blocks = {}
         for spec in args.samplers:
-            rows: dict[str, dict[str, list]] = {name: {m: [] for m in metrics} for name in METHODS}
+            rows: dict[str, dict[str, list]] = {name: {} for name in METHODS}
             speed: dict[str, list[float]] = {name: [] for name in METHODS}
             for seed in args.seeds:
                 start = "" if args.mean_start_below is None else f"_ms{args.mean_start_below:g}"  # other banks
@@ -364,20 +486,27 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{spec.tag} seed {seed}: generating {args.num} scans with {name}", flush=True)
                     speed[name].append(generate(name, args, spec, seed, banks[name]))
                 for name, bank in banks.items():
-                    values = score(bank, args, metrics)
-                    for metric in metrics:
-                        rows[name][metric].append(values[metric])
+                    values = score(bank, args, metrics, geometry, teacher)
+                    for key, value in values.items():
+                        rows[name].setdefault(key, []).append(value)
                     print(f"{spec.tag} seed {seed} {name}: {values}", flush=True)
-            if not floor_rows[metrics[0]]:  # the floor does not depend on the sampler: scored once per seed
+            if not floor_rows:  # the floor does not depend on the sampler: scored once per seed
                 for seed in args.seeds:
                     bank = floor_bank(args.root, args.floor, args.num, seed, args.work / f"floor_n{args.num}_s{seed}")
-                    values = score(bank, args, metrics)
+                    values = score(bank, args, metrics, geometry, teacher)
                     if "points" in metrics:
                         values["points_projected"] = projected_points(bank, geometry)
                     for metric in values:
                         floor_rows.setdefault(metric, []).append(values[metric])
                     print(f"floor seed {seed}: {values}", flush=True)
-            blocks[spec.tag] = sampler_block(spec, rows | {"floor": floor_rows}, speed, metrics)
+                    if structure:  # the same real scans through the generators' range image
+                        out = args.work / f"floor_projected_n{args.num}_s{seed}"
+                        values = score(projected_bank(bank, geometry, out), args, metrics, geometry, teacher)
+                        for key, value in values.items():
+                            projected_rows.setdefault(key, []).append(value)
+                        print(f"floor projected seed {seed}: {values}", flush=True)
+            reals = {"floor": floor_rows} | ({"floor_projected": projected_rows} if structure else {})
+            blocks[spec.tag] = sampler_block(spec, rows | reals, speed, metrics)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -408,10 +537,12 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def score(bank: Path, args: argparse.Namespace, metrics: tuple[str, ...]) -> dict[str, float | None]:
-    """Table-1 values of one bank against the reference sequences."""
-    result = evaluate(bank, args.root, metrics, None, args.extractor_frd, args.extractor_fpd, args.reference)
-    return {metric: result["table1"][metric]["value"] for metric in metrics}
+def score(
+    bank: Path, args: argparse.Namespace, metrics: tuple[str, ...], geometry: dict, teacher: tuple | None
+) -> dict:
+    """Table-1 values of one bank against the reference sequences and its STRUCTURE values (`score_bank`)."""
+    extractors = (args.extractor_frd, args.extractor_fpd)
+    return score_bank(bank, args.root, args.reference, metrics, extractors, geometry, teacher)
 
 
 if __name__ == "__main__":

@@ -21,8 +21,10 @@ from u4d_aug.data.sensors import Sensor
 from u4d_aug.errors import InputError
 
 __all__ = [
+    "ROUGHNESS_DIRECTIONS",
     "ROW_MODES",
     "Projection",
+    "RoughnessDirection",
     "RowMode",
     "decode_depth",
     "encode_depth",
@@ -38,6 +40,8 @@ __all__ = [
 
 RowMode = Literal["beam", "linear"]
 ROW_MODES: tuple[str, ...] = ("beam", "linear")
+RoughnessDirection = Literal["ring", "vertical"]
+ROUGHNESS_DIRECTIONS: tuple[str, ...] = ("ring", "vertical")
 
 _LOW_32_BITS = 0xFFFFFFFF
 NO_RETURN = -0.99  # encoded depth below this is an empty pixel (`to_image` writes -1 there)
@@ -267,13 +271,21 @@ def to_image(projection: Projection, sensor: Sensor) -> Tensor:
     return torch.stack([depth, reflectance], dim=-3)
 
 
-def image_roughness(images: Tensor) -> tuple[float, float]:
-    """(mean |encoded depth step| between horizontally adjacent returns, share of pixels with a return) of images
-    (..., 2, H, W): the surface noise of a range image (real 64x1024 scans of the simulated world: ~0.007, ~0.87)."""
+def image_roughness(images: Tensor, direction: RoughnessDirection = "ring") -> tuple[float, float]:
+    """(mean |encoded depth step| between adjacent returns, share of pixels with a return) of images (..., 2, H, W):
+    the surface noise of a range image along a ring ("ring": horizontally adjacent pixels, one beam's neighbouring
+    azimuths) or down a column ("vertical": vertically adjacent pixels, neighbouring beams at one azimuth); real
+    64x1024 scans of the simulated world: ring ~0.007, share ~0.87."""
     depth = images[..., 0, :, :]
     valid = depth > NO_RETURN
-    both = valid[..., 1:] & valid[..., :-1]
-    steps = (depth[..., 1:] - depth[..., :-1]).abs()
+    if direction == "ring":
+        both = valid[..., 1:] & valid[..., :-1]
+        steps = (depth[..., 1:] - depth[..., :-1]).abs()
+    elif direction == "vertical":
+        both = valid[..., 1:, :] & valid[..., :-1, :]
+        steps = (depth[..., 1:, :] - depth[..., :-1, :]).abs()
+    else:
+        raise InputError(f"roughness direction {direction!r} is not one of {', '.join(ROUGHNESS_DIRECTIONS)}")
     rough = float(steps[both].mean()) if both.any() else float("nan")
     return rough, float(valid.float().mean())
 

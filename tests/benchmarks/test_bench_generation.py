@@ -10,6 +10,7 @@ import torch
 
 from tests.tiny_nets import load_script, save_checkpoint
 from u4d_aug.data.formats import write_kitti_scan
+from u4d_aug.errors import InputError
 
 bench = load_script("bench_generation")
 
@@ -119,3 +120,53 @@ def test_sampler_ratios_divide_the_headline_by_each_other_setting():
         "u4d frd fast/ddim": None,  # a missing score gives no ratio
         "baseline frd fast/ddim": pytest.approx(2.0),
     }
+
+
+def test_structure_metrics_score_every_bank_and_the_projected_floor(tmp_path, monkeypatch):
+    """teacher, bev_density, roughness: per method and seed, the floor also after the generators' range image; the
+    teacher's view is `teacher_view` (here a stand-in: a net on every point of the scans), kept keys stay."""
+    rng = np.random.default_rng(0)
+    for seq in ("00", "01"):
+        for i in range(2):
+            points = np.concatenate([rng.uniform(-30, 30, (3000, 3)), rng.uniform(0, 1, (3000, 1))], 1)
+            points[:, 2] = rng.uniform(-2, 3, 3000)
+            write_kitti_scan(tmp_path / "real" / "sequences" / seq / "velodyne" / f"{i:06d}.bin", points.astype("f4"))
+    seen = []
+
+    def fake_view(model, cfg, scans):
+        seen.append(len(scans))
+        return {"kept_share": 0.5, "building_share": 0.25, "class_share": {"road": 0.75, "building": 0.25}}
+
+    monkeypatch.setattr(bench, "teacher_view", fake_view)
+    monkeypatch.setattr(bench, "load_teacher", lambda path: (None, None))
+    nets = {s: save_checkpoint(tmp_path / f"{s}.pt", overrides=(f"diffusion.stage={s}",)) for s in ("stage1", "stage2")}
+    nets["baseline"] = save_checkpoint(tmp_path / "baseline.pt", overrides=("diffusion.stage=baseline",))
+    out = tmp_path / "gen.json"
+    argv = ["--root", str(tmp_path / "real"), "--stage1", str(nets["stage1"]), "--stage2", str(nets["stage2"])]
+    argv += ["--baseline", str(nets["baseline"]), "--reference", "00", "--floor", "01", "--num", "2", "--seeds", "0"]
+    argv += ["--samplers", "ddpm:2:1", "--metrics", "points,teacher,bev_density,roughness", "--teacher", "t.pt"]
+    argv += ["--work", str(tmp_path / "work"), "--out", str(out), "--device", "cpu"]
+    assert run_one_thread(argv) == 0
+    result = json.loads(out.read_text())
+    assert set(result["methods"]) == {"u4d", "baseline", "floor", "floor_projected"}
+    assert seen == [2, 2, 2, 2]  # u4d, baseline, floor, floor projected: each bank's 2 scans
+    for name, row in result["methods"].items():
+        assert row["points"]["mean"] is not None, name  # the existing keys stay
+        assert row["teacher_kept_share"]["mean"] == 0.5 and row["teacher_building_share"]["values"] == [0.25]
+        assert row["teacher_class_share"] == {"road": 0.75, "building": 0.25}
+        for key in ("bev_points_per_cell", "ring_roughness", "vertical_roughness"):
+            assert row[key]["mean"] is not None and row[key]["mean"] > 0, (name, key)
+    floor, projected = result["methods"]["floor"], result["methods"]["floor_projected"]
+    assert projected["points"]["mean"] < floor["points"]["mean"]  # at most one point per pixel of the nets' image
+    assert projected["points"]["mean"] == pytest.approx(floor["points_projected"]["mean"], abs=2)
+    assert result["ratios"]["baseline/floor projected bev_points_per_cell"] == pytest.approx(
+        result["methods"]["baseline"]["bev_points_per_cell"]["mean"] / projected["bev_points_per_cell"]["mean"]
+    )
+    text = out.with_suffix(".md").read_text()
+    assert "| floor_projected |" in text and "points/BEV cell" in text and "vertical roughness" in text
+
+
+def test_metric_names_are_checked_in_one_line():
+    assert bench.parse_bench_metrics("frd, teacher,roughness") == ("frd", "teacher", "roughness")
+    with pytest.raises(InputError, match="teacher,bev_density,roughness"):
+        bench.parse_bench_metrics("frd,stars")

@@ -315,3 +315,14 @@ def test_image_roughness_counts_only_steps_between_returns() -> None:
     assert rough == pytest.approx((0.5 + 0.0 + 0.3) / 3) and returns == pytest.approx(6 / 8)
     assert image_roughness(x0[0]) == (rough, returns)  # any leading shape
     assert math.isnan(image_roughness(torch.full((2, 3, 3), -1.0))[0])  # no returns: no steps to average
+
+
+def test_vertical_roughness_steps_down_the_columns() -> None:
+    x0 = torch.full((2, 3, 2), -1.0)
+    x0[0, :, 0] = torch.tensor([0.0, 0.5, 0.4])  # column 0: steps 0.5 and 0.1
+    x0[0, :, 1] = torch.tensor([0.2, -1.0, 0.2])  # column 1: the hole leaves no step
+    rough, returns = image_roughness(x0, "vertical")
+    assert rough == pytest.approx((0.5 + 0.1) / 2) and returns == pytest.approx(5 / 6)
+    assert image_roughness(x0.transpose(-1, -2), "ring")[0] == pytest.approx(rough)  # ring = vertical of the transpose
+    with pytest.raises(InputError, match="ring, vertical"):
+        image_roughness(x0, "diagonal")

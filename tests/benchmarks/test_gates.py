@@ -1,0 +1,67 @@
+"""benchmarks/gates.py on a toy world: the reference / real / real-projected rows, a bank holding the real-projected
+scans scores as that row, the reference row has no distance to itself, bad input is one line."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from tests.tiny_nets import SEG_TINY, load_script
+from tests.tiny_worlds import write_toy_root
+from u4d_aug.cli import main as u4d_main
+
+gates = load_script("gates")
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """A toy root of 4 sequences x 2 scans and a 4-step tiny teacher trained on it."""
+    base = tmp_path_factory.mktemp("gates")
+    root = write_toy_root(base / "root", sequences=("00", "01", "02", "03"), frames=2)
+    assert u4d_main(["seg-train", str(SEG_TINY), f"data.root={root}", "optim.steps=4", "eval_every=4",
+                     "--out", str(base / "seg"), "--no-progress", "--quiet"]) == 0  # fmt: skip
+    return {"root": root, "teacher": base / "seg" / "model.pt", "base": base}
+
+
+def test_a_bank_of_the_real_projected_scans_scores_as_that_row(world, tmp_path):
+    work = tmp_path / "work"
+    argv = ["--real", str(world["root"]), "--real-sequences", "00-01", "--num", "3", "--teacher", str(world["teacher"]),
+            "--metrics", "teacher,bev_density,roughness,jsd", "--work", str(work)]  # fmt: skip
+    assert gates.main(argv + ["--out", str(tmp_path / "first.json")]) == 0
+    first = json.loads((tmp_path / "first.json").read_text())
+    assert first["floor_sequences"] == ["02", "03"] and list(first["rows"]) == ["reference", "real", "real projected"]
+    bank = tmp_path / "bank"
+    shutil.copytree(work / "real_projected_n3", bank)
+    assert gates.main(argv + ["--bank", f"copy={bank}", "--out", str(tmp_path / "gates.json")]) == 0
+    rows = json.loads((tmp_path / "gates.json").read_text())["rows"]
+    keys = ("teacher_kept_share", "teacher_building_share", "bev_points_per_cell", "ring_roughness", "jsd")
+    for key in (*keys, "vertical_roughness", "teacher_class_share"):
+        assert rows["copy"][key] == pytest.approx(rows["real projected"][key]), key
+    assert rows["copy"]["scans"] == 3 and 0.0 < rows["real"]["teacher_kept_share"] <= 1.0
+    assert "jsd" not in rows["reference"] and rows["reference"]["bev_points_per_cell"] > 0  # no distance to itself
+    assert rows["real projected"]["jsd"] > 0  # other scans than the reference's
+    text = (tmp_path / "gates.md").read_text()
+    assert "| copy |" in text and "| real projected |" in text and "building % of kept" in text
+    assert "python benchmarks/gates.py --real" in text
+
+
+def test_only_the_first_num_scans_of_a_bank_count(world, tmp_path):
+    argv = ["--real", str(world["root"]), "--real-sequences", "00", "--floor-sequences", "01", "--num", "2",
+            "--bank", f"big={world['root']}", "--metrics", "bev_density", "--work", str(tmp_path / "w"),
+            "--out", str(tmp_path / "g.json")]  # fmt: skip
+    assert gates.main(argv) == 0
+    rows = json.loads((tmp_path / "g.json").read_text())["rows"]
+    assert rows["big"]["scans"] == 2  # of the root's 8 scans: the first two, those of sequence 00
+    assert rows["big"]["bev_points_per_cell"] == pytest.approx(rows["reference"]["bev_points_per_cell"])
+
+
+def test_bad_input_is_one_line(world, tmp_path, capsys):
+    base = ["--real", str(world["root"]), "--real-sequences", "00-03", "--out", str(tmp_path / "g.json")]
+    cases = [(["--bank", "nameonly"], "NAME=DIR"), (["--metrics", "stars"], "bev_density"),
+             ([], "no sequence left"), (["--num", "0"], "--num")]  # fmt: skip
+    for extra, named in cases:
+        assert gates.main(base + extra + ["--work", str(tmp_path / "w")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("error:") and named in err and "\n" not in err, err
