@@ -1,0 +1,50 @@
+#!/bin/bash
+# The long runs of the 64x1024 generators (issue "Scans with walls"), on the recipe the pilots chose
+# (scripts/generator_pilots.sh, benchmarks/results/generation/pilots.md): one U4D net for both stages and the
+# R2DM-style baseline, the same net size, batch and step budget, the plain ε-loss (no min-SNR weighting), constant lr.
+# Each run trains in segments of SEGMENT steps up to STEPS; after each segment its EMA weights are exported
+# (RUNS/final/NAME_milestones/step_N.pt) and scored like the pilots (16 scans: the gates and the denoising probe), so
+# the learning curve (FPD and the teacher's building share against the step) grows as it trains. Resumable; one core each:
+#   METHOD=u4d nohup bash scripts/generator_final.sh > ../runs/final_u4d.log 2>&1 &
+#   METHOD=baseline nohup bash scripts/generator_final.sh > ../runs/final_baseline.log 2>&1 &
+set -euo pipefail
+RUNS=${RUNS:-../runs}
+F=$RUNS/final
+METHOD=${METHOD:?set METHOD=u4d or METHOD=baseline}
+STEPS=${STEPS:-60000}
+SEGMENT=${SEGMENT:-4000}
+export OMP_NUM_THREADS=1
+RECIPE=(data_root=data/sim_seg probs_root=data/sim_seg_probs sample_every=0 log_every=50 checkpoint_every=500
+  keep_checkpoints=2 diffusion.min_snr_gamma=null)
+
+last_step() { tail -n 1 "$1/log.jsonl" 2>/dev/null | python3 -c "import sys,json; print(json.loads(sys.stdin.read() or '{}').get('step', 0))" 2>/dev/null || echo 0; }
+resume_flag() { if ls "$1"/checkpoints/step_*.pt > /dev/null 2>&1; then echo --resume; fi; }
+run=$F/$METHOD
+milestones=$F/${METHOD}_milestones
+mkdir -p "$milestones"
+if [ "$METHOD" = u4d ]; then
+  stage=(stage=u4d diffusion.cond_noise=0.05)
+else
+  stage=(stage=baseline)
+fi
+for ((target = SEGMENT; target <= STEPS; target += SEGMENT)); do
+  weights=$milestones/step_$target.pt
+  if [ "$(last_step "$run")" -lt "$target" ]; then
+    u4d train-diffusion configs/u4d/cpu_hdl64.yaml "steps=$target" "${RECIPE[@]}" "${stage[@]}" --out "$run" \
+      --no-progress $(resume_flag "$run")
+  fi
+  [ -f "$weights" ] || { [ "$(last_step "$run")" = "$target" ] && u4d export-weights "$run" --out "$weights"; }
+  bank=$milestones/bank_$target
+  if ! python3 -c "import json,sys; sys.exit(0 if json.load(open('$bank/manifest.json')).get('complete') else 1)" 2>/dev/null; then
+    if [ "$METHOD" = u4d ]; then
+      u4d generate configs/u4d/generate_hdl64.yaml --out "$bank" mode=u4d "net=$weights" stage1= stage2= num=16 \
+        batch_size=4 stage1_steps=20 --no-progress
+    else
+      u4d generate configs/u4d/generate_hdl64.yaml --out "$bank" mode=baseline "baseline=$weights" num=16 \
+        batch_size=4 --no-progress
+    fi
+  fi
+  [ -f "$milestones/gates_$target.json" ] || python3 benchmarks/gates.py --bank "${METHOD}_$target=$bank" \
+    --real data/sim_eval --real-sequences 00-11 --num 16 --work "$F/gates_work" --out "$milestones/gates_$target.json" > /dev/null
+done
+echo "final $METHOD done"
