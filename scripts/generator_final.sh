@@ -17,7 +17,10 @@ export OMP_NUM_THREADS=1
 RECIPE=(data_root=data/sim_seg probs_root=data/sim_seg_probs sample_every=0 log_every=50 checkpoint_every=500
   keep_checkpoints=2 diffusion.min_snr_gamma=null)
 
-last_step() { tail -n 1 "$1/log.jsonl" 2>/dev/null | python3 -c "import sys,json; print(json.loads(sys.stdin.read() or '{}').get('step', 0))" 2>/dev/null || echo 0; }
+last_step() {  # the last logged step of run folder $1 (0 before its first log line)
+  [ -f "$1/log.jsonl" ] || { echo 0; return; }
+  tail -n 1 "$1/log.jsonl" | python3 -c "import sys,json; print(json.loads(sys.stdin.read() or '{}').get('step', 0))"
+}
 resume_flag() { if ls "$1"/checkpoints/step_*.pt > /dev/null 2>&1; then echo --resume; fi; }
 run=$F/$METHOD
 milestones=$F/${METHOD}_milestones
