@@ -7,12 +7,20 @@
 # the learning curve (FPD and the teacher's building share against the step) grows as it trains. Resumable; one core each:
 #   METHOD=u4d nohup bash scripts/generator_final.sh > ../runs/final_u4d.log 2>&1 &
 #   METHOD=baseline nohup bash scripts/generator_final.sh > ../runs/final_baseline.log 2>&1 &
+# or both on one core, segment by segment, so that their budgets are equal whenever the queue stops:
+#   METHOD=both nohup bash scripts/generator_final.sh > ../runs/final_both.log 2>&1 &
 set -euo pipefail
 RUNS=${RUNS:-../runs}
 F=$RUNS/final
-METHOD=${METHOD:?set METHOD=u4d or METHOD=baseline}
+METHOD=${METHOD:?set METHOD=u4d, baseline or both}
 STEPS=${STEPS:-60000}
 SEGMENT=${SEGMENT:-4000}
+if [ "$METHOD" = both ]; then
+  for ((target = SEGMENT; target <= STEPS; target += SEGMENT)); do
+    for m in u4d baseline; do METHOD=$m STEPS=$target bash "$0"; done
+  done
+  exit 0
+fi
 export OMP_NUM_THREADS=1
 RECIPE=(data_root=data/sim_seg probs_root=data/sim_seg_probs sample_every=0 log_every=50 checkpoint_every=500
   keep_checkpoints=2 diffusion.min_snr_gamma=null)
