@@ -32,12 +32,12 @@ CPU = DistInfo(0, 1, 0, torch.device("cpu"))  # a single process on the CPU
 
 
 def load_script(name: str) -> ModuleType:
-    """benchmarks/NAME.py as a module (benchmarks/ is not a package; its folder goes on sys.path, so a script imports
-    its siblings, `from bench_generation import ...`, as it does when run)."""
+    """benchmarks/NAME.py as a module, NAME may name a subfolder (reports/pilot_table); benchmarks/ is not a package,
+    its folder goes on sys.path, so a script imports its siblings, `from bench_generation import ...`, as when run."""
     folder = str(REPO / "benchmarks")
     if folder not in sys.path:
         sys.path.append(folder)
-    spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / f"{name}.py")
+    spec = importlib.util.spec_from_file_location(Path(name).name, REPO / "benchmarks" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
