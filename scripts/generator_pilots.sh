@@ -2,7 +2,7 @@
 # Pilots of the 64x1024 generator recipe (issue "Scans with walls"): each candidate trains at one small, equal budget
 # (BUDGET steps x batch 4 of the base-16 net; a wider net gets fewer steps, in proportion to its measured step cost;
 # the one-net pilots put noise of std up to 0.05 on stage 2's condition), then writes a bank of 16 scans and is scored
-# on held-out scans: one denoising call by log-SNR (benchmarks/diag_denoise.py) and, where benchmarks/gates.py exists, the gates (teacher kept / building share, BEV
+# on held-out scans: one denoising call by log-SNR (benchmarks/diagnostics/diag_denoise.py) and, where benchmarks/gates.py exists, the gates (teacher kept / building share, BEV
 # points per cell, roughness, FPD). Two queues, one per core, resumable (a killed pilot resumes from its checkpoint):
 #   CORE=A nohup bash scripts/generator_pilots.sh > ../runs/pilots_A.log 2>&1 &
 #   CORE=B nohup bash scripts/generator_pilots.sh > ../runs/pilots_B.log 2>&1 &
@@ -39,7 +39,7 @@ bank() {  # OUT [overrides...]: 16 scans, both stages 20 steps of DPM-Solver++(2
 score() {  # NAME NET...: the denoising probe (NET: NAME=WEIGHTS[@stage]) and the gates of NAME's bank
   local name=$1
   shift
-  [ -f "$P/$name/denoise.json" ] || python3 benchmarks/diag_denoise.py --root data/sim_eval --probs data/sim_eval_probs \
+  [ -f "$P/$name/denoise.json" ] || python3 benchmarks/diagnostics/diag_denoise.py --root data/sim_eval --probs data/sim_eval_probs \
     --sequences 00 --num 4 --nets "$@" --out "$P/$name/denoise.json" > /dev/null
   if [ -f benchmarks/gates.py ] && [ ! -f "$P/$name/gates.json" ]; then
     python3 benchmarks/gates.py --bank "$name=$P/$name/bank" --real data/sim_eval --real-sequences 00-11 --num 16 \

@@ -16,10 +16,10 @@
 # Each generates 24 sequences of 5 frames (TTCE k = 4 needs 5 frames; the temporal convolution and the poses relative
 # to frame 0 carry over from L = 4) along ego motions drawn from the training places, scored by `u4d evaluate`
 # against the held-out places 88-99; the floor scores those real held-out sequences themselves. The queue that finds
-# everything done writes the table (benchmarks/temporal_table.py -> benchmarks/results/temporal.json / .md);
+# everything done writes the table (benchmarks/reports/temporal_table.py -> benchmarks/results/temporal.json / .md);
 # u4d_most seed 0 draws the gate figures.
 # RUNS (default ../runs) says where run folders go, RESULTS (default benchmarks/results) where the table and figure go
-# (PY, default python3, runs benchmarks/temporal_table.py). Each finished method-seed leaves its evaluation and its
+# (PY, default python3, runs benchmarks/reports/temporal_table.py). Each finished method-seed leaves its evaluation and its
 # training budget in EVALS (default RESULTS/temporal_evals, committed): a method with one there is not run again, so
 # the table grows over sessions on different machines although run folders and checkpoints stay on the machine.
 # PROPAGATE=1 generates every sequence with propagate=true (frame 0 moved along the ego motion into the later frames,
@@ -208,7 +208,7 @@ while true; do  # take the first ready task nobody holds; wait while the other q
   sleep "$WAIT"
 done
 if claim table; then  # every method-seed and the floor are scored: the table (a queue finishing later rewrites it)
-  "$PY" benchmarks/temporal_table.py \
+  "$PY" benchmarks/reports/temporal_table.py \
     --method "u4d_most=$E/u4d_most_s0" --method "u4d_most=$E/u4d_most_s1" \
     --method "baseline_most=$E/baseline_most_s0" --method "baseline_most=$E/baseline_most_s1" \
     --method "u4d_no_temporal=$E/u4d_no_temporal_s0" --method "u4d_no_temporal=$E/u4d_no_temporal_s1" \

@@ -90,9 +90,9 @@ def loaders(roots: dict[str, Path], tmp_path: Path) -> dict[str, Callable[[Path]
         "seg-train --resume": segmentor_resume,
         "experiment burn-in": burn_in,
         "bench_generation.training_budget": bench_module("bench_generation").training_budget,
-        "bench_pseudo_labels.teacher_outputs": lambda path: bench_module("bench_pseudo_labels").teacher_outputs(
-            path, 1, 0
-        ),
+        "bench_pseudo_labels.teacher_outputs": lambda path: bench_module(
+            "diagnostics/bench_pseudo_labels"
+        ).teacher_outputs(path, 1, 0),
         "weights.export_weights": lambda path: export_weights(path, tmp_path / "exported.pt"),
     }
 

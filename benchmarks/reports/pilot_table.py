@@ -4,9 +4,10 @@ samplers end on, and its gates (teacher kept / building share, BEV points per ce
     python benchmarks/reports/pilot_table.py --pilots ../runs/pilots --gates ../runs/pilots/gates_round1.json \
         --out benchmarks/results/generation/pilots.json
 
-Reads PILOTS/NAME/denoise.json (`benchmarks/diag_denoise.py`), the gate rows of NAME from the --gates files or
-PILOTS/NAME/gates.json (`benchmarks/gates.py`) and the training budget from each run folder's log (steps, batch, step
-time); writes OUT (json) and OUT with .md. The reference rows (real, real projected) come from the first gates file.
+Reads PILOTS/NAME/denoise.json (`benchmarks/diagnostics/diag_denoise.py`), the gate rows of NAME from the --gates
+files or PILOTS/NAME/gates.json (`benchmarks/gates.py`) and the training budget from each run folder's log (steps,
+batch, step time); writes OUT (json) and OUT with .md. The reference rows (real, real projected) come from the first
+gates file.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """scripts/temporal_queue.sh run end to end with the stand-in `u4d` (tests/scripts/stand_in.py): every call is one
-the real commands accept, the budgets are equal, the table comes out of the real benchmarks/temporal_table.py, and a
-second run starts nothing; two queues share one task list through claims."""
+the real commands accept, the budgets are equal, the table comes out of the real
+benchmarks/reports/temporal_table.py, and a second run starts nothing; two queues share one task list through claims."""
 
 from __future__ import annotations
 

@@ -31,8 +31,12 @@ def test_exit_code_of_lets_other_errors_through():
 @pytest.mark.parametrize(
     ("script", "args", "names"),
     [
-        ("bench_logit_bias.py", ["--classes", "lorry"], "--classes"),
-        ("plot_seg_errors.py", ["--sequence", "00", "--frame", "0", "--focus", "lorry", "--out", "x.png"], "--focus"),
+        ("diagnostics/bench_logit_bias.py", ["--classes", "lorry"], "--classes"),
+        (
+            "diagnostics/plot_seg_errors.py",
+            ["--sequence", "00", "--frame", "0", "--focus", "lorry", "--out", "x.png"],
+            "--focus",
+        ),
     ],
 )
 def test_benchmark_scripts_report_bad_input_in_one_line(tmp_path, script, args, names):

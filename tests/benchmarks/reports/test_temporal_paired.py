@@ -1,4 +1,4 @@
-"""benchmarks/temporal_paired.py: per-sequence TTCE/CTC of banks drawn along the same trajectories, paired
+"""benchmarks/reports/temporal_paired.py: per-sequence TTCE/CTC of banks drawn along the same trajectories, paired
 differences with a bootstrap interval over sequences; banks whose poses differ are refused in one line."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from u4d_aug.data.formats import write_calib, write_kitti_scan, write_poses
 from u4d_aug.errors import InputError
 from u4d_aug.metrics import temporal
 
-paired = load_script("temporal_paired")
+paired = load_script("reports/temporal_paired")
 FRAMES = 5
 
 

@@ -1,4 +1,4 @@
-"""benchmarks/temporal_table.py: Table 2 (TTCE k=3,4, CTC k=1..4, FRD) mean ± std over seeds and the MoST fusion
+"""benchmarks/reports/temporal_table.py: Table 2 (TTCE k=3,4, CTC k=1..4, FRD) mean ± std over seeds and the MoST fusion
 ablation from `u4d evaluate` evaluation.json files; missing entries keep their reason; bad input in one line."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 
 from tests.tiny_nets import load_script
 
-table = load_script("temporal_table")
+table = load_script("reports/temporal_table")
 
 
 def evaluation(ttce3: float, ctc1: float, frd: float | None = 1.0, missing: str | None = None) -> dict:

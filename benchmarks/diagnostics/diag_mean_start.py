@@ -1,6 +1,7 @@
 """Ablation of the mean start: U4D with the training mean image as x0 in stage 2 only (stage 1 samples as before).
 
-    python benchmarks/diag_mean_start.py --below -10 --data-root data/sim_seg --out runs/meanstart/u4d_ms_s2 --num 16
+    python benchmarks/diagnostics/diag_mean_start.py --below -10 --data-root data/sim_seg \
+        --out runs/meanstart/u4d_ms_s2 --num 16
 
 The mean start itself is `u4d generate ... mean_start_below=-10` (both stages; `sampling.mean_start`,
 `pipeline.MeanStart`); this script wraps only the conditional (stage-2) sampler calls, by patching

@@ -1,6 +1,6 @@
 """Paired TTCE / CTC differences between generated banks that share their conditioning trajectories.
 
-    python benchmarks/temporal_paired.py --bank u4d_most=runs/temporal/banks/u4d_most_s1 \
+    python benchmarks/reports/temporal_paired.py --bank u4d_most=runs/temporal/banks/u4d_most_s1 \
         --bank baseline_most=runs/temporal/banks/baseline_most_s1 \
         --bank u4d_no_temporal=runs/temporal/banks/u4d_no_temporal_s1 --out benchmarks/results/temporal_paired_s1
 
@@ -207,7 +207,7 @@ def run(argv: list[str] | None = None) -> int:
     banks = named_banks(args.bank)
     result = report(banks, args.boot, args.seed, progress=not args.no_progress, metrics=metrics)
     make_folder(args.out.parent)
-    command = "python benchmarks/temporal_paired.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    command = "python benchmarks/reports/temporal_paired.py " + " ".join(sys.argv[1:] if argv is None else argv)
     text = markdown(result, command)
     atomic_write_json(args.out.parent / f"{args.out.name}.json", result)
     atomic_write_text(args.out.parent / f"{args.out.name}.md", text)

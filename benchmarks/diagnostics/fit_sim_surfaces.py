@@ -13,7 +13,7 @@ material are chosen by coordinate descent (3 sweeps over grids) to minimise the 
 share-weighted per-class remission JS distance against ../shared/data/real/semantickitti (frames 0-2). Prints the
 table to paste into MEASURED and writes benchmarks/results/sim_surface_fit.json.
 
-    python benchmarks/fit_sim_surfaces.py [--places 8] [--frames 2]
+    python benchmarks/diagnostics/fit_sim_surfaces.py [--places 8] [--frames 2]
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from u4d_aug.data.sim.report import INTENSITY_BINS, LABEL_RANGE, dataset_stats, 
 from u4d_aug.data.sim.writer import build_sequence
 from u4d_aug.io import atomic_write_json
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "benchmarks" / "results"
 REAL = Path(os.environ.get("U4D_REAL_DATA") or ROOT.parent / "shared" / "data" / "real") / "semantickitti"
 FIT_SET = ["lidar.surface_model=measured", "lidar.range_noise=0.008", "objects.sign_back_metal=true"]

@@ -10,7 +10,7 @@ few simulated returns lie (r > 0.6), so one seed of 12 places moves them by ~0.3
 within ~0.01 (at r = 0.5 it spans 0.17-0.21). Prints the values to paste into hdl32(), the remission JS (base 2,
 report.INTENSITY_BINS) before and after on the rendered scans, and writes benchmarks/results/<name>.json.
 
-    python benchmarks/fit_sensor_response.py [--seeds 7 8 9] [--places 12] [--frames 2]
+    python benchmarks/diagnostics/fit_sensor_response.py [--seeds 7 8 9] [--places 12] [--frames 2]
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from u4d_aug.data.sim.report import INTENSITY_BINS
 from u4d_aug.data.sim.writer import build_sequence, render_frame
 from u4d_aug.io import atomic_write_json
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "benchmarks" / "results"
 REAL = Path(os.environ.get("U4D_REAL_DATA") or ROOT.parent / "shared" / "data" / "real") / "nuscenes_mmdet3d_demo"
 
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     real_hist = remission_hist(real)
     result = {
         "command": " ".join(
-            ["python benchmarks/fit_sensor_response.py", *(argv if argv is not None else sys.argv[1:])]
+            ["python benchmarks/diagnostics/fit_sensor_response.py", *(argv if argv is not None else sys.argv[1:])]
         ),
         "config": args.config,
         "seeds": args.seeds,

@@ -1,4 +1,5 @@
-"""benchmarks/diag_denoise.py: one denoising call per log-SNR, checked with an oracle and a do-nothing net."""
+"""benchmarks/diagnostics/diag_denoise.py: one denoising call per log-SNR, checked with an oracle and a do-nothing
+net."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from tests.tiny_worlds import write_tiny_world
 from u4d_aug.diffusion import alpha_sigma
 from u4d_aug.range_view import image_roughness
 
-bench = load_script("diag_denoise")
+bench = load_script("diagnostics/diag_denoise")
 LAMS = [0.0, 5.0, 11.0]
 
 

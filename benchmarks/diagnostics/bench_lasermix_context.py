@@ -7,7 +7,7 @@ mode) labels each scan alone and each mixed scan; per number of areas n the tabl
 and mIoU over the same points, alone vs mixed. Scans are thinned to the run's data.max_points as in training, with
 no other augmentation.
 
-    python benchmarks/bench_lasermix_context.py RUN/burn_in.pt [--pairs 8] [--areas 2 3 4 5 6]
+    python benchmarks/diagnostics/bench_lasermix_context.py RUN/burn_in.pt [--pairs 8] [--areas 2 3 4 5 6]
 
 Writes benchmarks/results/lasermix_context.json (or --out).
 """
@@ -34,7 +34,7 @@ from u4d_aug.distributed import DistInfo
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_json
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 K = len(SEMANTICKITTI_CLASSES)
 
 
@@ -128,7 +128,7 @@ def main() -> int:
     for name, count in rows[0]["class_points"].items():
         print(f"{name:>14} {count:>8} " + " ".join(f"{r['iou'][name]:>8.1f}" for r in rows))
     atomic_write_json(args.out, {
-        "command": "python benchmarks/bench_lasermix_context.py " + " ".join(sys.argv[1:]),
+        "command": "python benchmarks/diagnostics/bench_lasermix_context.py " + " ".join(sys.argv[1:]),
         "checkpoint": str(args.checkpoint),
         "step": int(ckpt["step"]),
         "max_points": cfg.data.max_points,

@@ -1,6 +1,6 @@
 """The paper's Table 2 (TTCE, CTC) over seeds, and the MoST fusion ablation, from `u4d evaluate` evaluation.json files.
 
-    python benchmarks/temporal_table.py --method u4d_most=runs/eval/u4d_most_s0 \
+    python benchmarks/reports/temporal_table.py --method u4d_most=runs/eval/u4d_most_s0 \
         --method u4d_most=runs/eval/u4d_most_s1 --method floor=runs/eval/floor \
         --fusion gating=runs/eval/fusion_gating --out benchmarks/results/temporal
 
@@ -35,7 +35,7 @@ from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder, read_json_file
 from u4d_aug.viz import plt, save_figure
 
-DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "temporal"
+DEFAULT_OUT = Path(__file__).resolve().parents[1] / "results" / "temporal"
 # u4d_aug.metrics.temporal TTCE_/CTC_INTERVALS
 INTERVALS = {"ttce": ("3", "4"), "ttce_global": ("3", "4"), "ctc": ("1", "2", "3", "4")}
 HEADS = {"ttce": "TTCE", "ttce_global": "TTCE-global", "ctc": "CTC"}

@@ -8,7 +8,8 @@ accuracy of the kept pseudo-labels; then per class, the global threshold (semi.p
 class-balanced pseudo-labels (semi.pseudo_class_share, `--class-shares`): the share of each ground-truth class
 that gets a pseudo-label, each class's share of all pseudo-labels and their precision.
 
-    python benchmarks/bench_pseudo_labels.py RUN/checkpoints/step_0000600.pt [--scans 8] [--class-shares 0.2 0.5]
+    python benchmarks/diagnostics/bench_pseudo_labels.py RUN/checkpoints/step_0000600.pt \
+        [--scans 8] [--class-shares 0.2 0.5]
 
 Writes benchmarks/results/pseudo_labels.json (or --out).
 """
@@ -33,7 +34,7 @@ from u4d_aug.data.labels import SEMANTICKITTI_CLASSES, SEMANTICKITTI_IGNORE
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_json, load_checkpoint
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 THRESHOLDS = (0.5, 0.6, 0.7, 0.8, 0.9, 0.95)
 
 
@@ -156,7 +157,7 @@ def main() -> int:
         )
     )
     atomic_write_json(args.out, {
-        "command": "python benchmarks/bench_pseudo_labels.py " + " ".join(sys.argv[1:]),
+        "command": "python benchmarks/diagnostics/bench_pseudo_labels.py " + " ".join(sys.argv[1:]),
         "checkpoint": str(args.checkpoint),
         "step": step,
         "points": len(correct),

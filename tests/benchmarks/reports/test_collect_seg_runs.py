@@ -1,4 +1,5 @@
-"""benchmarks/collect_seg_runs.py: per-seed figures and mean +- std from seg-train run folders, bad runs in one line."""
+"""benchmarks/reports/collect_seg_runs.py: per-seed figures and mean +- std from seg-train run folders, bad runs in
+one line."""
 
 import json
 import subprocess
@@ -9,7 +10,7 @@ import pytest
 
 from tests.tiny_nets import REPO
 
-SCRIPT = REPO / "benchmarks" / "collect_seg_runs.py"
+SCRIPT = REPO / "benchmarks" / "reports" / "collect_seg_runs.py"
 
 
 def fake_run(folder: Path, seed: int, miou: float, views4: float | None, real: float | None) -> Path:

@@ -1,7 +1,7 @@
 """Can re-weighting a class fix it? Post-hoc logit adjustment of a trained segmentor, class by class.
 
-    python benchmarks/bench_logit_bias.py runs/lean_v025_s0/model.pt data/sim_seg --sequences 88-99 --every 2 \
-        --classes other-ground parking truck terrain
+    python benchmarks/diagnostics/bench_logit_bias.py runs/lean_v025_s0/model.pt data/sim_seg --sequences 88-99 \
+        --every 2 --classes other-ground parking truck terrain
 
 Class-weighted cross-entropy shifts a net's logits by roughly log w_c (Menon et al., "Long-tail learning via logit
 adjustment", ICLR 2021). Adding a bias b to class c's log-probability after training shows what such a shift can
@@ -31,7 +31,7 @@ from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def collect(checkpoint: Path, root: Path, sequences: list[str] | None, every: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -104,7 +104,8 @@ def run(argv: list[str] | None = None) -> int:
     atomic_write_json(
         args.out,
         {
-            "command": "python benchmarks/bench_logit_bias.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+            "command": "python benchmarks/diagnostics/bench_logit_bias.py "
+            + " ".join(shlex.quote(a) for a in sys.argv[1:]),
             "machine": host_info(),
             "points": int(len(target)),
             "base_iou": {n: (None if np.isnan(v) else float(v)) for n, v in zip(names, base_iou)},

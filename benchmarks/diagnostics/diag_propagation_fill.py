@@ -1,6 +1,6 @@
 """How well each generator fills what propagation leaves unknown, against what it was trained to fill (real truth).
 
-    python benchmarks/diag_propagation_fill.py --root data/sim_seg --probs data/sim_seg_probs_heldout \
+    python benchmarks/diagnostics/diag_propagation_fill.py --root data/sim_seg --probs data/sim_seg_probs_heldout \
         --sequences 88-93 --out benchmarks/results/propagation_fill
 
 With `propagate=true` (`u4d_aug.propagate`) frames 1..L-1 of a sequence are frame 0 moved along the poses (~70 % of
@@ -38,7 +38,7 @@ from u4d_aug.range_view import NO_RETURN, decode_depth, project, to_image
 from u4d_aug.trajectory import relative_motion
 from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SHIPPED = [
     f"{name}={REPO / 'weights' / file}"
     for name, file in (

@@ -1,5 +1,5 @@
-"""benchmarks/transfer_table.py: the sim-to-real transfer table (real mIoU over present classes, ECE, sim mIoU per
-world over seeds, seed-paired after - before with 95 % CI and p, the goals, per-class IoU, the summed real
+"""benchmarks/reports/transfer_table.py: the sim-to-real transfer table (real mIoU over present classes, ECE, sim mIoU
+per world over seeds, seed-paired after - before with 95 % CI and p, the goals, per-class IoU, the summed real
 confusion) from `u4d seg-eval --json` outputs; a world/seed without its json is listed, bad files in one line."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from scipy import stats
 
 from tests.tiny_nets import load_script
 
-table = load_script("transfer_table")
+table = load_script("reports/transfer_table")
 CLASSES = ("car", "road", "bicycle")  # bicycle: no ground truth in the real scans
 T_975_DF1 = 12.706204736174707  # Student t, 97.5 % quantile, 1 degree of freedom (tables)
 
@@ -132,7 +132,7 @@ def test_missing_world_seed_is_listed_not_dropped(written):
 
 def test_markdown_tables_goals_and_command(written):
     root, result, text = written
-    assert result["command"].startswith("python benchmarks/transfer_table.py --runs ")
+    assert result["command"].startswith("python benchmarks/reports/transfer_table.py --runs ")
     assert f"`{result['command']}`" in text
     assert "| seg_rich | before | 32.00 ± 2.00 | s0 30.00, s1 34.00, s2 32.00 | 10.00 ± 2.00 |" in text
     assert "| varied | after | 53.00 ± 4.24 | s0 50.00, s1 56.00, s2 - | 4.50 ± 0.71 |" in text

@@ -1,6 +1,6 @@
 """Sim-to-real transfer: a segmentor trained on one simulated world, scored on the labelled real scans.
 
-    python benchmarks/transfer_table.py --runs ../runs/transfer --worlds seg_rich varied \
+    python benchmarks/reports/transfer_table.py --runs ../runs/transfer --worlds seg_rich varied \
         --out benchmarks/results/sim_to_real_transfer
 
 Reads RUNS/WORLD_sSEED/eval_real.json (the real SemanticKITTI scans) and eval_sim.json (held-out simulated places),
@@ -45,7 +45,7 @@ from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import atomic_open, atomic_write_json, atomic_write_text, make_folder, read_json_file
 from u4d_aug.validate import check_plain_name
 
-DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "sim_to_real_transfer"
+DEFAULT_OUT = Path(__file__).resolve().parents[1] / "results" / "sim_to_real_transfer"
 DEFAULT_WORLDS = ("seg_rich", "varied")
 REAL_FILE, SIM_FILE = "eval_real.json", "eval_sim.json"
 REAL_KEYS = ("miou_present", "ece_per_scan", "ece_pooled", "iou", "confusion")  # what this table reads
@@ -480,7 +480,7 @@ def run(argv: list[str] | None = None) -> int:
     loaded, missing = load_runs(args.runs, worlds, seeds)
     classes = check_same_classes(loaded, args.runs)
     table = build_table(loaded, missing, worlds, seeds, classes)
-    command = shlex.join(["python", "benchmarks/transfer_table.py", *(sys.argv[1:] if argv is None else argv)])
+    command = shlex.join(["python", "benchmarks/reports/transfer_table.py", *(sys.argv[1:] if argv is None else argv)])
     out = args.out
     figure = f"{out.name}_confusion.png" if table["classes_present"] else None
     table = {"command": command, "runs": str(args.runs), **table, "figures": {"confusion": figure}}

@@ -7,7 +7,8 @@ whether self-training helped on the very scans it pseudo-labelled. Each checkpoi
 root, label split and held-out sequences; `--weights ema` scores a semi run's teacher, `model` its student. Every
 scan is scored whole (no subsampling, no augmentation, BatchNorm in eval mode) as `u4d seg-eval` does.
 
-    python benchmarks/bench_fit_gap.py RUN_A/checkpoints/step_0000600.pt RUN_B/... [--scans 24] [--weights model]
+    python benchmarks/diagnostics/bench_fit_gap.py RUN_A/checkpoints/step_0000600.pt RUN_B/... \
+        [--scans 24] [--weights model]
 
 Writes benchmarks/results/fit_gap.json (or --out).
 """
@@ -31,7 +32,7 @@ from u4d_aug.distributed import DistInfo
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_json
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CPU = torch.device("cpu")
 
 

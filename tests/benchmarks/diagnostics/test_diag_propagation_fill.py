@@ -1,4 +1,5 @@
-"""benchmarks/diag_propagation_fill.py: the fill scores checked on hand-made frames, then a run on tiny nets."""
+"""benchmarks/diagnostics/diag_propagation_fill.py: the fill scores checked on hand-made frames, then a run on
+tiny nets."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from tests.tiny_nets import load_script
 from tests.tiny_worlds import write_posed_world
 from u4d_aug.range_view import decode_depth, encode_depth
 
-bench = load_script("diag_propagation_fill")
+bench = load_script("diagnostics/diag_propagation_fill")
 MAX_RANGE = 80.0
 
 

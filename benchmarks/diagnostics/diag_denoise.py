@@ -1,7 +1,7 @@
 """How much noise each generator removes in one call, by log-SNR: the precision of a few-step sampler's last x̂0.
 
-    python benchmarks/diag_denoise.py --root data/sim_eval --probs data/sim_eval_probs --sequences 00 --num 4 \
-        --out benchmarks/results/denoise_64x1024.json
+    python benchmarks/diagnostics/diag_denoise.py --root data/sim_eval --probs data/sim_eval_probs --sequences 00 \
+        --num 4 --out benchmarks/results/denoise_64x1024.json
 
 Each net (`--nets NAME=WEIGHTS ...`; default the shipped baseline, U4D stage 2 and stage 1; a one-net u4d checkpoint
 as `NAME=WEIGHTS@stage1` or `@stage2` for one of its two tasks) reads the first `--num` scans of ROOT's SEQUENCES as
@@ -30,7 +30,7 @@ from u4d_aug.io import atomic_write_json, atomic_write_text
 from u4d_aug.pipeline import denoiser, load_generator
 from u4d_aug.range_view import NO_RETURN, image_roughness
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SHIPPED = [
     f"{name}={REPO / 'weights' / file}"
     for name, file in (("baseline", "baseline.pt"), ("u4d stage 2", "u4d_stage2.pt"), ("u4d stage 1", "u4d_stage1.pt"))

@@ -4,7 +4,7 @@ Every panel is frame `--frame` of place 0 of a world whose places all have that 
 config otherwise), so the panels differ only by what the type lays out. Writes
 benchmarks/results/sim_street_types.png.
 
-    python benchmarks/plot_sim_street_types.py [--seed 1] [--frame 0] [--extent 40]
+    python benchmarks/diagnostics/plot_sim_street_types.py [--seed 1] [--frame 0] [--extent 40]
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from u4d_aug.data.sim.scenes import STREET_TYPES
 from u4d_aug.data.sim.writer import build_sequence, render_frame
 from u4d_aug.viz import draw_bev, label_colors, plt, save_figure
 
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = Path(__file__).resolve().parents[1] / "results"
 
 
 def main() -> int:
