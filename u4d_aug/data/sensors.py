@@ -174,8 +174,8 @@ def hdl32() -> Sensor:
     remission (half the returns below 0.05), so a simulated return of remission r reports
     clip(0.009 + 1.08 * r ** 2.68, 0, 1): weak returns the simulator reads as 0 report ~2 counts, r = 0.28 (the
     simulated median) reports 0.045, r >= 0.97 saturates. Fitted by `benchmarks/diagnostics/fit_sensor_response.py`
-    (quantile matching, `fit_intensity_response`) of the nuScenes-like world (configs/sim/nuscenes.yaml, seeds 7-9) to the
-    one real keyframe available (../shared/data/real/nuscenes_mmdet3d_demo, Singapore, 26.7k returns): a sensor
+    (quantile matching, `fit_intensity_response`) of the nuScenes-like world (configs/sim/nuscenes.yaml, seeds 7-9) to
+    the one real keyframe available (../shared/data/real/nuscenes_mmdet3d_demo, Singapore, 26.7k returns): a sensor
     property, but measured on one place, so it also absorbs that place's surfaces against the simulated ones, and
     the few returns above r = 0.6 leave gain and gamma loosely set (the curve below r = 0.4 is firm).
     """
