@@ -490,6 +490,42 @@ def _lots(mb, rng, cfg: SimConfig, inner, h, ids: _Ids, height_fn) -> None:
             objects.tree(mb, rng, (rng.uniform(cx0, cx1), rng.uniform(cy0, cy1)), h)
 
 
+@dataclass
+class _Lot:
+    """One lot being built: where its meshes go, its draws, and its extent in lot coordinates (u0..u1 along the
+    frontage, 0..depth inward) at ground height h."""
+
+    mb: object
+    rng: np.random.Generator
+    cfg: SimConfig
+    frame: _LotFrame
+    u0: float
+    u1: float
+    depth: float
+    h: float
+    ids: _Ids
+    height_fn: object
+    side: int
+
+    @property
+    def width(self) -> float:
+        return self.u1 - self.u0
+
+    def yaw_in(self) -> float:
+        """The yaw facing into the lot (its normal)."""
+        return float(np.arctan2(self.frame.n[1], self.frame.n[0]))
+
+    def ground(self, label, material, v0=0.0, v1=None, tessellate=False, ua=None, ub=None) -> None:
+        """A ground patch of the lot (whole width and depth unless given), flat or following the terrain."""
+        ua, ub, v1 = self.u0 if ua is None else ua, self.u1 if ub is None else ub, self.depth if v1 is None else v1
+        x0, y0, x1, y1 = self.frame.rect(ua, v0, ub, v1)
+        if tessellate:
+            v, t = grid_surface(x0, x1, y0, y1, 2.0, lambda x, y: self.h + 0.05 + self.height_fn(x, y))
+        else:
+            v, t = flat_grid(x0, x1, y0, y1, self.h + 0.005)
+        self.mb.add((v, t), label, material, sample_reflectivity(self.rng, material, len(t)))
+
+
 def _lot(mb, rng, cfg: SimConfig, frame: _LotFrame, u0, u1, depth, h, ids, height_fn, urban, side) -> None:
     """One lot: ground, maybe a building, a front fence/hedge, yard vegetation, parked cars or bicycles."""
     lc = cfg.lots
@@ -497,135 +533,183 @@ def _lot(mb, rng, cfg: SimConfig, frame: _LotFrame, u0, u1, depth, h, ids, heigh
     if urban:
         weights = weights * [0.3, 3.0, 0.5, 1.0, 1.0]
     kind = ["house", "row", "garden", "parking", "commercial"][int(rng.choice(5, p=weights / weights.sum()))]
-    width = u1 - u0
-
-    def ground(label, material, v0=0.0, v1=depth, tessellate=False, ua=u0, ub=u1):
-        x0, y0, x1, y1 = frame.rect(ua, v0, ub, v1)
-        if tessellate:
-            v, t = grid_surface(x0, x1, y0, y1, 2.0, lambda x, y: h + 0.05 + height_fn(x, y))
-        else:
-            v, t = flat_grid(x0, x1, y0, y1, h + 0.005)
-        mb.add((v, t), label, material, sample_reflectivity(rng, material, len(t)))
-
+    lot = _Lot(mb, rng, cfg, frame, u0, u1, depth, h, ids, height_fn, side)
     if kind == "row":
-        setback = rng.uniform(*lc.row_setback)
-        if setback > 0.2:
-            ground("sidewalk", cfg.street.sidewalk_material, 0.0, setback)
-        bdepth = min(rng.uniform(10.0, 16.0), depth - setback - 0.5)
-        ground("terrain", "grass", setback + bdepth, depth, tessellate=True)
-        floors = int(rng.integers(lc.row_floors[0], lc.row_floors[1] + 1))
-        fp = frame.rect(u0, setback, u1, setback + bdepth)
-        objects.building(mb, rng, fp, floors, rng.uniform(*lc.floor_height), side, h - 0.2)
+        _row_lot(lot)
         return
     if kind == "parking":
-        ground("parking", "parking")
-        n_rows = int(rng.integers(1, 3))
-        for row in range(n_rows):
-            v = 3.0 + row * 11.0
-            if v + 2.5 > depth:
-                break
-            for uu in np.arange(u0 + 1.5, u1 - 1.5, rng.uniform(2.5, 3.0)):
-                if rng.random() < rng.uniform(0.4, 0.9):
-                    c = frame.xy(uu, v)
-                    inst = ids.take()
-                    mesh = objects.car(rng, "car", inst, kind=str(rng.choice(["sedan", "hatch", "suv"])))
-                    yaw = float(np.arctan2(frame.n[1], frame.n[0])) + (np.pi if rng.random() < 0.5 else 0)
-                    _add_mesh(mb, objects.place(mesh, yaw, (c[0], c[1], h)))
+        _parking_lot(lot)
         return
     drive = _driveway(rng, lc, kind, u0, u1, depth)  # (d0, d1, length) or None, no draw when off
-    spans = _ground_spans(u0, u1, depth, drive)
+    _yard_ground(lot, kind, drive)
+    if kind == "garden":
+        _garden_plants(lot)
+        return
+    commercial = kind == "commercial"
+    setback, bdepth = _house(lot, commercial, drive)
+    if commercial and rng.random() < 0.5:
+        back = "metal" if cfg.objects.sign_back_metal else None
+        objects.traffic_sign(mb, rng, frame.xy(u0 + 1.0, 0.5), h, frame.yaw_out, back=back)
+    yard = max(setback - 1.0, 0.0)
+    _yard_plants(lot, yard, setback + bdepth, drive)
+    _front_fence(lot, drive)
+    _shrub_bed(lot, yard, drive)
+    _shed(lot, yard, drive)
+
+
+def _row_lot(lot: _Lot) -> None:
+    """A terraced row: sidewalk to the door, the building across the whole frontage, grass behind."""
+    lc, rng = lot.cfg.lots, lot.rng
+    setback = rng.uniform(*lc.row_setback)
+    if setback > 0.2:
+        lot.ground("sidewalk", lot.cfg.street.sidewalk_material, 0.0, setback)
+    bdepth = min(rng.uniform(10.0, 16.0), lot.depth - setback - 0.5)
+    lot.ground("terrain", "grass", setback + bdepth, lot.depth, tessellate=True)
+    floors = int(rng.integers(lc.row_floors[0], lc.row_floors[1] + 1))
+    fp = lot.frame.rect(lot.u0, setback, lot.u1, setback + bdepth)
+    objects.building(lot.mb, rng, fp, floors, rng.uniform(*lc.floor_height), lot.side, lot.h - 0.2)
+
+
+def _parking_lot(lot: _Lot) -> None:
+    """A parking lot: one or two rows of cars, each space taken with a lot-wide probability."""
+    rng = lot.rng
+    lot.ground("parking", "parking")
+    n_rows = int(rng.integers(1, 3))
+    for row in range(n_rows):
+        v = 3.0 + row * 11.0
+        if v + 2.5 > lot.depth:
+            break
+        for uu in np.arange(lot.u0 + 1.5, lot.u1 - 1.5, rng.uniform(2.5, 3.0)):
+            if rng.random() < rng.uniform(0.4, 0.9):
+                c = lot.frame.xy(uu, v)
+                inst = lot.ids.take()
+                mesh = objects.car(rng, "car", inst, kind=str(rng.choice(["sedan", "hatch", "suv"])))
+                yaw = lot.yaw_in() + (np.pi if rng.random() < 0.5 else 0)
+                _add_mesh(lot.mb, objects.place(mesh, yaw, (c[0], c[1], lot.h)))
+
+
+def _yard_ground(lot: _Lot, kind: str, drive) -> None:
+    """The yard's ground (gravel, ground cover or grass around the driveway) and the paved driveway itself."""
+    lc, rng, frame = lot.cfg.lots, lot.rng, lot.frame
+    spans = _ground_spans(lot.u0, lot.u1, lot.depth, drive)
     gravel = rng.random() < lc.other_ground_prob
     if kind in ("house", "commercial", "garden"):
         if gravel:
             for ua, ub, v0, v1 in spans:
-                ground("other-ground", "gravel", v0, v1, ua=ua, ub=ub)
+                lot.ground("other-ground", "gravel", v0, v1, ua=ua, ub=ub)
         elif rng.random() < lc.ground_cover_prob:  # low shrubs / ground cover over the yard (vegetation)
             for ua, ub, v0, v1 in spans:
                 x0, y0, x1, y1 = frame.rect(ua, v0, ub, v1)
-                v, t = grid_surface(x0, x1, y0, y1, 1.0, _GroundCover(h, height_fn))
-                mb.add((v, t), "vegetation", "hedge", sample_reflectivity(rng, "hedge", len(t)))
+                v, t = grid_surface(x0, x1, y0, y1, 1.0, _GroundCover(lot.h, lot.height_fn))
+                lot.mb.add((v, t), "vegetation", "hedge", sample_reflectivity(rng, "hedge", len(t)))
         else:
             for ua, ub, v0, v1 in spans:
-                ground("terrain", "grass", v0, v1, tessellate=True, ua=ua, ub=ub)
+                lot.ground("terrain", "grass", v0, v1, tessellate=True, ua=ua, ub=ub)
     if drive is not None:  # paved driveway from the sidewalk along the house (SemanticKITTI: parking)
         x0, y0, x1, y1 = frame.rect(drive[0], 0.0, drive[1], drive[2])
-        v, t = flat_grid(x0, x1, y0, y1, h + 0.01, 2.0)
-        mb.add((v, t), "parking", "parking", sample_reflectivity(rng, "parking", len(t)))
-    if kind == "garden":
-        for _ in range(int(width * depth / 40)):
-            objects.tree(mb, rng, frame.xy(rng.uniform(u0 + 1, u1 - 1), rng.uniform(2, depth - 1)), h)
-        for _ in range(int(width * depth / 15)):
-            objects.bush(mb, rng, frame.xy(rng.uniform(u0 + 1, u1 - 1), rng.uniform(1, depth - 1)), h)
-        _front_boundary(mb, rng, frame, u0, u1, h, 1.0, lc)
-        return
-    commercial = kind == "commercial"
+        v, t = flat_grid(x0, x1, y0, y1, lot.h + 0.01, 2.0)
+        lot.mb.add((v, t), "parking", "parking", sample_reflectivity(rng, "parking", len(t)))
+
+
+def _garden_plants(lot: _Lot) -> None:
+    """A garden lot: trees and bushes by area, a front boundary leaning to hedges."""
+    rng, frame, u0, u1, depth = lot.rng, lot.frame, lot.u0, lot.u1, lot.depth
+    for _ in range(int(lot.width * depth / 40)):
+        objects.tree(lot.mb, rng, frame.xy(rng.uniform(u0 + 1, u1 - 1), rng.uniform(2, depth - 1)), lot.h)
+    for _ in range(int(lot.width * depth / 15)):
+        objects.bush(lot.mb, rng, frame.xy(rng.uniform(u0 + 1, u1 - 1), rng.uniform(1, depth - 1)), lot.h)
+    _front_boundary(lot.mb, rng, frame, u0, u1, lot.h, 1.0, lot.cfg.lots)
+
+
+def _house(lot: _Lot, commercial: bool, drive) -> tuple[float, float]:
+    """A house or shop set back from the sidewalk beside its driveway, with bicycles and cars by it; returns its
+    (setback, building depth), drawn even when the lot is too small to build on."""
+    lc, rng, frame, u0, u1 = lot.cfg.lots, lot.rng, lot.frame, lot.u0, lot.u1
     setback = rng.uniform(*lc.setback) * (1.5 if commercial else 1.0)
     gap = rng.uniform(1.0, 3.0) if not commercial else 0.5
-    bdepth = min(rng.uniform(8.0, 14.0) * (1.4 if commercial else 1.0), depth - setback - 1.0)
-    lo, hi, room = u0 + gap, u1 - gap, width - 2 * gap
+    bdepth = min(rng.uniform(8.0, 14.0) * (1.4 if commercial else 1.0), lot.depth - setback - 1.0)
+    lo, hi, room = u0 + gap, u1 - gap, lot.width - 2 * gap
     if drive is not None:  # the house stands beside its driveway
         if drive[0] - u0 < u1 - drive[1]:
             lo = max(lo, drive[1] + 0.5)
         else:
             hi = min(hi, drive[0] - 0.5)
         room = hi - lo
-    if room > 5.0 and bdepth > 5.0:
-        floors = (
-            1 if commercial and rng.random() < 0.6 else int(rng.integers(lc.house_floors[0], lc.house_floors[1] + 1))
-        )
-        fp = frame.rect(lo, setback, hi, setback + bdepth)
-        objects.building(
-            mb, rng, fp, floors, rng.uniform(*lc.floor_height) * (1.3 if commercial else 1.0), side, h - 0.2
-        )
-        if rng.random() < cfg.objects.bicycle_prob:
-            for k in range(int(rng.integers(1, 4))):
-                c = frame.xy(lo + 1.0 + 0.8 * k, setback - 0.6)
-                mesh = objects.two_wheeler(rng, "bicycle", ids.take())
-                _add_mesh(mb, objects.place(mesh, float(np.arctan2(frame.n[1], frame.n[0])), (c[0], c[1], h)))
-        if drive is None and not commercial and rng.random() < 0.3 and gap > 2.6 and setback > 5.5:
-            c = frame.xy(u0 + gap / 2, setback)
-            mesh = objects.car(rng, "car", ids.take())
-            _add_mesh(mb, objects.place(mesh, float(np.arctan2(frame.n[1], frame.n[0])), (c[0], c[1], h)))
-        if drive is not None and rng.random() < 0.6 and drive[2] > 6.0:  # a car on the driveway
-            c = frame.xy((drive[0] + drive[1]) / 2, rng.uniform(3.0, drive[2] - 2.5))
-            yaw = float(np.arctan2(frame.n[1], frame.n[0])) + (np.pi if rng.random() < 0.5 else 0.0)
-            _add_mesh(mb, objects.place(objects.car(rng, "car", ids.take()), yaw, (c[0], c[1], h)))
-    if commercial and rng.random() < 0.5:
-        back = "metal" if cfg.objects.sign_back_metal else None
-        objects.traffic_sign(mb, rng, frame.xy(u0 + 1.0, 0.5), h, frame.yaw_out, back=back)
-    yard = max(setback - 1.0, 0.0)
+    if room <= 5.0 or bdepth <= 5.0:
+        return setback, bdepth
+    floors = 1 if commercial and rng.random() < 0.6 else int(rng.integers(lc.house_floors[0], lc.house_floors[1] + 1))
+    fp = frame.rect(lo, setback, hi, setback + bdepth)
+    storey = rng.uniform(*lc.floor_height) * (1.3 if commercial else 1.0)
+    objects.building(lot.mb, rng, fp, floors, storey, lot.side, lot.h - 0.2)
+    if rng.random() < lot.cfg.objects.bicycle_prob:
+        for k in range(int(rng.integers(1, 4))):
+            c = frame.xy(lo + 1.0 + 0.8 * k, setback - 0.6)
+            mesh = objects.two_wheeler(rng, "bicycle", lot.ids.take())
+            _add_mesh(lot.mb, objects.place(mesh, lot.yaw_in(), (c[0], c[1], lot.h)))
+    if drive is None and not commercial and rng.random() < 0.3 and gap > 2.6 and setback > 5.5:
+        c = frame.xy(u0 + gap / 2, setback)
+        mesh = objects.car(rng, "car", lot.ids.take())
+        _add_mesh(lot.mb, objects.place(mesh, lot.yaw_in(), (c[0], c[1], lot.h)))
+    if drive is not None and rng.random() < 0.6 and drive[2] > 6.0:  # a car on the driveway
+        c = frame.xy((drive[0] + drive[1]) / 2, rng.uniform(3.0, drive[2] - 2.5))
+        yaw = lot.yaw_in() + (np.pi if rng.random() < 0.5 else 0.0)
+        _add_mesh(lot.mb, objects.place(objects.car(rng, "car", lot.ids.take()), yaw, (c[0], c[1], lot.h)))
+    return setback, bdepth
+
+
+def _yard_plants(lot: _Lot, yard: float, behind: float, drive) -> None:
+    """Trees in the front yard (or behind the building, at v = behind + 2, when the yard is shallow) and bushes."""
+    lc, rng, frame, u0, u1 = lot.cfg.lots, lot.rng, lot.frame, lot.u0, lot.u1
     for _ in range(int(rng.integers(lc.yard_trees[0], lc.yard_trees[1] + 1))):
         if yard > 2.5:
             uu, vv, scale = rng.uniform(u0 + 1.5, u1 - 1.5), rng.uniform(1.5, yard), 0.8
         else:
-            uu, vv, scale = rng.uniform(u0 + 1, u1 - 1), setback + bdepth + 2.0, 1.0
+            uu, vv, scale = rng.uniform(u0 + 1, u1 - 1), behind + 2.0, 1.0
         if not _on_drive(drive, uu, vv, 1.0):
-            objects.tree(mb, rng, frame.xy(uu, vv), h, scale)
+            objects.tree(lot.mb, rng, frame.xy(uu, vv), lot.h, scale)
     for _ in range(int(rng.integers(lc.yard_bushes[0], lc.yard_bushes[1] + 1))):
         if yard > 1.2:
             uu, vv, size = rng.uniform(u0 + 0.8, u1 - 0.8), rng.uniform(0.8, yard), rng.uniform(0.8, 1.8)
             if not _on_drive(drive, uu, vv, 0.8):
-                objects.bush(mb, rng, frame.xy(uu, vv), h, size)
-    if rng.random() < lc.front_fence_prob:
-        if drive is None:
-            _front_boundary(mb, rng, frame, u0, u1, h, 0.0, lc)
-        else:  # open at the driveway
-            for a, b in ((u0, drive[0]), (drive[1], u1)):
-                if b - a > 1.0:
-                    _front_boundary(mb, rng, frame, a, b, h, 0.0, lc)
-    if yard > 2.0 and rng.random() < lc.shrub_bed_prob:  # planted bed behind the fence line
-        depth_bed = rng.uniform(1.2, min(3.0, yard))
-        for uu in np.arange(u0 + 0.8, u1 - 0.8, rng.uniform(1.0, 1.6)):
-            vv, size = rng.uniform(0.8, depth_bed), rng.uniform(0.6, 1.2)
-            if not _on_drive(drive, uu, vv, 0.6):
-                objects.bush(mb, rng, frame.xy(uu, vv), h, size)
-    if lc.shed_prob > 0 and yard > 2.5 and width > 5.0 and rng.random() < lc.shed_prob:
-        size = rng.uniform(1.2, [min(3.0, width - 2.0), min(2.5, yard - 1.0)])
-        uu = rng.uniform(u0 + 0.6 + size[0] / 2, u1 - 0.6 - size[0] / 2)
-        if _on_drive(drive, uu, 1.0 + size[1] / 2, size[0] / 2 + 0.3):
-            return
-        yaw = float(np.arctan2(frame.u[1], frame.u[0]))
-        objects.shed(mb, rng, frame.xy(uu, 1.0 + size[1] / 2), h, yaw, size)
+                objects.bush(lot.mb, rng, frame.xy(uu, vv), lot.h, size)
+
+
+def _front_fence(lot: _Lot, drive) -> None:
+    """A fence or hedge along the sidewalk, open at the driveway."""
+    lc, rng = lot.cfg.lots, lot.rng
+    if rng.random() >= lc.front_fence_prob:
+        return
+    if drive is None:
+        _front_boundary(lot.mb, rng, lot.frame, lot.u0, lot.u1, lot.h, 0.0, lc)
+        return
+    for a, b in ((lot.u0, drive[0]), (drive[1], lot.u1)):
+        if b - a > 1.0:
+            _front_boundary(lot.mb, rng, lot.frame, a, b, lot.h, 0.0, lc)
+
+
+def _shrub_bed(lot: _Lot, yard: float, drive) -> None:
+    """A planted bed of shrubs behind the fence line, in a yard deeper than 2 m."""
+    rng = lot.rng
+    if not (yard > 2.0 and rng.random() < lot.cfg.lots.shrub_bed_prob):
+        return
+    depth_bed = rng.uniform(1.2, min(3.0, yard))
+    for uu in np.arange(lot.u0 + 0.8, lot.u1 - 0.8, rng.uniform(1.0, 1.6)):
+        vv, size = rng.uniform(0.8, depth_bed), rng.uniform(0.6, 1.2)
+        if not _on_drive(drive, uu, vv, 0.6):
+            objects.bush(lot.mb, rng, lot.frame.xy(uu, vv), lot.h, size)
+
+
+def _shed(lot: _Lot, yard: float, drive) -> None:
+    """A garden shed in a deep, wide enough yard, unless it would stand on the driveway."""
+    lc, rng, frame = lot.cfg.lots, lot.rng, lot.frame
+    if not (lc.shed_prob > 0 and yard > 2.5 and lot.width > 5.0 and rng.random() < lc.shed_prob):
+        return
+    size = rng.uniform(1.2, [min(3.0, lot.width - 2.0), min(2.5, yard - 1.0)])
+    uu = rng.uniform(lot.u0 + 0.6 + size[0] / 2, lot.u1 - 0.6 - size[0] / 2)
+    if _on_drive(drive, uu, 1.0 + size[1] / 2, size[0] / 2 + 0.3):
+        return
+    yaw = float(np.arctan2(frame.u[1], frame.u[0]))
+    objects.shed(lot.mb, rng, frame.xy(uu, 1.0 + size[1] / 2), lot.h, yaw, size)
 
 
 def _driveway(rng, lc, kind: str, u0: float, u1: float, depth: float) -> tuple[float, float, float] | None:
