@@ -248,98 +248,155 @@ def _block(mb, rng, cfg: SimConfig, net: Network, i: int, j: int, ids: _Ids, hei
     return Block((i, j), curb, inner, net.warp.points(densify(loop, STEP, closed=True)), walks)
 
 
+@dataclass
+class _Side:
+    """One block side being furnished: t runs along it from the corner (t0..t1 clear of the corner arcs), offsets
+    point away from the street; `occupied` holds the t of what already stands there."""
+
+    mb: object
+    rng: np.random.Generator
+    cfg: SimConfig
+    start: np.ndarray
+    u: np.ndarray
+    n: np.ndarray
+    t0: float
+    t1: float
+    h: float
+    ids: _Ids
+    occupied: list[float] = field(default_factory=list)
+
+    def at(self, t, offset) -> np.ndarray:
+        return self.start + self.u * t + self.n * offset
+
+    def free(self, t, gap=1.5) -> bool:
+        return all(abs(t - o) > gap for o in self.occupied)
+
+    def along(self) -> float:
+        """The yaw along the side."""
+        return float(np.arctan2(self.u[1], self.u[0]))
+
+
 def _side_strip(mb, rng, cfg: SimConfig, net: Network, curb, side, line, line_side, ids, height_fn) -> None:
     """One block side: grass strip, trees, lights, signs, clutter; beyond the curb the parking strip."""
     x0, y0, x1, y1 = curb
     r, h = net.corner_radius, net.curb_height
     start = np.array([(x0, y0), (x1, y0), (x1, y1), (x0, y1)][side], dtype=np.float64)
-    u, n = _SIDE_U[side], _SIDE_N[side]
     length = (x1 - x0) if side % 2 == 0 else (y1 - y0)
-    t0, t1 = r, length - r
-    if t1 - t0 < 2.0:
+    if length - 2 * r < 2.0:
         return
+    s = _Side(mb, rng, cfg, start, _SIDE_U[side], _SIDE_N[side], r, length - r, h, ids)
     grass, sidewalk = line.grass[line_side], line.sidewalk[line_side]
-
-    def at(t, offset):
-        return start + u * t + n * offset
-
     if grass > 0:
-        a, b = at(t0 + 0.5, 0.15), at(t1 - 0.5, grass)
-        v, tr = grid_surface(
-            min(a[0], b[0]),
-            max(a[0], b[0]),
-            min(a[1], b[1]),
-            max(a[1], b[1]),
-            2.0,
-            lambda x, y: h + 0.03 + 0.5 * height_fn(x, y),
-        )
-        mb.add((v, tr), "terrain", "grass", sample_reflectivity(rng, "grass", len(tr)))
-    occupied: list[float] = []
-
-    def free(t, gap=1.5):
-        return all(abs(t - o) > gap for o in occupied)
-
-    obj = cfg.objects
-    if rng.random() < obj.street_tree_prob:
-        t = t0 + rng.uniform(2.0, 6.0)
-        offset = grass / 2 if grass > 0 else min(obj.tree_offset, sidewalk - 0.6)
-        scale = rng.uniform(0.8, 1.2)
-        while t < t1 - 2.0:
-            objects.tree(mb, rng, at(t, offset), h, scale * rng.uniform(0.85, 1.15), clearance=obj.tree_clearance)
-            occupied.append(t)
-            t += rng.uniform(*obj.tree_spacing)
-    t = t0 + rng.uniform(3.0, 15.0)
-    while t < t1 - 3.0:
-        if free(t):
-            objects.street_light(mb, rng, at(t, 0.45), h, float(np.arctan2(-n[1], -n[0])))
-            occupied.append(t)
-        t += rng.uniform(*obj.pole_spacing)
-    for end in (t0 + rng.uniform(1.5, 6.0), t1 - rng.uniform(1.5, 6.0)):
-        if rng.random() < obj.sign_prob / 2 and free(end, 1.0):
-            face = float(np.arctan2(u[1], u[0])) + (np.pi if rng.random() < 0.5 else 0.0)
-            objects.traffic_sign(mb, rng, at(end, 0.35), h, face, back="metal" if obj.sign_back_metal else None)
-            occupied.append(end)
-    for t in np.arange(t0 + 5.0, t1 - 5.0, 20.0):
-        tt = t + rng.uniform(-5, 5)
-        if rng.random() < obj.object_prob and free(tt, 1.2):
-            off = 0.5 if rng.random() < 0.5 else sidewalk - 0.5
-            objects.other_object(mb, rng, at(tt, off), h, float(np.arctan2(u[1], u[0])))
-            occupied.append(tt)
-    if obj.sidewalk_bicycle_prob > 0 and sidewalk > 2.4:  # no draw when off: the default world stays as it was
-        for t in np.arange(t0 + 8.0, t1 - 8.0, 20.0):
-            tt = t + rng.uniform(-5, 5)
-            count = int(rng.integers(1, 5))
-            if rng.random() < obj.sidewalk_bicycle_prob and free(tt, 1.0 + 0.8 * count):
-                across = float(np.arctan2(n[1], n[0]))  # bicycles stand across the sidewalk, 0.8 m apart
-                for k in range(count):
-                    c = at(tt + 0.8 * (k - (count - 1) / 2), 1.2)
-                    mesh = objects.two_wheeler(rng, "bicycle", ids.take())
-                    _add_mesh(mb, objects.place(mesh, across + rng.normal(0, 0.1), (c[0], c[1], h)))
-                occupied.append(tt)
-    if rng.random() < 0.06 and sidewalk > 3.0:  # bus shelter: other-structure
-        tt = rng.uniform(t0 + 5, max(t0 + 6, t1 - 8))
-        c = at(tt, sidewalk - 0.8)
-        yaw = float(np.arctan2(u[1], u[0]))
-        shelter = merge(
-            box([3.0, 1.2, 0.08], [0, 0, 2.4]),
-            box([3.0, 0.05, 2.0], [0, 0.55, 1.2]),
-            box([0.05, 1.1, 2.0], [-1.45, 0, 1.2]),
-            box([0.05, 1.1, 2.0], [1.45, 0, 1.2]),
-        )
-        mb.add(transform(shelter, yaw, (c[0], c[1], h)), "other-structure", "metal", 0.3)
+        _verge(s, grass, height_fn)
+    _street_trees(s, grass, sidewalk)
+    _street_lights(s)
+    _end_signs(s)
+    _street_objects(s, sidewalk)
+    if cfg.objects.sidewalk_bicycle_prob > 0 and sidewalk > 2.4:  # no draw when off: the default world stays
+        _sidewalk_bicycles(s)
+    if rng.random() < 0.06 and sidewalk > 3.0:
+        _bus_shelter(s, sidewalk)
     if cfg.street.signal_prob > 0 and line.main:  # traffic lights by the crossings (no draw when off)
-        for end, facing in ((t0 + 1.0, -1.0), (t1 - 1.0, 1.0)):
-            if rng.random() < cfg.street.signal_prob and free(end, 1.0):
-                face = float(np.arctan2(u[1], u[0])) + (np.pi if facing < 0 else 0.0)
-                objects.traffic_light(mb, rng, at(end, 0.4), h, face)
-                occupied.append(end)
+        _signals(s)
     park = line.parking[line_side]
     if park > 0:
         if rng.random() < cfg.street.parking_label_prob:
-            ts = np.linspace(t0, t1, max(2, int(np.ceil((t1 - t0) / STEP)) + 1))
-            band = strip(np.array([at(t, 0.0) for t in ts]), np.array([at(t, -park) for t in ts]), PARK_Z)
+            ts = np.linspace(s.t0, s.t1, max(2, int(np.ceil((s.t1 - s.t0) / STEP)) + 1))
+            band = strip(np.array([s.at(t, 0.0) for t in ts]), np.array([s.at(t, -park) for t in ts]), PARK_Z)
             mb.add(band, "parking", "parking", sample_reflectivity(rng, "parking", len(band[1])))
-        _parked_vehicles(mb, rng, cfg, lambda t, o: at(t, o), u, t0, t1, park, ids)
+        _parked_vehicles(mb, rng, cfg, s.at, s.u, s.t0, s.t1, park, ids)
+
+
+def _verge(s: _Side, grass: float, height_fn) -> None:
+    """The grass verge between curb and sidewalk, following half the terrain's undulation."""
+    a, b = s.at(s.t0 + 0.5, 0.15), s.at(s.t1 - 0.5, grass)
+    v, tr = grid_surface(
+        min(a[0], b[0]), max(a[0], b[0]), min(a[1], b[1]), max(a[1], b[1]), 2.0,
+        lambda x, y: s.h + 0.03 + 0.5 * height_fn(x, y),
+    )  # fmt: skip
+    s.mb.add((v, tr), "terrain", "grass", sample_reflectivity(s.rng, "grass", len(tr)))
+
+
+def _street_trees(s: _Side, grass: float, sidewalk: float) -> None:
+    """A row of street trees (on the verge, else in the sidewalk) at the config's spacing, with some probability."""
+    obj, rng = s.cfg.objects, s.rng
+    if rng.random() >= obj.street_tree_prob:
+        return
+    t = s.t0 + rng.uniform(2.0, 6.0)
+    offset = grass / 2 if grass > 0 else min(obj.tree_offset, sidewalk - 0.6)
+    scale = rng.uniform(0.8, 1.2)
+    while t < s.t1 - 2.0:
+        objects.tree(s.mb, rng, s.at(t, offset), s.h, scale * rng.uniform(0.85, 1.15), clearance=obj.tree_clearance)
+        s.occupied.append(t)
+        t += rng.uniform(*obj.tree_spacing)
+
+
+def _street_lights(s: _Side) -> None:
+    """Street lights by the curb at the pole spacing, where no tree stands."""
+    t = s.t0 + s.rng.uniform(3.0, 15.0)
+    while t < s.t1 - 3.0:
+        if s.free(t):
+            objects.street_light(s.mb, s.rng, s.at(t, 0.45), s.h, float(np.arctan2(-s.n[1], -s.n[0])))
+            s.occupied.append(t)
+        t += s.rng.uniform(*s.cfg.objects.pole_spacing)
+
+
+def _end_signs(s: _Side) -> None:
+    """A traffic sign near either end of the side, facing either way along it."""
+    obj, rng = s.cfg.objects, s.rng
+    for end in (s.t0 + rng.uniform(1.5, 6.0), s.t1 - rng.uniform(1.5, 6.0)):
+        if rng.random() < obj.sign_prob / 2 and s.free(end, 1.0):
+            face = s.along() + (np.pi if rng.random() < 0.5 else 0.0)
+            objects.traffic_sign(s.mb, rng, s.at(end, 0.35), s.h, face, back="metal" if obj.sign_back_metal else None)
+            s.occupied.append(end)
+
+
+def _street_objects(s: _Side, sidewalk: float) -> None:
+    """Clutter (bins, boxes) every ~20 m, at the curb or the lot side of the sidewalk."""
+    rng = s.rng
+    for t in np.arange(s.t0 + 5.0, s.t1 - 5.0, 20.0):
+        tt = t + rng.uniform(-5, 5)
+        if rng.random() < s.cfg.objects.object_prob and s.free(tt, 1.2):
+            off = 0.5 if rng.random() < 0.5 else sidewalk - 0.5
+            objects.other_object(s.mb, rng, s.at(tt, off), s.h, s.along())
+            s.occupied.append(tt)
+
+
+def _sidewalk_bicycles(s: _Side) -> None:
+    """Groups of 1-4 bicycles standing across the sidewalk, 0.8 m apart, every ~20 m with some probability."""
+    rng = s.rng
+    for t in np.arange(s.t0 + 8.0, s.t1 - 8.0, 20.0):
+        tt = t + rng.uniform(-5, 5)
+        count = int(rng.integers(1, 5))
+        if rng.random() < s.cfg.objects.sidewalk_bicycle_prob and s.free(tt, 1.0 + 0.8 * count):
+            across = float(np.arctan2(s.n[1], s.n[0]))
+            for k in range(count):
+                c = s.at(tt + 0.8 * (k - (count - 1) / 2), 1.2)
+                mesh = objects.two_wheeler(rng, "bicycle", s.ids.take())
+                _add_mesh(s.mb, objects.place(mesh, across + rng.normal(0, 0.1), (c[0], c[1], s.h)))
+            s.occupied.append(tt)
+
+
+def _bus_shelter(s: _Side, sidewalk: float) -> None:
+    """A bus shelter (other-structure) at the back of a wide sidewalk."""
+    tt = s.rng.uniform(s.t0 + 5, max(s.t0 + 6, s.t1 - 8))
+    c = s.at(tt, sidewalk - 0.8)
+    shelter = merge(
+        box([3.0, 1.2, 0.08], [0, 0, 2.4]),
+        box([3.0, 0.05, 2.0], [0, 0.55, 1.2]),
+        box([0.05, 1.1, 2.0], [-1.45, 0, 1.2]),
+        box([0.05, 1.1, 2.0], [1.45, 0, 1.2]),
+    )
+    s.mb.add(transform(shelter, s.along(), (c[0], c[1], s.h)), "other-structure", "metal", 0.3)
+
+
+def _signals(s: _Side) -> None:
+    """Traffic lights at both crossings of a main street, facing the traffic that meets them."""
+    for end, facing in ((s.t0 + 1.0, -1.0), (s.t1 - 1.0, 1.0)):
+        if s.rng.random() < s.cfg.street.signal_prob and s.free(end, 1.0):
+            face = s.along() + (np.pi if facing < 0 else 0.0)
+            objects.traffic_light(s.mb, s.rng, s.at(end, 0.4), s.h, face)
+            s.occupied.append(end)
 
 
 def _parked_vehicles(mb, rng, cfg: SimConfig, at, u, t0, t1, park, ids: _Ids) -> None:
