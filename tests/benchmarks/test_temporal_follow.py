@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.benchmarks.test_temporal_paired import trajectory, write_bank
+from tests.benchmarks.reports.test_temporal_paired import trajectory, write_bank
 from tests.tiny_nets import load_script
 
 follow = load_script("temporal_follow")

@@ -52,6 +52,7 @@ logger = logging.getLogger(__name__)
 ExtractorKind = Literal["frd", "fpd"]
 EXTRACTOR_KINDS = ("frd", "fpd")
 NUM_CLASSES = len(SEMANTICKITTI_CLASSES) + 1  # 19 train ids + ignore, which the loss skips
+CALIBRATION_BATCHES = 16  # training batches that set the BatchNorm statistics after training
 FRD_NUM_SAMPLES = 4096  # feature indices drawn with seed 0 (LiDARGen / R2DM)
 FRD_SAMPLE_SEED = 0
 FPD_POINT_SCALE = 80.0  # m, R2DM DATASET_MAX_DEPTH: PointNet input = xyz / 80
@@ -503,16 +504,8 @@ def train_extractor_locked(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
     )
     for step in bar:
         picks = rng.choice(len(dataset), size=min(cfg.train.batch_size, len(dataset)), replace=False)
-        items = [dataset[int(i)] for i in picks]
-        image, target, mask = range_inputs(
-            [it["points"] for it in items], sensor, cfg.data.height, cfg.data.width, cfg.data.row_mode,
-            labels=[it["labels"] for it in items],
-        )  # fmt: skip
-        if kind == "frd":
-            loss = model(image.to(cfg.train.device), target.to(cfg.train.device))
-        else:
-            xyz = point_inputs(image, mask, sensor, cfg.data.row_mode)  # (B, H*W, 3)
-            loss = model(xyz.to(cfg.train.device), target.flatten(1).to(cfg.train.device))
+        inputs, target = _batch_inputs(kind, [dataset[int(i)] for i in picks], sensor, cfg)
+        loss = model(inputs, target)
         check_finite_loss(loss, step)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -524,6 +517,7 @@ def train_extractor_locked(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
             bar.write(json.dumps(record))
         if step % cfg.train.checkpoint_every == 0 and step < cfg.train.steps:
             save_partial(partial_path, kind, cfg, model, optimizer, rng, step, time.perf_counter() - start)
+    recalibrate_batchnorm(model, _calibration_batches(kind, dataset, sensor, cfg))
     model.eval()
     extra: dict[str, Any] = {"steps": cfg.train.steps}
     if val_dataset is not None:
@@ -539,6 +533,52 @@ def train_extractor_locked(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
     digest = save_extractor(path, kind, model, cfg, extra=extra)
     partial_path.unlink(missing_ok=True)  # finished: the snapshot has served
     return path, digest
+
+
+def _batch_inputs(kind: str, items: list[dict], sensor: Sensor, cfg: ExtractorConfig) -> tuple[Tensor, Tensor]:
+    """Dataset items -> (net input, target) on cfg.train.device: range image (B, 5, H, W) and (B, H, W) train ids
+    for FRD, pixel points (B, H*W, 3) and (B, H*W) train ids for FPD."""
+    image, target, mask = range_inputs(
+        [it["points"] for it in items], sensor, cfg.data.height, cfg.data.width, cfg.data.row_mode,
+        labels=[it["labels"] for it in items],
+    )  # fmt: skip
+    if kind == "frd":
+        return image.to(cfg.train.device), target.to(cfg.train.device)
+    xyz = point_inputs(image, mask, sensor, cfg.data.row_mode)  # (B, H*W, 3)
+    return xyz.to(cfg.train.device), target.flatten(1).to(cfg.train.device)
+
+
+def _calibration_batches(kind: str, dataset: Any, sensor: Sensor, cfg: ExtractorConfig) -> list[Tensor]:
+    """Up to CALIBRATION_BATCHES training batches, drawn by their own RNG (seed train.seed): a resume draws alike."""
+    rng = np.random.default_rng(cfg.train.seed)
+    size = min(cfg.train.batch_size, len(dataset))
+    count = min(CALIBRATION_BATCHES, max(1, len(dataset) // size))
+    return [
+        _batch_inputs(kind, [dataset[int(i)] for i in rng.choice(len(dataset), size=size, replace=False)], sensor, cfg)[
+            0
+        ]
+        for _ in range(count)
+    ]
+
+
+@torch.no_grad()
+def recalibrate_batchnorm(model: nn.Module, batches: list[Tensor]) -> None:
+    """BatchNorm running statistics recomputed as plain means over `batches` with the final weights ("precise BN",
+    Wu & Johnson 2021): the EMA of training lags weights that moved, and a small-batch net then segments (and
+    embeds) differently in eval mode than it trained."""
+    norms = [m for m in model.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
+    if not norms or not batches:
+        return
+    momenta, was_training = [m.momentum for m in norms], model.training
+    for m in norms:
+        m.reset_running_stats()
+        m.momentum = None  # cumulative average over the calibration batches
+    model.train()
+    for batch in batches:
+        model.logits(batch)
+    for m, momentum in zip(norms, momenta):
+        m.momentum = momentum
+    model.train(was_training)
 
 
 def save_partial(
