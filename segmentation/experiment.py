@@ -65,6 +65,7 @@ from u4d_aug.io import (
     make_folder,
     read_jsonl,
 )
+from u4d_aug.real_bank import check_real_bank
 from u4d_aug.runlock import run_lock
 from u4d_aug.validate import check_plain_name
 
@@ -173,6 +174,17 @@ def bank_problem(arm: ArmConfig) -> str | None:
     if manifest is not None and manifest.get("complete") is False:
         return f"bank {arm.bank} is incomplete ({count} scans so far): its `u4d generate` has not finished"
     return None
+
+
+def check_ceiling_banks(cfg: ExperimentConfig) -> None:
+    """Refuse an arm whose bank of real scans (`u4d bank-real`) shares places with the experiment's training
+    (labelled and unlabelled) or held-out sequences: a ceiling must add scans of places the runs never see."""
+    for arm in cfg.arms:
+        if arm.bank is None or bank_problem(arm) is not None:
+            continue
+        run = run_config(cfg, arm, cfg.backbones[0], cfg.seeds[0])
+        splits = {"data.train_sequences": run.data.train_sequences, "data.val_sequences": run.data.val_sequences}
+        check_real_bank(arm.bank, Path(run.data.root), {k: v for k, v in splits.items() if v})
 
 
 def run_config(cfg: ExperimentConfig, arm: ArmConfig, backbone: str, seed: int) -> SegTrainConfig:
@@ -445,6 +457,7 @@ def run_experiment_config(
         problem = bank_problem(arm)
         if train_arms is not None and not report_only and arm.name in train_arms and problem is not None:
             raise InputError(f"--arms: arm {arm.name!r} cannot run: {problem}")
+    check_ceiling_banks(cfg)
     out = make_folder(cfg.out_dir)
     save_config(cfg, out / "experiment.yaml")
     results: dict = {"config": config_to_dict(cfg), "arms": []}

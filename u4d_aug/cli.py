@@ -138,6 +138,7 @@ DELEGATED = (
     ("evaluate", "generation metrics of a bank vs real scans: FRD, FPD, BEV JSD/MMD (Table 1), TTCE/CTC (Table 2)"),
     ("experiment", "sup-only / LaserMix / +R2DM bank / +U4D bank comparison: mIoU and ECE over seeds"),
     ("export", "make a bank readable by other codebases: all-ignore .label files, mmdetection3d info .pkl"),
+    ("bank-real", "a bank of real scans of unused places, through the generators' range image (the ceiling arm)"),
 )
 
 
@@ -199,6 +200,10 @@ def _delegated_command(name: str) -> tuple[Callable[[argparse.ArgumentParser], N
         from u4d_aug import export_bank
 
         return export_bank.add_export_arguments, export_bank.run_export
+    elif name == "bank-real":
+        from u4d_aug import real_bank
+
+        return real_bank.add_bank_real_arguments, real_bank.run_bank_real
     raise ValueError(f"unknown command {name!r}; allowed: {', '.join(n for n, _ in DELEGATED)}")
 
 
@@ -223,6 +228,7 @@ EXAMPLES = {
     "--out runs/eval_u4d",
     "experiment": "u4d experiment experiment/downstream_10pct --arms sup-only 'seeds=[0]'",
     "export": "u4d export banks/u4d --labels --mmdet3d-infos",
+    "bank-real": "u4d bank-real data/sim_seg --sequences 100-163 --out banks/real_hdl64 --generator runs/u4d_stage2",
 }
 
 

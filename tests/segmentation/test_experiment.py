@@ -95,6 +95,26 @@ def test_a_bank_still_being_generated_cannot_be_used(tmp_path):
     assert bank_problem(arm) is None
 
 
+def test_a_ceiling_bank_from_the_experiments_places_is_refused_before_any_run(tmp_path):
+    """The split check: a `u4d bank-real` bank of a training or held-out place stops the experiment, naming both;
+    one of a place in no split runs."""
+    from u4d_aug.real_bank import write_real_bank
+
+    root = write_toy_root(tmp_path / "toy", ("00", "01", "02"), frames=2)
+    write_real_bank(root, ["01"], tmp_path / "held_out", None)
+    write_real_bank(root, ["02"], tmp_path / "unused", None)
+    parser = argparse.ArgumentParser()
+    add_experiment_arguments(parser)
+    base = [str(TINY), f"overrides=[data.root={root}]"]
+    out = ["--out", str(tmp_path / "o")]
+    arm = f"arms=[{{name: sup-only, mode: supervised}}, {{name: mt+real, mode: semi, bank: {tmp_path / 'held_out'}}}]"
+    with pytest.raises(InputError, match=r"held_out: its real scans come from places also in data.val_sequences: 01"):
+        run_experiment(parser.parse_args([*base, arm, *out, "--arms", "sup-only"]))
+    assert not (tmp_path / "o").exists()
+    ok = arm.replace("held_out", "unused")
+    assert run_experiment(parser.parse_args([*base, ok, *out, "--report-only"])) == 0
+
+
 def test_a_run_folder_locked_by_another_process_is_refused(tmp_path):
     """Runs lock their own folder (arm/backbone/seed), not the experiment's: a locked run stops this process."""
     import os
