@@ -27,6 +27,9 @@ a list aligned with the `seeds` list beside it (null where a run lacks the metri
         above, ci95 [lo, hi] (t distribution), p (two-sided paired t-test), seeds_needed}, iou.CLASS / bands.BAND alike;
         mean, ci95, p at the top are the mIoU difference's (the headline: `paired.A_vs_B.mean` / `.ci95` / `.p`)
     unpaired.A_vs_B: why the pair has no numbers
+    ceiling_share.ARM (bank arms, when mt+real and mt finished): (ARM − mt) / (mt+real − mt) of the mIoU means over
+        the seeds all three finished: seeds, share (null when the ceiling gain is <= 0), gain, ceiling_gain (points),
+        ci95 (percentile bootstrap over seeds), unresolved (share of draws with ceiling gain <= 0), draws
     figures: paired, per_class, learning_curves, reliability.ARM (file names in --out; null = not drawn), not_found
 """
 
@@ -56,7 +59,10 @@ from u4d_aug.validate import check_plain_name
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "downstream"
 FINISHED = ("done", "partial")
 REFERENCES = ("mt", "mt+r2dm")  # every mean-teacher arm is paired with each of these (sup-only only via NAMED_PAIRS)
-NAMED_PAIRS = (("mt", "sup-only"), ("mt+u4d", "mt+u4d-random"))  # (arm, reference): arm - reference
+NAMED_PAIRS = (("mt", "sup-only"), ("mt+u4d", "mt+u4d-random"))
+PRESENT_PAIRS = (
+    ("mt+real-raw", "mt+real"),
+)  # paired when both arms are in the setting (the projection's cost)  # (arm, reference): arm - reference
 CLASS_PAIRS = (("mt+u4d", "mt"), ("mt+u4d", "mt+r2dm"))  # the per-class table and chart
 ARM_METRICS = (("miou", "miou"), ("ece", "ece_per_scan"), ("ece_pooled", "ece_pooled"))  # summary key, results key
 EXAMPLE = "10pct/minkunet=runs/downstream_10pct/results.json"
@@ -235,7 +241,8 @@ def burn_in_mismatches(arm: dict, reference: dict) -> list[int]:
 def pair_names(names: list[str]) -> list[tuple[str, str]]:
     """(arm, reference) pairs: NAMED_PAIRS, then every mean-teacher arm against each of REFERENCES, without reverses."""
     others = [(arm, ref) for ref in REFERENCES if ref in names for arm in names if arm not in (ref, "sup-only")]
-    wanted = [*NAMED_PAIRS, *others]
+    present = [pair for pair in PRESENT_PAIRS if all(name in names for name in pair)]
+    wanted = [*NAMED_PAIRS, *present, *others]
     pairs: list[tuple[str, str]] = []
     for pair in wanted:
         if pair not in pairs and pair[::-1] not in pairs:
@@ -278,6 +285,50 @@ def paired_summary(entries: list[dict]) -> tuple[dict, dict]:
     return paired, unpaired
 
 
+CEILING, BASE = "mt+real", "mt"  # the ceiling arm (real scans of unused places) and the arm it adds them to
+BOOTSTRAP_DRAWS = 10_000
+
+
+def ceiling_share(arm: dict, ceiling: dict, base: dict, draws: int = BOOTSTRAP_DRAWS, seed: int = 0) -> dict | None:
+    """Share of the ceiling's mIoU gain a bank recovers, (bank − mt) / (real − mt), with the means over the seeds all
+    three arms finished; ci95: percentile bootstrap over those seeds (each draw resamples seeds, pairs kept);
+    unresolved: the share of draws whose ceiling gain is <= 0 (the ratio has no meaning there). None below 2 seeds."""
+    values = {}
+    for name, entry in (("arm", arm), ("ceiling", ceiling), ("base", base)):
+        values[name] = dict(zip(entry.get("seeds", []), entry.get("miou", {}).get("per_seed", []), strict=True))
+    seeds = sorted(set.intersection(*(set(k for k, v in d.items() if v is not None) for d in values.values())))
+    if len(seeds) < 2:
+        return None
+    gain = np.array([values["arm"][k] - values["base"][k] for k in seeds])  # (S,) points
+    ceiling_gain = np.array([values["ceiling"][k] - values["base"][k] for k in seeds])  # (S,)
+    picks = np.random.default_rng(seed).integers(0, len(seeds), size=(draws, len(seeds)))  # (D, S)
+    numerators, denominators = gain[picks].mean(1), ceiling_gain[picks].mean(1)  # (D,)
+    valid = denominators > 0
+    ratios = numerators[valid] / denominators[valid]
+    return {
+        "seeds": seeds,
+        "share": float(gain.mean() / ceiling_gain.mean()) if ceiling_gain.mean() > 0 else None,
+        "gain": float(gain.mean()),
+        "ceiling_gain": float(ceiling_gain.mean()),
+        "ci95": [float(q) for q in np.percentile(ratios, [2.5, 97.5])] if valid.any() else None,
+        "unresolved": float(1 - valid.mean()),
+        "draws": draws,
+    }
+
+
+def ceiling_shares(arms: dict) -> dict:
+    """{ARM: ceiling_share} for every finished bank arm other than the ceiling, when the ceiling and mt finished."""
+    if not all(arms.get(name, {}).get("status") in FINISHED for name in (CEILING, BASE)):
+        return {}
+    shares = {}
+    for name, arm in arms.items():
+        if arm.get("bank") and not name.startswith(CEILING) and arm["status"] in FINISHED:
+            share = ceiling_share(arm, arms[CEILING], arms[BASE])
+            if share is not None:
+                shares[name] = share
+    return shares
+
+
 def setting_summary(
     results: dict, backbone: str, entries: list[dict], source: Path, renamed: dict, fidelity: dict | None = None
 ) -> dict:
@@ -301,6 +352,7 @@ def setting_summary(
         "arms": arms,
         "paired": paired,
         "unpaired": unpaired,
+        "ceiling_share": ceiling_shares(arms),
     }
 
 
@@ -452,6 +504,23 @@ def bank_table(arms: dict) -> list[str]:
     return lines
 
 
+def ceiling_table(shares: dict, arms: dict) -> list[str]:
+    """The share of the ceiling's gain each bank recovers (with its bootstrap CI), or why there is none."""
+    lines = ["", f"### Share of the ceiling's gain ({CEILING} − {BASE}) each bank recovers", ""]
+    if CEILING not in arms:
+        return lines + [f"Absent: no {CEILING} arm in this setting."]
+    if not shares:
+        return lines + [f"Absent: no bank arm finished 2 or more seeds together with {CEILING} and {BASE}."]
+    lines += ["| bank arm | seeds | gain (points) | ceiling gain (points) | share | 95 % CI (bootstrap) | "
+              "draws with ceiling gain <= 0 |", "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for name, c in shares.items():
+        share = "n/a (ceiling gain <= 0)" if c["share"] is None else f"{100 * c['share']:.0f} %"
+        ci = "n/a" if c["ci95"] is None else f"[{100 * c['ci95'][0]:.0f} %, {100 * c['ci95'][1]:.0f} %]"
+        lines.append(f"| {name} | {len(c['seeds'])} | {c['gain']:+.2f} | {c['ceiling_gain']:+.2f} | {share} | {ci} | "
+                     f"{100 * c['unresolved']:.0f} % |")  # fmt: skip
+    return lines
+
+
 def setting_markdown(name: str, s: dict) -> list[str]:
     """report.md's section of one setting."""
     evaluated = "full evaluation of each model.pt" if s["final_eval"] else "the runs' last periodic evaluation"
@@ -483,6 +552,7 @@ def setting_markdown(name: str, s: dict) -> list[str]:
             "",
             "Not compared: " + "; ".join(f"{k.replace('_vs_', ' − ')} ({v})" for k, v in s["unpaired"].items()),
         ]
+    lines += ceiling_table(s.get("ceiling_share", {}), s["arms"])
     class_keys = [f"{a}_vs_{b}" for a, b in CLASS_PAIRS if f"{a}_vs_{b}" in paired]
     lines += ["", "### Per-class IoU differences (points, mean over the common seeds; * = 95 % CI excludes 0)", ""]
     if class_keys:

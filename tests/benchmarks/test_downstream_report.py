@@ -304,3 +304,26 @@ def test_provenance_from_records_and_pairs_on_different_burn_ins(tmp_path):
     assert "| 1 | mt+u4d | AMD EPYC | 2.13.0+cpu | 1,500 | 2.0 | other | beef |" in text
     assert "| 0 | mt | Intel Xeon | 2.13.0+cpu | 1,500 | 1.0 | b0 | - |" in text
     assert "started from different burn-in weights" in text and "mt+u4d − mt (seeds 1)" in text
+
+
+def test_ceiling_share_by_hand_and_its_bootstrap():
+    """(bank − mt) / (real − mt) over the common seeds: gains 1, 2, 3 against ceiling gains 2, 4, 6 -> 50 %; every
+    bootstrap draw keeps the pairs, so each has ratio 0.5 as well; a ceiling that lost in some seed leaves draws out."""
+    mt = {"status": "done", "seeds": [0, 1, 2, 3], "miou": {"per_seed": [40.0, 41.0, 42.0, 43.0]}}
+    real = {"status": "done", "seeds": [0, 1, 2], "miou": {"per_seed": [42.0, 45.0, 48.0]}}
+    bank = {"status": "done", "bank": "banks/u4d", "seeds": [0, 1, 2], "miou": {"per_seed": [41.0, 43.0, 45.0]}}
+    share = report.ceiling_share(bank, real, mt, draws=500)
+    assert share["seeds"] == [0, 1, 2] and share["share"] == pytest.approx(0.5)
+    assert share["gain"] == pytest.approx(2.0) and share["ceiling_gain"] == pytest.approx(4.0)
+    assert share["ci95"] == pytest.approx([0.5, 0.5]) and share["unresolved"] == 0.0
+    losing = {**real, "miou": {"per_seed": [39.0, 45.0, 48.0]}}  # ceiling gain -1 at seed 0
+    share = report.ceiling_share(bank, losing, mt, draws=2000)
+    assert 0 < share["unresolved"] < 0.1  # draws of seed 0 alone (1/27) have no ratio
+    assert share["share"] == pytest.approx(2 / 3) and share["ci95"][0] < 2 / 3 < share["ci95"][1]
+    # fewer than 2 common seeds: no share; ceiling_shares skips the ceiling itself and arms without a bank
+    assert report.ceiling_share(bank, {**real, "seeds": [0], "miou": {"per_seed": [42.0]}}, mt) is None
+    arms = {"mt": mt, "mt+real": {**real, "bank": "banks/real"}, "mt+real-raw": {**real, "bank": "r"}, "mt+u4d": bank}
+    assert list(report.ceiling_shares(arms)) == ["mt+u4d"]
+    assert report.ceiling_shares({"mt": mt, "mt+u4d": bank}) == {}
+    lines = report.ceiling_table(report.ceiling_shares(arms), arms)
+    assert any(line.startswith("| mt+u4d | 3 | +2.00 | +4.00 | 50 % | [50 %, 50 %] | 0 % |") for line in lines)
