@@ -86,7 +86,7 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
         assert len(written) == 8
         counts = [len(read_kitti_scan(path)) for path in written]  # measured 50k-60k of 65,536 pixels
         assert all(30_000 <= count <= 65_536 for count in counts), counts
-        # BEV JS distance to the 18 scans of the demo world: measured 0.32 (U4D) and 0.27 (baseline), the
+        # BEV JS distance to the 30 scans of the demo world: measured 0.32 (U4D) and 0.27 (baseline), the
         # seconds-trained nets' banks gave 0.50; disjoint supports give 0.83
         table = json.loads((out / f"eval_{method}" / "evaluation.json").read_text())["table1"]
         assert 0.1 < table["jsd"]["value"] < 0.55 * disjoint, (method, table["jsd"])
@@ -100,11 +100,20 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     # the downstream comparison at toy size: every arm trained and scored on sequence 02, the banks really mixed in
     results = json.loads((out / "downstream" / "results.json").read_text())
     arms = {e["arm"]: e for e in results["arms"]}
-    assert set(arms) == {"sup-only", "mt", "mt+baseline", "mt+u4d"}
+    assert set(arms) == {"sup-only", "mt", "mt+baseline", "mt+u4d", "mt+real"}
     assert all(e["status"] == "done" and 0.02 < e["miou"]["mean"] < 1 for e in arms.values())
     assert arms["mt+u4d"]["bank"] == str(out / "bank_u4d") and arms["mt+baseline"]["bank"] == str(out / "bank_baseline")
     assert arms["mt+u4d"]["miou"]["mean"] != arms["mt"]["miou"]["mean"]  # the bank's scans changed the training
-    assert [(c["arm"], c["reference"]) for c in results["contrasts"]] == [("mt+u4d", "mt"), ("mt+u4d", "mt+baseline")]
+    assert [(c["arm"], c["reference"]) for c in results["contrasts"]] == [
+        ("mt+u4d", "mt"),
+        ("mt+u4d", "mt+baseline"),
+        ("mt+real", "mt"),
+    ]
+    # the ceiling's bank: as many real scans as a generated bank, of the places 03-04 no split uses, at 64 x 1024
+    real = json.loads((out / "bank_real" / "manifest.json").read_text())
+    assert real["mode"] == "real" and real["complete"] and len(real["samples"]) == 8
+    assert {s["source"].split("/")[1] for s in real["samples"]} <= {"03", "04"} and real["projection"]["width"] == 1024
+    assert arms["mt+real"]["bank"] == str(out / "bank_real")
     assert "## Contrasts (points)" in (out / "downstream" / "results.md").read_text()
     # 4D: one sequence from the shipped MoST nets along the demo's drive, written with exactly those poses; its frames
     # follow them (TTCE-global k = 3 measured 0.052 m; static frames score ~1.7 m: temporal_follow_global_s1.md)
@@ -118,16 +127,16 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     # the report: both tables with the measured numbers, the figures it links exist, a wall time per step
     report = (out / "report.md").read_text()
     assert "**Toy scale.**" in report and "benchmarks/results/downstream/" in report
-    u4d_row = next(line for line in report.splitlines() if line.startswith("| u4d | 8 | 18 |"))
+    u4d_row = next(line for line in report.splitlines() if line.startswith("| u4d | 8 | 30 |"))
     assert f"{json.loads((out / 'eval_u4d' / 'evaluation.json').read_text())['table1']['jsd']['value']:.3f}" in u4d_row
-    for arm in ("sup-only", "mt", "mt+baseline", "mt+u4d"):
+    for arm in ("sup-only", "mt", "mt+baseline", "mt+u4d", "mt+real"):
         row = next(line for line in report.splitlines() if line.startswith(f"| {arm} | done |"))
         assert f"{100 * arms[arm]['miou']['mean']:.2f}" in row
     linked = [line.split("](")[1].rstrip(")") for line in report.splitlines() if "](" in line]
     assert "generated.png" in linked and all((out / name).is_file() for name in linked)
     step_rows = [line for line in report.split("## Wall time")[1].splitlines() if re.match(r"\| \d+ \| ", line)]
     printed = [line for line in capsys.readouterr().out.splitlines() if re.match(r"\[\d+/\d+\] ", line)]
-    assert len(step_rows) == len(printed) >= 18 and "downstream, toy size" in step_rows[-1]
+    assert len(step_rows) == len(printed) >= 19 and "downstream, toy size" in step_rows[-1]
     assert "| generated (U4D+MoST, propagated) | " in report and "sequence_4d.png" in linked
 
 

@@ -3,7 +3,7 @@
 The demo simulates a small world, trains every net for seconds (to show the training loops run), generates its two
 banks at 64x1024 with the shipped nets of `weights/` (trained for hours; the seconds-long nets would give noise),
 scores them (BEV JSD/MMD, FRD/FPD with the shipped extractors), generates one 5-frame 4D sequence along a given ego
-motion with the shipped MoST nets (frame 0 propagated) and scores its TTCE-global / CTC, runs the four downstream
+motion with the shipped MoST nets (frame 0 propagated) and scores its TTCE-global / CTC, runs the five downstream
 arms at toy size and writes OUT/report.md: the tables, the figures and each step's wall time, every number marked
 toy-scale.
 """
@@ -27,7 +27,8 @@ DEMO_PRESETS = {
     "generate_4d": "u4d/generate_hdl64_most",
     "experiment_base": "seg/tiny_semi",
 }
-SEQUENCES, FRAMES = 3, 6  # the demo world: sequences 00-01 train, 02 is held out
+SEQUENCES, FRAMES = 5, 6  # the demo world: sequences 00-01 train, 02 is held out, 03-04 feed the ceiling arm
+CEILING_PLACES = "03-04"  # places no split and no net uses: the real bank of the mt+real arm
 ARM_STEPS = 12  # training steps of each downstream arm (the mean teacher from step ARM_STEPS // 2)
 BANK_SCANS = 8  # scans per bank: ~1 min of generation per method at 64x1024 on 2 cores
 TOY_BANK_SCANS = 4  # without shipped nets: the seconds-trained nets' 32x256 scans
@@ -123,6 +124,10 @@ def demo_steps(out: Path, seed: int, real: Path, weights: dict[str, Path] | None
              ["gen-report", str(world), "--sequences", "02", "--probs", str(out / "probs"),
               "--bank", f"u4d={banks['u4d']}", "--bank", f"baseline={banks['baseline']}",
               "--png", str(out / "generated.png")]),
+        Step("bank-real", f"the ceiling's bank: as many real scans of the unused places {CEILING_PLACES}, projected "
+             "as the generated ones", ["bank-real", str(world), "--sequences", CEILING_PLACES, "--max-scans",
+             str(BANK_SCANS if weights else TOY_BANK_SCANS), *ceiling_geometry(out, weights), "--out",
+             str(out / "bank_real")]),
     ]  # fmt: skip
     # the shipped nets never saw this world: every scan of it is a held-out reference; the demo's own nets saw 00-01
     reference = [] if weights else ["--real-sequences", "02"]
@@ -140,10 +145,25 @@ def demo_steps(out: Path, seed: int, real: Path, weights: dict[str, Path] | None
     if weights and "u4d_most_stage1" in weights and "u4d_most_stage2" in weights:
         steps += sequence_steps(out, seed, weights)
     steps.append(
-        Step("downstream", "downstream, toy size: sup-only vs MT+LaserMix vs + baseline bank vs + U4D bank "
-             "(mIoU, ECE on sequence 02)", ["experiment", str(out / "downstream.yaml"), "--no-progress"])
+        Step("downstream", "downstream, toy size: sup-only vs MT+LaserMix vs + baseline bank vs + U4D bank vs + real "
+             "bank (mIoU, ECE on sequence 02)", ["experiment", str(out / "downstream.yaml"), "--no-progress"])
     )  # fmt: skip
     return steps
+
+
+def ceiling_geometry(out: Path, weights: dict[str, Path] | None) -> list[str]:
+    """`u4d bank-real` flags giving the real bank the generated banks' range image: the shipped nets' 64 x 1024
+    (its defaults), else that of the demo's own nets, which must not have trained on the bank's places."""
+    if weights:
+        return []
+    return [
+        "--like",
+        str(out / "baseline"),
+        "--generator",
+        str(out / "u4d_stage2"),
+        "--generator",
+        str(out / "baseline"),
+    ]
 
 
 def sequence_steps(out: Path, seed: int, weights: dict[str, Path]) -> list[Step]:
@@ -169,7 +189,8 @@ def sequence_motion() -> np.ndarray:
 
 
 def demo_experiment(out: Path, seed: int) -> dict:
-    """The demo's `u4d experiment` config: the four arms of the comparison on the demo world and its two banks."""
+    """The demo's `u4d experiment` config: the five arms of the comparison on the demo world, its two generated
+    banks and the ceiling's bank of real scans."""
     world = out / "world"
     overrides = [f"data.root={world}", 'data.train_sequences=["00", "01"]', 'data.val_sequences=["02"]']
     overrides += [f"optim.steps={ARM_STEPS}", f"semi.burn_in_steps={ARM_STEPS // 2}", f"eval_every={ARM_STEPS}"]
@@ -182,8 +203,9 @@ def demo_experiment(out: Path, seed: int) -> dict:
             {"name": "mt", "mode": "semi"},
             {"name": "mt+baseline", "mode": "semi", "bank": str(out / "bank_baseline"), "bank_ratio": 0.5},
             {"name": "mt+u4d", "mode": "semi", "bank": str(out / "bank_u4d"), "bank_ratio": 0.5},
+            {"name": "mt+real", "mode": "semi", "bank": str(out / "bank_real"), "bank_ratio": 0.5},
         ],
-        "contrasts": [["mt+u4d", "mt"], ["mt+u4d", "mt+baseline"]],
+        "contrasts": [["mt+u4d", "mt"], ["mt+u4d", "mt+baseline"], ["mt+real", "mt"]],
         "backbones": ["minkunet"],
         "seeds": [seed],
         "final_eval": True,
@@ -244,7 +266,7 @@ def generation_table(out: Path, weights: dict[str, Path] | None) -> list[str]:
 
 
 def downstream_table(out: Path) -> list[str]:
-    """Markdown lines: mIoU and ECE of the four arms and the contrasts, from the experiment's results.json."""
+    """Markdown lines: mIoU and ECE of the arms and the contrasts, from the experiment's results.json."""
     results = _read_json(out / "downstream" / "results.json")
     if results is None:
         return ["The downstream step did not finish: no `downstream/results.json`."]
@@ -287,7 +309,7 @@ def sequence_table(out: Path) -> list[str]:
 
 
 def demo_report(out: Path, timings: list[tuple[Step, float]], weights: dict[str, Path] | None) -> str:
-    """OUT/report.md: wall time per step, the generation table, the four-arm table, the figures, the full results."""
+    """OUT/report.md: wall time per step, the generation table, the downstream table, the figures, the full results."""
     total = sum(seconds for _, seconds in timings)
     lines = [
         "# u4d demo report",
@@ -300,7 +322,7 @@ def demo_report(out: Path, timings: list[tuple[Step, float]], weights: dict[str,
         "",
         *generation_table(out, weights),
         "",
-        "## Downstream: the four arms (toy size, one seed)",
+        "## Downstream: the five arms, the last a ceiling of real scans (toy size, one seed)",
         "",
         *downstream_table(out),
         "",

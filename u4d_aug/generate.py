@@ -54,6 +54,7 @@ from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, sh
 from u4d_aug.errors import InputError
 from u4d_aug.export_bank import export_bank
 from u4d_aug.io import load_checkpoint, remove_temp_files
+from u4d_aug.outfolder import check_output_folder
 from u4d_aug.pipeline import (
     MeanStart,
     Sampler,
@@ -180,6 +181,11 @@ def _checkpoint_paths(cfg: GenerateConfig) -> dict[str, Path]:
     return paths
 
 
+def is_generated_manifest(record: dict) -> bool:
+    """Whether a manifest.json is one `u4d generate` wrote (a bank of generated scans it may resume)."""
+    return record.get("mode") in ("u4d", "baseline", "complete") and "checkpoints" in record
+
+
 def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -> dict:
     """Generate samples 0..num-1 not yet in the bank (this rank's share); rank 0 writes the manifest.
 
@@ -187,6 +193,7 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
     samples against the digests of the manifest (a changed one is generated again) before any rank writes.
     """
     paths = _checkpoint_paths(cfg)  # a missing net is one error line, before the bank folder exists
+    check_output_folder(out, "a generated bank", is_generated_manifest)  # never into a dataset or another output
     info = init_distributed(cfg.device)
     with run_lock(out, enabled=info.is_main):
         manifest = generate_locked(cfg, paths, Path(out), info, progress)

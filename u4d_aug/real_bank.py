@@ -30,6 +30,7 @@ from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.errors import InputError
 from u4d_aug.io import load_checkpoint, make_folder
+from u4d_aug.outfolder import check_output_folder
 from u4d_aug.progress import progress_bar
 from u4d_aug.runlock import run_lock
 
@@ -121,6 +122,7 @@ def write_real_bank(
     if geometry is not None:
         get_sensor(geometry["sensor"])  # a bad sensor name fails before anything is written
     identity = {"mode": MODE, "source": {"root": str(root.resolve()), "sequences": places}, "projection": geometry}
+    check_output_folder(out, "a bank of real scans", lambda record: record.get("mode") == MODE)
     out = make_folder(out)
     with run_lock(out):
         old = read_manifest(out)

@@ -60,6 +60,7 @@ from u4d_aug.data.sim.streets import make_hills, make_network
 from u4d_aug.data.sim.world import World, build_world
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_save_npy, atomic_write_json, load_npy, remove_temp_files
+from u4d_aug.outfolder import check_output_folder
 from u4d_aug.runlock import run_lock
 
 logger = logging.getLogger(__name__)
@@ -358,6 +359,7 @@ def simulate(
     get_sensor(sensor)  # validate early
     out_dir = Path(out_dir)
     with run_lock(out_dir):  # one run per folder: two would write the same frames
+        check_output_folder(out_dir, "a simulated world", lambda record: record.get("format") == MANIFEST_FORMAT)
         removed = remove_temp_files(out_dir)
         if removed:
             logger.info("%s: removed %d temp file(s) of a killed run", out_dir, removed)

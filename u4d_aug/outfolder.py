@@ -1,0 +1,56 @@
+"""Which `--out` a command may write into: a missing or empty folder, or one holding its own record of the same kind.
+
+A folder with anything else in it (a dataset root, another command's output, a bank of another kind) is refused
+with one line naming what is there, before a file is written: `u4d simulate` into a SemanticKITTI root would
+rewrite its poses and add frames to its sequences, `u4d generate` into one would record the real scans as its
+samples. The run lock (`runlock.LOCK_NAME`) and the temp files of killed atomic writes (`io.TEMP_PREFIX`) do not
+count as content. The record is the folder's `manifest.json`; `owns(manifest)` says whether it is this command's.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from u4d_aug.errors import InputError
+from u4d_aug.io import TEMP_PREFIX, TEMP_SUFFIX
+from u4d_aug.runlock import LOCK_NAME
+
+MANIFEST = "manifest.json"
+
+
+def folder_content(out: Path) -> list[str]:
+    """Names in `out` other than the run lock and temp files, sorted (empty for a missing folder)."""
+    if not out.is_dir():
+        return []
+    names = (p.name for p in out.iterdir())
+    return sorted(n for n in names if n != LOCK_NAME and not (n.startswith(TEMP_PREFIX) and n.endswith(TEMP_SUFFIX)))
+
+
+def check_output_folder(out: str | Path, what: str, owns: Callable[[dict[str, Any]], bool]) -> None:
+    """InputError unless `out` is missing, empty, or has a manifest.json that `owns` accepts (this command's own
+    output, which it may resume); `what` names the command's output in the message ('a simulated world')."""
+    out = Path(out)
+    content = folder_content(out)
+    if not content:
+        return
+    manifest = out / MANIFEST
+    if manifest.is_file():
+        try:
+            record = json.loads(manifest.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            record = None
+        if isinstance(record, dict) and owns(record):
+            return
+        raise InputError(
+            f"{manifest}: not the manifest of {what}; this folder holds another kind of output. Choose an empty "
+            "--out (nothing in a folder that this command did not write is overwritten)"
+        )
+    shown = ", ".join(content[:4]) + (", ..." if len(content) > 4 else "")
+    kind = " (a dataset root?)" if "sequences" in content else ""
+    raise InputError(
+        f"{out}: holds {shown}{kind} and no manifest.json of {what}; choose an empty --out (nothing in a folder "
+        "that this command did not write is overwritten)"
+    )
