@@ -7,6 +7,8 @@ workers or where the run was resumed.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 from torch.utils.data import Dataset
@@ -116,8 +118,8 @@ def train_scans(cfg: SegTrainConfig, info: DistInfo) -> ScanDataset | NuscenesSc
     if len(scans) == 0:
         raise InputError(f"{cfg.data.root}: no labeled scan in the train sequences {scans.sequences}")
     if cfg.data.label_fraction < 1.0:
-        split = (cfg.data.root, scans.entries, cfg.data.label_fraction, cfg.data.split_seed, cfg.data.split_mode)
-        if info.is_main:  # rank 0 draws and writes the split file beside the data; then every rank reads it
+        split = (Path(cfg.out_dir), scans.entries, cfg.data.label_fraction, cfg.data.split_seed, cfg.data.split_mode)
+        if info.is_main:  # rank 0 draws and writes the split file under OUT/splits; then every rank reads it
             load_or_make_split(*split)
         barrier()
         labeled, _ = load_or_make_split(*split)

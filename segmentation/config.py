@@ -22,7 +22,9 @@ from u4d_aug.data.nuscenes import NUSCENES_VERSION
 from u4d_aug.validate import check_finite_config
 
 Sequences = str | list[str | int] | None  # split name ('train' / 'val' / 'test'), a list of sequences, or all
-_WARM_RESTART = "a warm restart of the lr changed nothing (3 seeds, benchmarks/results/experiment_cpu_tenpct_seq)"
+_WARM_RESTART = (
+    "a warm restart of the lr changed nothing (3 seeds, benchmarks/results/segmentation/experiment_cpu_tenpct_seq)"
+)
 
 
 @dataclass
@@ -39,10 +41,13 @@ class SegDataConfig:
     # numbers (61 = scene-0061) or ranges of them ("1-100"), or null = all scenes (no built-in split)
     train_sequences: Sequences = "train"
     val_sequences: Sequences = "val"
-    # labeled part of the train scans (LaserMix splits, written beside the data under ROOT/splits/)
+    # labeled part of the train scans (LaserMix splits, written under OUT/splits/)
     label_fraction: float = 1.0
     split_mode: Literal["uniform", "sequence"] = "uniform"
     split_seed: int = 0
+    # mode "semi": the places the unlabeled real scans come from (the data-scarce setting: a pool of a few places,
+    # none of them labelled); null = every train scan outside the labelled split
+    unlabeled_sequences: Sequences = None
     # training part of each scan (CPU presets; evaluation keeps every point): a random azimuth sector of this many
     # degrees (None = the whole scan; keeps the point density), then at most max_points of it at random
     sector_deg: float | None = None
@@ -54,7 +59,7 @@ class SegDataConfig:
         if self.format not in DATASET_FORMATS:
             raise ValueError(f"data.format must be one of {', '.join(DATASET_FORMATS)}; got {self.format!r}")
         # yaml reads 00 and 01 as integers: store sequence names as the folder names '00', '01'
-        for name in ("train_sequences", "val_sequences"):
+        for name in ("train_sequences", "val_sequences", "unlabeled_sequences"):
             value = getattr(self, name)
             if isinstance(value, (list, tuple)):
                 setattr(self, name, [f"{v:02d}" if isinstance(v, int) else str(v) for v in value])
@@ -129,7 +134,7 @@ class LossConfig:
 
     REMOVED_KEYS: ClassVar[dict] = {
         "point_fraction": (1.0, "point losses on a quarter of the points lost 7 mIoU points to voxel losses, "
-                           "benchmarks/results/seg_cpu_rich; use loss.level"),
+                           "benchmarks/results/segmentation/seg_cpu_rich; use loss.level"),
     }  # fmt: skip
 
     def __post_init__(self) -> None:
@@ -168,7 +173,7 @@ class SemiConfig(MeanTeacherConfig):
 
     REMOVED_KEYS: ClassVar[dict] = {
         "teacher_views": (1, "pseudo-labels from mirror views changed nothing (+0.08 +- 0.35 points, 2 seeds) at 4 "
-                          "teacher forwards a scan, benchmarks/results/experiment_cpu_tenpct_seq"),
+                          "teacher forwards a scan, benchmarks/results/segmentation/experiment_cpu_tenpct_seq"),
         "burn_in_teacher": ("copy", "the burn-in teacher is the student (Unbiased Teacher), which lets arms share "
                             "burn_in.pt; 'ema' was the setting of the early regimes where the mean teacher lost"),
     }  # fmt: skip

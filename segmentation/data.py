@@ -159,17 +159,19 @@ def frames_digest(frames: list[FrameId]) -> str:
     return hashlib.sha1(text.encode()).hexdigest()[:8]
 
 
-def split_path(root: Path, frames: list[FrameId], fraction: float, seed: int, mode: str) -> Path:
-    """Where a split is stored beside the data: ROOT/splits/<mode>_<percent>pct_seed<seed>_<frames digest>.json."""
+def split_path(out: Path, frames: list[FrameId], fraction: float, seed: int, mode: str) -> Path:
+    """Where a run keeps its split: OUT/splits/<mode>_<percent>pct_seed<seed>_<frames digest>.json (never in the
+    data root, which may be a read-only mount or another user's dataset)."""
     percent = f"{100.0 * fraction:g}".replace(".", "p")
-    return Path(root) / "splits" / f"{mode}_{percent}pct_seed{seed}_{frames_digest(frames)}.json"
+    return Path(out) / "splits" / f"{mode}_{percent}pct_seed{seed}_{frames_digest(frames)}.json"
 
 
 def load_or_make_split(
-    root: Path, frames: list[FrameId], fraction: float, seed: int, mode: Literal["uniform", "sequence"]
+    out: Path, frames: list[FrameId], fraction: float, seed: int, mode: Literal["uniform", "sequence"]
 ) -> tuple[list[FrameId], list[FrameId]]:
-    """Reuse the split file beside the data when it matches these frames, else draw it and write it."""
-    path = split_path(root, frames, fraction, seed, mode)
+    """Reuse the run's split file (OUT/splits) when it matches these frames, else draw it and write it there; the
+    draw depends on (frames, fraction, seed, mode) only, so every arm of an experiment gets the same split."""
+    path = split_path(out, frames, fraction, seed, mode)
     if path.is_file():
         try:
             data = json.loads(path.read_text())

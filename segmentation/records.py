@@ -28,6 +28,9 @@ logger = logging.getLogger(__name__)
 FORMAT = 1
 # keys that change where and how often a run writes, never what it learns
 BOOKKEEPING = ("out_dir", "checkpoint_every", "keep_checkpoints", "num_workers", "threads")
+# keys added to the config after records were written, with the value that means what the runs did before: a recipe
+# leaves them out at that value, so the records written before the key existed still stand for their runs
+ADDED_KEYS = {("data", "unlabeled_sequences"): None}
 CURVE_KEYS = ("loss", "val_miou")
 PROVENANCE = ("host", "burn_in_weights", "banks")  # record keys a table shows beside the figures
 
@@ -42,6 +45,9 @@ def recipe(run: SegTrainConfig) -> dict:
     data = json_roundtrip(config_to_dict(run))
     for key in BOOKKEEPING:
         data.pop(key, None)
+    for (section, key), before in ADDED_KEYS.items():
+        if data.get(section, {}).get(key, before) == before:
+            data.get(section, {}).pop(key, None)
     return data
 
 

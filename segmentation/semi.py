@@ -9,11 +9,13 @@ generated scans (SemanticKITTI layout, labels absent), source drawn per slot wit
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
 from torch import nn
 
 from segmentation.config import SegTrainConfig, SemiConfig
-from segmentation.data import augment, load_or_make_split, training_subset
+from segmentation.data import FrameId, augment, load_or_make_split, training_subset
 from segmentation.lasermix import lasermix
 from segmentation.losses import segmentation_loss, voxel_targets
 from segmentation.mean_teacher import (
@@ -88,11 +90,13 @@ def unlabeled_stream(cfg: SegTrainConfig) -> UnlabeledStream:
     if cfg.data.label_fraction < 1.0:
         labeled_frames = open_scans(data.root, data.train_sequences, True, data.format, data.nuscenes_version).entries
         _, unlabeled = load_or_make_split(
-            cfg.data.root, labeled_frames, cfg.data.label_fraction, cfg.data.split_seed, cfg.data.split_mode
+            Path(cfg.out_dir), labeled_frames, cfg.data.label_fraction, cfg.data.split_seed, cfg.data.split_mode
         )
         # the unlabeled part of the split, plus train scans that have no label file at all
         chosen, labeled_set = set(unlabeled), set(labeled_frames)
         split.entries = [entry for entry in split.entries if entry in chosen or entry not in labeled_set]
+    if data.unlabeled_sequences is not None:
+        split.entries = scarce_pool(split.entries, cfg)
     sources, ratios, names = [split], [1.0 - sum(b.ratio for b in cfg.semi.banks)], [f"{cfg.data.root} (split)"]
     for i, bank in enumerate(cfg.semi.banks):
         if not bank.path.is_dir():
@@ -101,6 +105,33 @@ def unlabeled_stream(cfg: SegTrainConfig) -> UnlabeledStream:
         ratios.append(bank.ratio)
         names.append(str(bank.path))
     return UnlabeledStream(sources, ratios, names)
+
+
+def scarce_pool(entries: list[FrameId], cfg: SegTrainConfig) -> list[FrameId]:
+    """The unlabeled scans of data.unlabeled_sequences only (the data-scarce setting); InputError when a named place
+    is labelled or holds no unlabeled train scan."""
+    data = cfg.data
+    pool = open_scans(data.root, data.unlabeled_sequences, False, data.format, data.nuscenes_version)
+    places = {seq for seq, _ in pool.entries}
+    available = {seq for seq, _ in entries}
+    if data.label_fraction < 1.0:
+        labeled_frames = open_scans(data.root, data.train_sequences, True, data.format, data.nuscenes_version).entries
+        labeled, _ = load_or_make_split(
+            Path(cfg.out_dir), labeled_frames, data.label_fraction, data.split_seed, data.split_mode
+        )
+        overlap = sorted(places & {seq for seq, _ in labeled})
+        if overlap:
+            raise InputError(
+                f"data.unlabeled_sequences: {', '.join(overlap)} hold labelled scans of the split; the unlabeled pool "
+                "must come from places with no labelled scan (data.split_mode=sequence)"
+            )
+    missing = sorted(places - available)
+    if missing:
+        raise InputError(
+            f"data.unlabeled_sequences: {', '.join(missing)} are not unlabeled train places "
+            f"(data.train_sequences: {data.train_sequences})"
+        )
+    return [entry for entry in entries if entry[0] in places]
 
 
 def load_unlabeled(

@@ -141,6 +141,14 @@ def test_the_recipe_leaves_out_bookkeeping_only():
     assert json.loads(json.dumps(data)) == data  # plain json
 
 
+def test_a_key_added_later_keeps_older_records_at_its_former_value():
+    cfg = load_config(ExperimentConfig, TINY, [f"base={TINY_SEMI}"])
+    run = run_config(cfg, cfg.arms[0], "minkunet", 0)
+    assert "unlabeled_sequences" not in recipe(run)["data"]  # null: what every run did before the key existed
+    run.data.unlabeled_sequences = ["01", "02"]
+    assert recipe(run)["data"]["unlabeled_sequences"] == ["01", "02"]  # set: a different recipe
+
+
 def test_a_bank_arm_with_a_record_is_reported_where_its_bank_is_absent(tmp_path):
     """Banks stay on the machine that wrote them: on another one, a bank arm's records still give its numbers."""
     run, root = tiny_experiment(tmp_path, "optim.steps=2, eval_every=2")

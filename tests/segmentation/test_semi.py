@@ -21,7 +21,7 @@ from segmentation.optimizer import make_optimizer
 from segmentation.semi import UnlabeledStream, semi_step, unlabeled_stream, update_teacher
 from segmentation.train import train
 from tests.tiny_nets import CPU, REPO
-from tests.tiny_worlds import toy_scan
+from tests.tiny_worlds import toy_scan, write_toy_root
 from u4d_aug.config import load_config
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
@@ -73,6 +73,23 @@ def test_bank_stream_reads_unlabeled_scans(toy_root, bank_root, tmp_path):
     labeled = {entry for entry in train_scans(cfg, CPU).entries}
     assert labeled.isdisjoint(stream.sources[0].entries)
     assert len(labeled) + len(stream.sources[0].entries) == 3
+
+
+def test_scarce_pool_draws_unlabeled_scans_from_its_places_only(tmp_path):
+    root = write_toy_root(tmp_path / "places", ("00", "01", "02", "03", "04", "05"), frames=2)
+    base = ("data.train_sequences=00-05", "data.split_mode=sequence", "data.label_fraction=0.2")
+    full = unlabeled_stream(semi_config(root, tmp_path / "full", *base))
+    labeled = {seq for seq, _ in train_scans(semi_config(root, tmp_path / "full", *base), CPU).entries}
+    free = sorted({seq for seq, _ in full.sources[0].entries})
+    assert len(free) >= 3 and labeled.isdisjoint(free)
+    cfg = semi_config(root, tmp_path / "scarce", *base, f"data.unlabeled_sequences=[{free[0]}]")
+    pool = unlabeled_stream(cfg).sources[0].entries
+    assert pool == [entry for entry in full.sources[0].entries if entry[0] == free[0]] and len(pool) == 2
+    # a labelled place, or one outside the train places, is refused by name
+    for bad, message in ((sorted(labeled)[0], "hold labelled scans"), ("09", "09")):
+        cfg = semi_config(root, tmp_path / "bad", *base, f"data.unlabeled_sequences=[{bad}]")
+        with pytest.raises(InputError, match=f"data.unlabeled_sequences.*{message}|{message}"):
+            unlabeled_stream(cfg)
 
 
 def test_bad_banks_are_reported(toy_root, tmp_path):
