@@ -2,7 +2,7 @@
 
     python benchmarks/bench_generation.py --root data/sim_eval --reference 00-11 --floor 12-23 --num 64 \
         --seeds 0 1 2 --samplers dpmpp2m-sde:20:6 ddpm:32:16 --metrics frd,fpd,jsd,mmd,points,rangejs \
-        --out benchmarks/results/generation_64x1024.json
+        --out benchmarks/results/generation/generation_64x1024.json
     python benchmarks/bench_generation.py ... --quick            # 8 scans, seeds 0 1, ddpm 8 steps (stage 1: 4)
 
 The nets and extractors default to the shipped ones in weights/ (`--stage1 --stage2 --baseline --extractor-frd
@@ -459,7 +459,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="auto")
     parser.add_argument("--work", type=Path, default=REPO / "runs" / "bench_generation", help="banks go here")
     parser.add_argument("--quick", action="store_true", help="8 scans, seeds 0 1, ddpm 8 steps (stage 1: 4)")
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "generation.json")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "generation" / "generation.json")
     args = parser.parse_args(argv)
     if args.quick:
         args.num, args.seeds, args.samplers = 8, [0, 1], [SamplerSpec("ddpm", 8, 4)]

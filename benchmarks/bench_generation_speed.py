@@ -27,8 +27,8 @@ FLOPs: `torch.utils.flop_counter.FlopCounterMode` counts matmul/conv/attention F
 ops); achieved GFLOP/s = FLOPs / median time, of UNet forwards and of whole generations (steps x FLOPs per
 forward), against a square float32 matmul timed in the same run with the same threads (for the anchor: the faster
 of two 2048² matmul runs around it).
-Writes benchmarks/results/generation_speed_{H}x{W}.json (--quick: the temp folder; `--out` redirects) and a .md with
-the tables beside it. On a shared machine, compare ratios rather than absolutes; load averages are recorded.
+Writes benchmarks/results/speed/generation_speed_{H}x{W}.json (--quick: the temp folder; `--out` redirects) and a .md
+with the tables beside it. On a shared machine, compare ratios rather than absolutes; load averages are recorded.
 """
 
 from __future__ import annotations
@@ -659,7 +659,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--anchor-reps", type=int, default=None, help="timed anchor forwards, 0 skips (3; quick 0)")
     parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
     parser.add_argument("--quick", action="store_true", help="tiny preset, 4 (2) steps, 3 reps, matmul 512")
-    parser.add_argument("--out", type=Path, default=None, help="json path (default results/generation_speed_HxW)")
+    parser.add_argument("--out", type=Path, default=None, help="json path (default results/speed/generation_speed_HxW)")
     args = parser.parse_args(argv)
     quick = args.quick
     steps, stage1_steps = QUICK_STEPS if quick else DEFAULT_STEPS[args.sampler]
@@ -694,8 +694,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def default_out(quick: bool, height: int, width: int) -> Path:
-    """benchmarks/results/generation_speed_HxW.json; --quick: the temp folder (never over the real results)."""
-    folder = Path(tempfile.gettempdir()) if quick else REPO / "benchmarks" / "results"
+    """benchmarks/results/speed/generation_speed_HxW.json; --quick: the temp folder (never over the real results)."""
+    folder = Path(tempfile.gettempdir()) if quick else REPO / "benchmarks" / "results" / "speed"
     return folder / f"generation_speed{'_quick' if quick else ''}_{height}x{width}.json"
 
 

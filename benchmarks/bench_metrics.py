@@ -8,7 +8,7 @@ MMD on 1,000 vs 1,000 histograms, FD and polynomial MMD (KID) on 1,000 vs 1,000 
 (FRD) and 1808-D (FPD). Extrapolated (marked "x"): TTCE and CTC are timed per pair on the real frames 0-5
 (all pairs of their intervals, tree/cloud building included) and multiplied by the pairs of one 1,000-frame
 sequence (TTCE k=3,4: 1,993 pairs; CTC k=1..4: 3,990 pairs). Medians over repetitions.
-Writes benchmarks/results/metrics.json. The machine is shared: the load average is recorded with the figures.
+Writes benchmarks/results/speed/metrics.json. The machine is shared: the load average is recorded with the figures.
 """
 
 from __future__ import annotations
@@ -182,7 +182,7 @@ def main() -> int:
     parser.add_argument("--reps", type=int, default=3, help="repetitions of the fast measures; the median is reported")
     parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads (default 2)")
     parser.add_argument("--quick", action="store_true", help="1 repetition, skip 4096-D sqrtm and full-resolution ICP")
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "metrics.json")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "speed" / "metrics.json")
     args = parser.parse_args()
     if args.quick:
         args.reps = 1

@@ -11,7 +11,7 @@ through the preset's net without MoST blocks (`net.most=false`), the reference a
 Timed: seconds per forward and per sampled sequence (`generate_baseline`, `--sampler` at `--steps`; L samples of
 one frame for `frames` and `plain`, one generator each as in `u4d generate`). Each repetition times every L and
 variant before the next starts (interleaved, so load from other processes hits all alike); medians over `--reps`.
-Writes benchmarks/results/most_cost.json and a .md beside it (--quick: the temp folder); `--out` redirects.
+Writes benchmarks/results/speed/most_cost.json and a .md beside it (--quick: the temp folder); `--out` redirects.
 """
 
 from __future__ import annotations
@@ -138,10 +138,10 @@ def markdown(result: dict) -> str:
 
 
 def default_out(quick: bool) -> Path:
-    """benchmarks/results/most_cost.json; --quick: the temp folder (never over the real result)."""
+    """benchmarks/results/speed/most_cost.json; --quick: the temp folder (never over the real result)."""
     if quick:
         return Path(tempfile.gettempdir()) / "most_cost_quick.json"
-    return REPO / "benchmarks" / "results" / "most_cost.json"
+    return REPO / "benchmarks" / "results" / "speed" / "most_cost.json"
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

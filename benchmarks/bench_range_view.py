@@ -5,7 +5,7 @@
 
 project = points -> Projection -> (2, H, W) image (`project` + `to_image`); unproject = image -> points;
 batch = `project_batch` of B copies of the scan, in scans/s. Medians over repetitions after a warm-up.
-Writes benchmarks/results/range_view.json. Goal: >= 50 scans/s projection on 2 cores.
+Writes benchmarks/results/speed/range_view.json. Goal: >= 50 scans/s projection on 2 cores.
 On a machine shared with other busy processes, 2 OpenMP threads that spin-wait can slow each op by 10-50x;
 `OMP_WAIT_POLICY=PASSIVE python benchmarks/bench_range_view.py` (or --threads 1) shows the uncontended cost.
 """
@@ -133,7 +133,7 @@ def main() -> int:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--batch", type=int, default=8, help="scans per project_batch call")
     parser.add_argument("--quick", action="store_true", help="5 reps of 4 calls")
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "range_view.json")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "speed" / "range_view.json")
     args = parser.parse_args()
     if args.quick:
         args.reps, args.calls, args.warmup = 5, 4, 1

@@ -1,7 +1,7 @@
 """Which sampler, how many steps: sample quality proxies and time per scan of one trained net, several samplers.
 
     python benchmarks/bench_samplers.py runs/gen64/baseline --samplers ddpm:32 dpmpp2m-sde:20 dpmpp2m-sde:10 \
-        dpmpp2m:20 ddim:20 --num 4 --real data/sim_eval --out benchmarks/results/samplers_64x1024.json
+        dpmpp2m:20 ddim:20 --num 4 --real data/sim_eval --out benchmarks/results/generation/samplers_64x1024.json
 
 For a baseline or stage-1 net (unconditional), each NAME:STEPS[:GRID] setting draws `--num` range images (sample i
 seeded i, the same for every setting) and reports, against real scans projected the same way:
@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--num", type=int, default=4, help="scans per setting")
     parser.add_argument("--real", type=Path, required=True, help="SemanticKITTI root of real scans to compare with")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "samplers.json")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "generation" / "samplers.json")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)

@@ -6,7 +6,7 @@
 Every sparse convolution's cost is its kernel-map pairs x C_in x C_out x 2 FLOP (gather-GEMM-scatter does exactly
 these products; the identity offset of a submanifold conv counts its M rows). Convolutions with the same
 (output voxels, C_in, C_out, kernel volume) are summed into one row; kernel-1 products, norms and the head are
-left out (< 1 % here). Backward costs about twice the forward. Writes benchmarks/results/seg_flops.json.
+left out (< 1 % here). Backward costs about twice the forward. Writes benchmarks/results/segmentation/seg_flops.json.
 """
 
 from __future__ import annotations
@@ -76,7 +76,7 @@ def main() -> int:
     parser.add_argument("--variant", action="append", help='space-separated key=value overrides ("" = the preset)')
     parser.add_argument("--batches", type=int, default=2, help="training batches counted (their mean is reported)")
     parser.add_argument("--rows", type=int, default=8, help="heaviest conv rows printed per variant")
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "seg_flops.json")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "segmentation" / "seg_flops.json")
     args = parser.parse_args()
     variants = args.variant if args.variant is not None else [""]
     results = []

@@ -12,7 +12,7 @@ changes on the machine hit every variant alike; one warm-up step each, then the 
 steps of the whole `supervised_step` + backward + optimiser step. Also reports how many rows the losses read
 per step (points, or voxels with loss.level=voxel) and the memory autograd keeps for backward in the warm-up step
 (the storages of the saved tensors, counted once; `model.keep_gathers` adds the convolutions' gathered inputs).
-Writes benchmarks/results/seg_step.json.
+Writes benchmarks/results/segmentation/seg_step.json.
 
 --profile: the timed steps run under torch.profiler; per variant the operators with the most self time (share of
 the profiled time) and the rate of the matrix products (aten::mm FLOPs / its self time) against the profiled
@@ -141,7 +141,7 @@ def main() -> int:
     )
     parser.add_argument("--steps", type=int, default=6, help="timed steps per variant (after one warm-up step)")
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "seg_step.json")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "segmentation" / "seg_step.json")
     parser.add_argument("--profile", action="store_true", help="operator breakdown of the timed steps (torch.profiler)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

@@ -10,7 +10,7 @@ from all 6 scans), the teacher's forward on them, 2B LaserMix scans and the EMA 
 backward + AdamW step (+ EMA), batches loaded beforehand (loading is not timed); steps/s = 1 / median step
 time after one warm-up step. Memory: one subprocess per case; the peak-RSS mark is reset (`5` written to
 /proc/self/clear_refs) after set-up, extra memory = VmHWM at the end minus VmRSS at the reset.
-Writes benchmarks/results/semisup.json.
+Writes benchmarks/results/segmentation/semisup.json.
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--steps", type=int, default=None, help="timed steps per case (after one warm-up)")
     parser.add_argument("--max-points", type=int, default=None, help="subsample scans (default: full; quick: 30000)")
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "semisup.json")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "segmentation" / "semisup.json")
     parser.add_argument("--child", choices=["supervised", "semi"], help=argparse.SUPPRESS)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

@@ -6,7 +6,7 @@ rebuilding one scene with static + dynamic per frame, render + write per frame (
 end-to-end `simulate` frames/s with 1 and 2 workers: 2 sequences of 100 frames (10 s of driving each; real
 SemanticKITTI sequences hold 271-4541 frames), world generation, scene build and the workers' start-up (each
 spawned worker imports open3d, ~2 s) included; one run each. The goal is >= 10 frames/s on 2 cores. The
-per-frame and build rows are medians of several repetitions. Writes benchmarks/results/sim.json.
+per-frame and build rows are medians of several repetitions. Writes benchmarks/results/speed/sim.json.
 
     python benchmarks/bench_sim.py [--quick]
 """
@@ -34,7 +34,7 @@ from u4d_aug.data.sim.world import build_world
 from u4d_aug.data.sim.writer import simulate
 from u4d_aug.io import atomic_write_json
 
-RESULTS = Path(__file__).resolve().parent / "results" / "sim.json"
+RESULTS = Path(__file__).resolve().parent / "results" / "speed" / "sim.json"
 
 
 def _median_time(fn, repeats: int) -> float:

@@ -7,8 +7,8 @@ bins, 0-80 m; the goal is <= 0.10), elevation JS, points per scan, range shares,
 place (6 consecutive scans) against its own pool (the spread a 6-frame reference of one place carries), the 1 m bins
 that add most to the mean JS divergence, the per-class remission JS distance (labelled returns within 50 m, the real
 seq-00 frames 0-2), the range roughness and the mixed-pixel share of depth edges. Writes
-benchmarks/results/<name>.json, <name>.md and <name>_remission.png (the per-class remission histograms of all seeds
-pooled against the real ones); `--table NAME ...` writes one markdown table over several such json files.
+benchmarks/results/world/<name>.json, <name>.md and <name>_remission.png (the per-class remission histograms of all
+seeds pooled against the real ones); `--table NAME ...` writes one markdown table over several such json files.
 
     python benchmarks/bench_sim_realism.py [--seeds 0 1 2 3] [--config sim/varied] [--set key=value ...] [--name N]
     python benchmarks/bench_sim_realism.py --table sim_realism_default sim_realism_varied --name sim_realism
@@ -34,7 +34,7 @@ from u4d_aug.data.sim.writer import simulate
 from u4d_aug.io import atomic_write_json, atomic_write_text
 
 ROOT = Path(__file__).resolve().parent.parent
-RESULTS = ROOT / "benchmarks" / "results"
+RESULTS = ROOT / "benchmarks" / "results" / "world"
 # ../shared/data/real beside the checkout; U4D_REAL_DATA points elsewhere (a git worktree one folder deeper)
 REAL = Path(os.environ.get("U4D_REAL_DATA") or ROOT.parent / "shared" / "data" / "real") / "semantickitti"
 
@@ -237,7 +237,7 @@ def main() -> int:
     parser.add_argument("--frames", type=int, default=30)
     parser.add_argument("--config", default=None, help="SimConfig preset or yaml (default: the default world)")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="config overrides")
-    parser.add_argument("--name", default="sim_realism", help="result file stem under benchmarks/results/")
+    parser.add_argument("--name", default="sim_realism", help="result file stem under benchmarks/results/world/")
     parser.add_argument("--work", type=Path, default=None, help="keep the worlds here (reused when present)")
     parser.add_argument("--real", type=Path, default=REAL)
     parser.add_argument("--table", nargs="+", default=None, metavar="NAME", help="tabulate earlier results only")

@@ -19,7 +19,7 @@ points per scan, the JS of the remission of every return (INTENSITY_BINS: a bin 
 the per-class remission JS mean and real-share-weighted mean (labelled sources, returns within 50 m), the range
 roughness and the mixed-pixel share of depth edges. All JS are distances in base 2: 0 = identical, 1 = disjoint. The
 main table pairs a world with the sources of its own sensor; other pairs (and real sources against each other) are in
-the json and a second table. Writes benchmarks/results/<name>.json, <name>.md and <name>_remission.png.
+the json and a second table. Writes benchmarks/results/world/<name>.json, <name>.md and <name>_remission.png.
 
     python benchmarks/bench_sim_realism_sources.py [--seeds 0 1] [--sequences 12] [--frames 3] [--name N]
 """
@@ -47,7 +47,7 @@ from u4d_aug.data.sim.writer import build_sequence, render_frame
 from u4d_aug.io import atomic_write_json, atomic_write_text
 
 ROOT = Path(__file__).resolve().parent.parent
-RESULTS = ROOT / "benchmarks" / "results"
+RESULTS = ROOT / "benchmarks" / "results" / "world"
 # ../shared/data/real beside the checkout; U4D_REAL_DATA points elsewhere (a git worktree one folder deeper)
 REAL = Path(os.environ.get("U4D_REAL_DATA") or ROOT.parent / "shared" / "data" / "real")
 PRESETS = {

@@ -23,7 +23,7 @@ case adds at its peak (incl. the dense grids, kernel maps, autograd buffers). Wi
 `resource.getrusage(RUSAGE_SELF).ru_maxrss` deltas. tracemalloc does not see torch's CPU allocations. Children
 run with OMP_WAIT_POLICY=PASSIVE and --threads torch threads (default 2) because spin-waiting OpenMP threads
 distort small ops on a shared machine.
-Writes benchmarks/results/sparse.json. Goal: sparse >= 3x faster than dense with the same result.
+Writes benchmarks/results/segmentation/sparse.json. Goal: sparse >= 3x faster than dense with the same result.
 """
 
 from __future__ import annotations
@@ -269,7 +269,7 @@ def main() -> int:
     parser.add_argument("--reps", type=int, default=None, help="sparse repetitions (dense: half)")
     parser.add_argument("--steps", type=int, default=None, help="timed training steps per net")
     parser.add_argument("--budget", type=float, default=None, help="seconds per training case (then stop)")
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "sparse.json")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "segmentation" / "sparse.json")
     parser.add_argument("--skip-train", action="store_true")
     # child-process arguments
     parser.add_argument("--child", choices=["conv", "train"], help=argparse.SUPPRESS)

@@ -1,7 +1,7 @@
 """What shipping a segmentor in float16 or int8 (`u4d export-weights [--int8]`) changes in U4D's uncertain region.
 
     python benchmarks/bench_weights_precision.py runs/unc_seg/model.pt data/sim_eval --scans 12 \
-        --out benchmarks/results/weights_precision_segmentor.json
+        --out benchmarks/results/segmentation/weights_precision_segmentor.json
 
 The float32 training checkpoint is exported to float16 and to int8 (temp folder), the three nets predict the
 same held-out scans (`--scans` evenly spaced of `--sequences`), and per scan against float32:
@@ -119,7 +119,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sequences", nargs="*", default=None)
     parser.add_argument("--scans", type=int, default=12)
     parser.add_argument("--k", type=float, default=0.1, help="P_u fraction")
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/weights_precision_segmentor.json"))
+    parser.add_argument(
+        "--out", type=Path, default=Path("benchmarks/results/segmentation/weights_precision_segmentor.json")
+    )
     args = parser.parse_args(argv)
     try:
         record = run(args.checkpoint, args.root, args.sequences, args.scans, args.k)

@@ -1,7 +1,7 @@
 """Do generated sequences follow their conditioning ego motion? ICP translations against the poses, per bank.
 
     python benchmarks/temporal_follow.py --bank u4d_most=runs/temporal/banks/u4d_most_s1 \
-        --bank floor=runs/temporal/floor --out benchmarks/results/temporal_follow
+        --bank floor=runs/temporal/floor --out benchmarks/results/temporal/temporal_follow
 
 TTCE alone cannot tell a sequence that moves a little wrong from one that does not move at all: with the car
 driving ~0.9 m per frame, a static scene (ICP finds no motion) scores TTCE k = 3 of about |t|/3 ~ 0.9 m. For every

@@ -1,5 +1,5 @@
 #!/bin/bash
-# The runs of the downstream comparison that remain (benchmarks/results/README.md, "Downstream comparison") as two
+# The runs of the downstream comparison that remain (benchmarks/results/downstream/README.md) as two
 # queues, one per CPU core. From the repository root, on a machine of this kind (2 cores):
 #   CORE=A nohup bash scripts/downstream_queue.sh > queue_A.log 2>&1 &
 #   CORE=B nohup bash scripts/downstream_queue.sh > queue_B.log 2>&1 &

@@ -16,12 +16,13 @@
 # Each generates 24 sequences of 5 frames (TTCE k = 4 needs 5 frames; the temporal convolution and the poses relative
 # to frame 0 carry over from L = 4) along ego motions drawn from the training places, scored by `u4d evaluate`
 # against the held-out places 88-99; the floor scores those real held-out sequences themselves. The queue that finds
-# everything done writes the table (benchmarks/reports/temporal_table.py -> benchmarks/results/temporal.json / .md);
-# u4d_most seed 0 draws the gate figures.
-# RUNS (default ../runs) says where run folders go, RESULTS (default benchmarks/results) where the table and figure go
-# (PY, default python3, runs benchmarks/reports/temporal_table.py). Each finished method-seed leaves its evaluation and its
-# training budget in EVALS (default RESULTS/temporal_evals, committed): a method with one there is not run again, so
-# the table grows over sessions on different machines although run folders and checkpoints stay on the machine.
+# everything done writes the table (benchmarks/reports/temporal_table.py ->
+# benchmarks/results/temporal/temporal.json / .md); u4d_most seed 0 draws the gate figures.
+# RUNS (default ../runs) says where run folders go, RESULTS (default benchmarks/results/temporal) where the table and
+# figure go (PY, default python3, runs benchmarks/reports/temporal_table.py). Each finished method-seed leaves its
+# evaluation and its training budget in EVALS (default RESULTS/temporal_evals, committed): a method with one there is
+# not run again, so the table grows over sessions on different machines although run folders and checkpoints stay on
+# the machine.
 # PROPAGATE=1 generates every sequence with propagate=true (frame 0 moved along the ego motion into the later frames,
 # the rest completed: u4d_aug.propagate) into banks NAME_prop_sSEED, scores them into RESULTS/temporal_evals_propagated
 # and writes RESULTS/temporal_propagated.json / .md; it reuses every trained net on the machine and trains the missing
@@ -31,7 +32,7 @@
 set -euo pipefail
 RUNS=${RUNS:-../runs}
 DATA=${DATA:-data}
-RESULTS=${RESULTS:-benchmarks/results}
+RESULTS=${RESULTS:-benchmarks/results/temporal}
 PY=${PY:-python3}
 STEPS=${STEPS:-2000}
 CORE=${CORE:?set CORE=A or CORE=B}

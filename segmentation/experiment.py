@@ -449,14 +449,7 @@ def run_experiment_config(
     evaluating those whose full evaluation is missing when final_eval is set. train_arms: train only these arms
     (names of cfg.arms), report the others as report_only does.
     """
-    names = [arm.name for arm in cfg.arms]
-    unknown = [name for name in train_arms or () if name not in names]
-    if unknown:
-        raise InputError(f"--arms: {unknown[0]!r} is not an arm of the experiment; its arms are {names}")
-    for arm in cfg.arms:
-        problem = bank_problem(arm)
-        if train_arms is not None and not report_only and arm.name in train_arms and problem is not None:
-            raise InputError(f"--arms: arm {arm.name!r} cannot run: {problem}")
+    _check_train_arms(cfg, report_only, train_arms)
     check_ceiling_banks(cfg)
     out = make_folder(cfg.out_dir)
     save_config(cfg, out / "experiment.yaml")
@@ -467,84 +460,135 @@ def run_experiment_config(
         for backbone in cfg.backbones:
             if arm.backbones is not None and backbone not in arm.backbones:
                 continue  # not part of this backbone's table
-            bank = None if arm.bank is None else str(arm.bank)
-            entry: dict = {
-                "arm": arm.name,
-                "mode": arm.mode,
-                "backbone": backbone,
-                "bank": bank,
-                "overrides": list(arm.overrides),
-            }
-            runs = []
-            seeds = [seed for seed in cfg.seeds if arm.seeds is None or seed in arm.seeds]
-            for seed in seeds:
-                run = run_config(cfg, arm, backbone, seed)
-                t0 = time.perf_counter()
-                path = None if cfg.records_dir is None else record_path(cfg.records_dir, arm.name, backbone, seed)
-                record = None if path is None else read_record(path, run)
-                trained = train and record is None and problem is None
-                if trained:
-                    logger.info("%s / %s / seed %d -> %s", arm.name, backbone, seed, run.out_dir)
-                    with run_lock(run.out_dir):  # per run folder: other processes may train other arms or seeds
-                        donor = start_from_burn_in(run, donors_on_disk(out)) if cfg.share_burn_in else None
-                        if donor is not None:
-                            logger.info("  starts at step %d from %s (the same burn-in)", run.semi.burn_in_steps, donor)
-                        run_one(run, progress)
-                metrics = run_metrics(run, cfg.final_eval, progress)
-                if metrics is not None:
-                    curves = log_curves(Path(run.out_dir) / "log.jsonl")
-                    if path is not None and (record is None or record["metrics"] != json_roundtrip(metrics)):
-                        write_record(path, run, metrics, curves, burn_in_weights(run, out))
-                        record = read_record(path, run)
-                elif record is not None:
-                    metrics, curves = record["metrics"], record["curves"]
-                else:  # not trained here and not finished
-                    continue
-                source = str(run.out_dir) if (Path(run.out_dir) / "metrics.json").is_file() else str(path)
-                # where it ran, from which burn-in, on which bank scans: known for runs with a record
-                provenance = {key: record.get(key) for key in PROVENANCE} if record is not None else {}
-                runs.append({"seed": seed, "out_dir": source, "curves": curves, **provenance, **metrics})
-                if trained:
-                    logger.info("  done in %.1f s (mIoU %s)", time.perf_counter() - t0, metrics.get("miou"))
-            if not runs and problem is not None:  # nothing recorded and nothing can run: never numbers
-                entry.update(status="missing", reason=problem)
-                results["arms"].append(entry)
-                logger.warning("%s / %s: missing (%s)", arm.name, backbone, problem)
-                continue
-            if not runs:
-                reason = "no finished run" if seeds else f"its seeds {arm.seeds} are not among the seeds {cfg.seeds}"
-                entry.update(status="not run", reason=reason)
-                results["arms"].append(entry)
-                continue
-            status = "done" if len(runs) == len(seeds) else "partial"
-            entry.update(status=status, **aggregate(runs))
-            entry["runs"] = [{k: v for k, v in r.items() if k != "bins"} for r in runs]
-            pooled = None
-            for r in runs:
-                if r.get("bins"):
-                    bins = bins_from_dict(r["bins"])
-                    pooled = bins if pooled is None else pooled + bins
-            if pooled is not None:
-                png = out / f"reliability_{arm.name}_{backbone}.png"
-                plot_reliability(pooled, png, title=f"{arm.name} / {backbone} ({len(runs)} seeds)")
-                entry["reliability_png"] = png.name
-            results["arms"].append(entry)
+            results["arms"].append(_arm_entry(cfg, arm, backbone, out, train, problem, progress))
     supervised = [arm.name for arm in cfg.arms if arm.mode == "supervised"]
     reference = cfg.reference_arm or (supervised[0] if supervised else None)
     if reference is not None:
         compare_to_reference(results["arms"], reference)
-        for backbone in cfg.backbones:
-            paired = {
-                e["arm"]: e["vs_reference"]
-                for e in results["arms"]
-                if e["backbone"] == backbone and "vs_reference" in e
-            }
-            if paired:
-                png = out / f"paired_{backbone}.png"
-                plot_paired(paired, png, reference)
-                results[f"paired_png_{backbone}"] = png.name
+        _plot_paired_arms(results, cfg.backbones, out, reference)
     results["contrasts"] = contrast_arms(results["arms"], [tuple(pair) for pair in cfg.contrasts])
-    for backbone in cfg.backbones:
+    _plot_learning_curves(results, cfg.backbones, out)
+    atomic_write_json(out / "results.json", results)
+    atomic_write_text(out / "results.md", results_markdown(results))
+    return results
+
+
+def _check_train_arms(cfg: ExperimentConfig, report_only: bool, train_arms: Sequence[str] | None) -> None:
+    """Refuse --arms naming an arm the experiment does not have, or one to train whose bank cannot be used."""
+    names = [arm.name for arm in cfg.arms]
+    unknown = [name for name in train_arms or () if name not in names]
+    if unknown:
+        raise InputError(f"--arms: {unknown[0]!r} is not an arm of the experiment; its arms are {names}")
+    for arm in cfg.arms:
+        problem = bank_problem(arm)
+        if train_arms is not None and not report_only and arm.name in train_arms and problem is not None:
+            raise InputError(f"--arms: arm {arm.name!r} cannot run: {problem}")
+
+
+def _arm_entry(
+    cfg: ExperimentConfig, arm: ArmConfig, backbone: str, out: Path, train: bool, problem: str | None, progress: bool
+) -> dict:
+    """One arm on one backbone: its runs (trained here when `train` and its bank is usable), their mean ± std and
+    pooled reliability diagram, or the status "missing" / "not run" with the reason."""
+    entry: dict = {
+        "arm": arm.name,
+        "mode": arm.mode,
+        "backbone": backbone,
+        "bank": None if arm.bank is None else str(arm.bank),
+        "overrides": list(arm.overrides),
+    }
+    seeds = [seed for seed in cfg.seeds if arm.seeds is None or seed in arm.seeds]
+    runs = []
+    for seed in seeds:
+        run = _seed_run(cfg, arm, backbone, seed, out, train, problem, progress)
+        if run is not None:
+            runs.append(run)
+    if not runs and problem is not None:  # nothing recorded and nothing can run: never numbers
+        entry.update(status="missing", reason=problem)
+        logger.warning("%s / %s: missing (%s)", arm.name, backbone, problem)
+        return entry
+    if not runs:
+        reason = "no finished run" if seeds else f"its seeds {arm.seeds} are not among the seeds {cfg.seeds}"
+        entry.update(status="not run", reason=reason)
+        return entry
+    status = "done" if len(runs) == len(seeds) else "partial"
+    entry.update(status=status, **aggregate(runs))
+    entry["runs"] = [{k: v for k, v in r.items() if k != "bins"} for r in runs]
+    pooled = _pooled_bins(runs)
+    if pooled is not None:
+        png = out / f"reliability_{arm.name}_{backbone}.png"
+        plot_reliability(pooled, png, title=f"{arm.name} / {backbone} ({len(runs)} seeds)")
+        entry["reliability_png"] = png.name
+    return entry
+
+
+def _pooled_bins(runs: list[dict]) -> ReliabilityBins | None:
+    """The reliability bins of the runs that have them, pooled (None when none has)."""
+    pooled = None
+    for r in runs:
+        if r.get("bins"):
+            bins = bins_from_dict(r["bins"])
+            pooled = bins if pooled is None else pooled + bins
+    return pooled
+
+
+def _seed_run(
+    cfg: ExperimentConfig,
+    arm: ArmConfig,
+    backbone: str,
+    seed: int,
+    out: Path,
+    train: bool,
+    problem: str | None,
+    progress: bool,
+) -> dict | None:
+    """One seed of an arm: trained (or resumed) here when it may be, then its figures and curves from its folder or
+    its record (a finished run leaves or refreshes its record); None when it has not finished."""
+    run = run_config(cfg, arm, backbone, seed)
+    t0 = time.perf_counter()
+    path = None if cfg.records_dir is None else record_path(cfg.records_dir, arm.name, backbone, seed)
+    record = None if path is None else read_record(path, run)
+    trained = train and record is None and problem is None
+    if trained:
+        logger.info("%s / %s / seed %d -> %s", arm.name, backbone, seed, run.out_dir)
+        with run_lock(run.out_dir):  # per run folder: other processes may train other arms or seeds
+            donor = start_from_burn_in(run, donors_on_disk(out)) if cfg.share_burn_in else None
+            if donor is not None:
+                logger.info("  starts at step %d from %s (the same burn-in)", run.semi.burn_in_steps, donor)
+            run_one(run, progress)
+    metrics = run_metrics(run, cfg.final_eval, progress)
+    if metrics is not None:
+        curves = log_curves(Path(run.out_dir) / "log.jsonl")
+        if path is not None and (record is None or record["metrics"] != json_roundtrip(metrics)):
+            write_record(path, run, metrics, curves, burn_in_weights(run, out))
+            record = read_record(path, run)
+    elif record is not None:
+        metrics, curves = record["metrics"], record["curves"]
+    else:  # not trained here and not finished
+        return None
+    source = str(run.out_dir) if (Path(run.out_dir) / "metrics.json").is_file() else str(path)
+    # where it ran, from which burn-in, on which bank scans: known for runs with a record
+    provenance = {key: record.get(key) for key in PROVENANCE} if record is not None else {}
+    if trained:
+        logger.info("  done in %.1f s (mIoU %s)", time.perf_counter() - t0, metrics.get("miou"))
+    return {"seed": seed, "out_dir": source, "curves": curves, **provenance, **metrics}
+
+
+def _plot_paired_arms(results: dict, backbones: list[str], out: Path, reference: str) -> None:
+    """OUT/paired_BACKBONE.png of each backbone with arms paired against the reference (named in `results`)."""
+    for backbone in backbones:
+        paired = {
+            e["arm"]: e["vs_reference"] for e in results["arms"] if e["backbone"] == backbone and "vs_reference" in e
+        }
+        if paired:
+            png = out / f"paired_{backbone}.png"
+            plot_paired(paired, png, reference)
+            results[f"paired_png_{backbone}"] = png.name
+
+
+def _plot_learning_curves(results: dict, backbones: list[str], out: Path) -> None:
+    """OUT/learning_curves_BACKBONE.png of each backbone with finished arms (named in `results`)."""
+    for backbone in backbones:
         curves = {
             e["arm"]: run_curves(e["runs"]) for e in results["arms"] if e["backbone"] == backbone and e.get("runs")
         }
@@ -552,9 +596,6 @@ def run_experiment_config(
             png = out / f"learning_curves_{backbone}.png"
             plot_arm_curves(curves, png)
             results[f"learning_curves_png_{backbone}"] = png.name
-    atomic_write_json(out / "results.json", results)
-    atomic_write_text(out / "results.md", results_markdown(results))
-    return results
 
 
 def run_curves(runs: list[dict]) -> dict[str, list[list[tuple[float, float]]]]:
@@ -589,26 +630,53 @@ def starred(stat: dict | None) -> str:
 
 def results_markdown(results: dict) -> str:
     """The results table (percentages, mean ± std over seeds) and per-class IoU of the finished arms."""
+    done = [e for e in results["arms"] if e["status"] in ("done", "partial")]
+    lines = _arms_table(results)
+    lines += _paired_table(results)
+    lines += _contrasts_tables(results)
+    lines += _bands_tables(results, done)
+    lines += _classes_table(done)
+    return "\n".join(lines) + "\n"
 
-    def pct(stat: dict) -> str:
-        return mean_text(stat, scale=100)
 
-    def signed(stat: dict) -> str:
-        return mean_text(stat, scale=100, signed=True)
+# the columns `_paired_cells` fills
+_PAIRED_COLUMNS = (
+    "mIoU difference per seed | mean ± std | 95 % CI | seeds won | p | seeds for p < 0.05 | ECE per scan diff. |"
+)
 
-    def paired_cells(paired: dict) -> str:
-        miou, ece = paired["miou"], paired["ece_per_scan"]
-        per_seed = ", ".join(f"{100 * d:+.2f}" for d in miou["per_seed"])
-        p_text = "n/a" if miou["p"] is None else f"{miou['p']:.2g}"
-        ci = miou.get("ci95")
-        ci_text = "n/a" if ci is None else f"[{100 * ci[0]:+.2f}, {100 * ci[1]:+.2f}]"
-        needed = miou.get("seeds_needed")
-        needed_text = "n/a" if ci is None else (f"{needed}" if needed is not None else f"> {MAX_SEEDS_ESTIMATE}")
-        return (
-            f"{per_seed} | {signed(miou)} | {ci_text} | {miou['above']} of {miou['n']} | {p_text} | {needed_text} | "
-            f"{signed(ece)}"
-        )
 
+def _pct(stat: dict) -> str:
+    """A `mean_std` stat of a fraction in %."""
+    return mean_text(stat, scale=100)
+
+
+def _signed(stat: dict) -> str:
+    """A `mean_std` stat of a difference of fractions in signed points."""
+    return mean_text(stat, scale=100, signed=True)
+
+
+def _paired_cells(paired: dict) -> str:
+    """The `_PAIRED_COLUMNS` cells of a seed-paired comparison (`paired_arms`), in points."""
+    miou, ece = paired["miou"], paired["ece_per_scan"]
+    per_seed = ", ".join(f"{100 * d:+.2f}" for d in miou["per_seed"])
+    p_text = "n/a" if miou["p"] is None else f"{miou['p']:.2g}"
+    ci = miou.get("ci95")
+    ci_text = "n/a" if ci is None else f"[{100 * ci[0]:+.2f}, {100 * ci[1]:+.2f}]"
+    needed = miou.get("seeds_needed")
+    needed_text = "n/a" if ci is None else (f"{needed}" if needed is not None else f"> {MAX_SEEDS_ESTIMATE}")
+    return (
+        f"{per_seed} | {_signed(miou)} | {ci_text} | {miou['above']} of {miou['n']} | {p_text} | {needed_text} | "
+        f"{_signed(ece)}"
+    )
+
+
+def _contrast_row(row: dict, cells: str) -> str:
+    """A table row of a contrast (`contrast_arms`): arm, reference, backbone, then `cells`."""
+    return f"| {row['arm']} | {row['reference']} | {row['backbone']} | {cells} |"
+
+
+def _arms_table(results: dict) -> list[str]:
+    """The title, what the figures are, and one row per arm and backbone (mean ± std over its seeds, or its status)."""
     scans = sorted({r.get("num_scans") for e in results["arms"] for r in e.get("runs", [])} - {None})
     scans_text = "/".join(str(n) for n in scans) or "?"
     if results["config"].get("final_eval"):
@@ -631,77 +699,92 @@ def results_markdown(results: dict) -> str:
             continue
         seeds = ", ".join(str(r["seed"]) for r in e["runs"])
         lines.append(
-            f"| {e['arm']} | {e['backbone']} | {e['status']} | {seeds} | {pct(e['miou'])} | {pct(e['miou_present'])} | "
-            f"{pct(e['ece_per_scan'])} | {pct(e['ece_pooled'])} | {mean_text(e['wall_clock_s'], digits=1)} |"
+            f"| {e['arm']} | {e['backbone']} | {e['status']} | {seeds} | {_pct(e['miou'])} | {_pct(e['miou_present'])} "
+            f"| {_pct(e['ece_per_scan'])} | {_pct(e['ece_pooled'])} | {mean_text(e['wall_clock_s'], digits=1)} |"
         )
+    return lines
+
+
+def _paired_table(results: dict) -> list[str]:
+    """Every arm paired by seed against the reference arm (none when no arm was)."""
     paired = [e for e in results["arms"] if "vs_reference" in e]
-    if paired:
-        lines += [
-            "",
-            f"## Paired by seed against {paired[0]['vs_reference']['arm']} (points)",
-            "",
-            "arm - reference on the seeds both finished; p: two-sided paired t-test (n/a below 2 seeds); "
-            "seeds for p < 0.05: paired seeds at which the same mean and spread would reach it.",
-            "",
-            "| arm | backbone | seeds | mIoU difference per seed | mean ± std | 95 % CI | seeds won | p "
-            "| seeds for p < 0.05 | ECE per scan diff. |",
-            "|---|---|---|---|---|---|---|---|---|---|",
-        ]
-        for e in paired:
-            seeds = len(e["vs_reference"]["miou"]["seeds"])
-            lines.append(f"| {e['arm']} | {e['backbone']} | {seeds} | " + paired_cells(e["vs_reference"]) + " |")
-    if results.get("contrasts"):
-        lines += [
-            "",
-            "## Contrasts (points)",
-            "",
-            "arm - reference, paired by seed on the seeds both finished; p: two-sided paired t-test.",
-            "",
-            "| arm | reference | backbone | mIoU difference per seed | mean ± std | 95 % CI | seeds won | p "
-            "| seeds for p < 0.05 | ECE per scan diff. |",
-            "|---|---|---|---|---|---|---|---|---|---|",
-        ]
-        for c in results["contrasts"]:
-            lines.append(f"| {c['arm']} | {c['reference']} | {c['backbone']} | " + paired_cells(c) + " |")
-    if results.get("contrasts"):
-        classes = list(dict.fromkeys(c for row in results["contrasts"] for c in row.get("iou", {})))
-        lines += [
-            "",
-            "## Where the differences come from: per-class IoU, paired by seed (points)",
-            "",
-            "mean difference over the paired seeds; * where its 95 % confidence interval excludes 0.",
-            "",
-            "| arm | reference | backbone | " + " | ".join(classes) + " |",
-            "|---|---|---|" + "---|" * len(classes),
-        ]
-        for row in results["contrasts"]:
-            cells = [starred(row.get("iou", {}).get(name)) for name in classes]
-            lines.append(f"| {row['arm']} | {row['reference']} | {row['backbone']} | " + " | ".join(cells) + " |")
-    done = [e for e in results["arms"] if e["status"] in ("done", "partial")]
+    if not paired:
+        return []
+    lines = [
+        "",
+        f"## Paired by seed against {paired[0]['vs_reference']['arm']} (points)",
+        "",
+        "arm - reference on the seeds both finished; p: two-sided paired t-test (n/a below 2 seeds); "
+        "seeds for p < 0.05: paired seeds at which the same mean and spread would reach it.",
+        "",
+        "| arm | backbone | seeds | " + _PAIRED_COLUMNS,
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for e in paired:
+        seeds = len(e["vs_reference"]["miou"]["seeds"])
+        lines.append(f"| {e['arm']} | {e['backbone']} | {seeds} | " + _paired_cells(e["vs_reference"]) + " |")
+    return lines
+
+
+def _contrasts_tables(results: dict) -> list[str]:
+    """The contrasts (`ExperimentConfig.contrasts`) paired by seed, then their per-class IoU differences."""
+    contrasts = results.get("contrasts")
+    if not contrasts:
+        return []
+    lines = [
+        "",
+        "## Contrasts (points)",
+        "",
+        "arm - reference, paired by seed on the seeds both finished; p: two-sided paired t-test.",
+        "",
+        "| arm | reference | backbone | " + _PAIRED_COLUMNS,
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    lines += [_contrast_row(c, _paired_cells(c)) for c in contrasts]
+    classes = list(dict.fromkeys(c for row in contrasts for c in row.get("iou", {})))
+    lines += [
+        "",
+        "## Where the differences come from: per-class IoU, paired by seed (points)",
+        "",
+        "mean difference over the paired seeds; * where its 95 % confidence interval excludes 0.",
+        "",
+        "| arm | reference | backbone | " + " | ".join(classes) + " |",
+        "|---|---|---|" + "---|" * len(classes),
+    ]
+    for row in contrasts:
+        lines.append(_contrast_row(row, " | ".join(starred(row.get("iou", {}).get(name)) for name in classes)))
+    return lines
+
+
+def _bands_tables(results: dict, done: list[dict]) -> list[str]:
+    """mIoU per distance band of the finished arms and, with contrasts, their differences (none without bands)."""
     bands = list(dict.fromkeys(name for e in done for name in e.get("bands", {})))
-    if bands:
-        lines += ["", "## mIoU by distance from the sensor (%)", "", "| arm | backbone | " + " | ".join(bands) + " |"]
-        lines.append("|---|---|" + "---|" * len(bands))
-        for e in done:
-            cells = [pct(e["bands"][b]) if b in e.get("bands", {}) else "n/a" for b in bands]
-            lines.append(f"| {e['arm']} | {e['backbone']} | " + " | ".join(cells) + " |")
-        if results.get("contrasts"):
-            lines += ["", "Paired by seed (points; * where the 95 % confidence interval excludes 0):", ""]
-            lines += [
-                "| arm | reference | backbone | " + " | ".join(bands) + " |",
-                "|---|---|---|" + "---|" * len(bands),
-            ]
-            for row in results["contrasts"]:
-                cells = [starred(row.get("bands", {}).get(b)) for b in bands]
-                lines.append(f"| {row['arm']} | {row['reference']} | {row['backbone']} | " + " | ".join(cells) + " |")
-    if done:
-        classes = list(done[0]["iou"])
-        lines += ["", "## Per-class IoU (%)", "", "| arm | backbone | " + " | ".join(classes) + " |"]
-        lines.append("|---|---|" + "---|" * len(classes))
-        for e in done:
-            cells = [pct(e["iou"][c]) if c in e["iou"] else "n/a" for c in classes]
-            lines.append(f"| {e['arm']} | {e['backbone']} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    if not bands:
+        return []
+    lines = ["", "## mIoU by distance from the sensor (%)", "", "| arm | backbone | " + " | ".join(bands) + " |"]
+    lines.append("|---|---|" + "---|" * len(bands))
+    for e in done:
+        cells = [_pct(e["bands"][b]) if b in e.get("bands", {}) else "n/a" for b in bands]
+        lines.append(f"| {e['arm']} | {e['backbone']} | " + " | ".join(cells) + " |")
+    if results.get("contrasts"):
+        lines += ["", "Paired by seed (points; * where the 95 % confidence interval excludes 0):", ""]
+        lines += ["| arm | reference | backbone | " + " | ".join(bands) + " |", "|---|---|---|" + "---|" * len(bands)]
+        for row in results["contrasts"]:
+            lines.append(_contrast_row(row, " | ".join(starred(row.get("bands", {}).get(b)) for b in bands)))
+    return lines
+
+
+def _classes_table(done: list[dict]) -> list[str]:
+    """Per-class IoU of the finished arms, in the class order of the first (none when no arm finished)."""
+    if not done:
+        return []
+    classes = list(done[0]["iou"])
+    lines = ["", "## Per-class IoU (%)", "", "| arm | backbone | " + " | ".join(classes) + " |"]
+    lines.append("|---|---|" + "---|" * len(classes))
+    for e in done:
+        cells = [_pct(e["iou"][c]) if c in e["iou"] else "n/a" for c in classes]
+        lines.append(f"| {e['arm']} | {e['backbone']} | " + " | ".join(cells) + " |")
+    return lines
 
 
 # ------------------------------------------------------------------------------------------------------- CLI

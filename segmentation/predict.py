@@ -34,6 +34,7 @@ from u4d_aug.io import load_checkpoint as load_torch_checkpoint
 from u4d_aug.progress import progress_bar
 from u4d_aug.run import checkpoint_kind
 from u4d_aug.runlock import run_lock
+from u4d_aug.validate import check_state_fits
 from u4d_aug.weights import SEGMENTATION_KIND, exported_model, is_exported
 
 MANIFEST_FORMAT = "u4d-seg-probs"
@@ -62,11 +63,15 @@ def model_from_checkpoint(
 ) -> nn.Module:
     """Rebuild the net from the checkpoint's config['model'] and load its weights, in eval mode; `readout`
     (voxel | trilinear) replaces the config's way points read the voxel output (same weights)."""
-    fields = dict(ckpt["config"].get("model", {}))
+    config = ckpt.get("config")
+    if not isinstance(config, dict):
+        raise InputError(f"{source}: no 'config' (the run's config, which says how to build the net)")
+    fields = dict(config.get("model") or {})
     if readout is not None:
         fields["readout"] = readout
     model_cfg = config_from_dict(SegModelConfig, fields, source=f"{source} config")
     model = build_model(model_cfg)
+    check_state_fits(ckpt.get("model"), model.state_dict(), source, "the checkpoint's weights must fit its config")
     try:
         model.load_state_dict(ckpt["model"])
     except (RuntimeError, TypeError, AttributeError) as exc:

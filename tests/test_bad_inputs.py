@@ -83,6 +83,9 @@ def paths(tmp_path_factory, request) -> dict[str, str]:
     net = build_net(cfg)
     p["diffusion_ckpt"] = base / "diffusion.pt"
     atomic_torch_save(p["diffusion_ckpt"], checkpoint_state(cfg, 0, net, EMA(net)))
+    wide = build_net(load_config(DiffusionTrainConfig, U4D_TINY, ["diffusion.stage=baseline", "net.base_channels=16"]))
+    p["misfit_ckpt"] = base / "misfit.pt"  # loads safely, but its EMA is of a wider net than its config builds
+    atomic_torch_save(p["misfit_ckpt"], checkpoint_state(cfg, 0, net, EMA(wide)))
 
     # corrupt and hostile files
     p["junk_pt"] = base / "junk.pt"
@@ -192,6 +195,9 @@ CASES = [
     # simulate, sim-report
     ("simulate-out-is-file", ["simulate", "--out", "{file}", "--frames", "1"], "is a file; expected an output folder"),
     ("simulate-zero-sequences", ["simulate", "--out", "{base}/sim0", "--sequences", "0"], "must be >= 1"),
+    ("gates-zero-frames", ["gates", "{diffusion_ckpt}", "--png", "{base}/g.png", "--frames", "0"], "--frames 0"),
+    ("gates-nan-step", ["gates", "{diffusion_ckpt}", "--png", "{base}/g.png", "--step", "nan"], "--step nan"),
+    ("simulate-negative-seed", ["simulate", "--out", "{base}/sim4", "--seed", "-1"], "--seed must be >= 0"),
     ("simulate-nan-setting", ["simulate", "--out", "{base}/sim1", "frame_rate=.nan"], "'frame_rate'"),
     ("simulate-bad-yaml", ["simulate", "--out", "{base}/sim2", "--config", "{bad_yaml}"], "not valid yaml"),
     ("simulate-unknown-key", ["simulate", "--out", "{base}/sim3", "agents.carz=3"], "unknown config key"),
@@ -280,6 +286,11 @@ CASES = [
         "generate-seg-ckpt",
         [*GEN, "mode=baseline", "baseline={seg_ckpt}", "--out", "{base}/g3"],
         "not a u4d train-diffusion checkpoint",
+    ),  # fmt: skip
+    (
+        "generate-misfit-ckpt",
+        [*GEN, "mode=baseline", "baseline={misfit_ckpt}", "--out", "{base}/g7"],
+        "(ema): its weights do not fit the net",
     ),  # fmt: skip
     ("generate-negative-num", [*GEN, "num=-1", "--out", "{base}/g4"], "num must be >= 0"),
     ("generate-zero-steps", [*GEN, "steps=0", "--out", "{base}/g5"], "steps >= 1"),

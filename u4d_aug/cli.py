@@ -207,7 +207,7 @@ def _delegated_command(name: str) -> tuple[Callable[[argparse.ArgumentParser], N
     raise ValueError(f"unknown command {name!r}; allowed: {', '.join(n for n, _ in DELEGATED)}")
 
 
-# One example line per command, shown at the end of its --help (tests/test_cli.py parses each of them).
+# One example line per command, shown at the end of its --help (tests/u4d_aug/test_cli.py parses each of them).
 EXAMPLES = {
     "info": "u4d info data/sim --json",
     "show": "u4d show data/sim/sequences/00/velodyne/000000.bin --png scan.png --ply scan.ply",

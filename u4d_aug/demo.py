@@ -18,7 +18,7 @@ import numpy as np
 
 from u4d_aug.trajectory import straight_motion
 
-# The presets the demo runs with, named as `u4d` takes them from any folder (tests/test_presets_lookup.py).
+# The presets the demo runs with, named as `u4d` takes them from any folder (tests/u4d_aug/test_presets.py).
 DEMO_PRESETS = {
     "seg": "seg/tiny",
     "diffusion": "u4d/demo",
@@ -38,8 +38,8 @@ SEQUENCE_FRAMES, SEQUENCE_STEP_M, SEQUENCE_YAW_DEG = 5, 1.2, 3.0  # 1.2 m per fr
 SEQUENCE_REAL = "02"  # the demo world's held-out sequence: the real side of TTCE / CTC
 # where the full-size results live, relative to the repository root
 FULL_RESULTS = {
-    "generation": "benchmarks/results/generation_64x1024.md",
-    "generation diagnostics": "benchmarks/results/generation_64x1024_diagnostics.md",
+    "generation": "benchmarks/results/generation/generation_64x1024.md",
+    "generation diagnostics": "benchmarks/results/generation/generation_64x1024_diagnostics.md",
     "downstream": "benchmarks/results/downstream/",
 }
 
@@ -67,6 +67,23 @@ class Step:
 def demo_steps(out: Path, seed: int, real: Path, weights: dict[str, Path] | None) -> list[Step]:
     """Every demo step in data-flow order; `weights`: `shipped_weights()` (None: banks from the demo's own nets)."""
     world = out / "world"
+    banks = {method: out / f"bank_{method}" for method in METHODS}
+    steps = _world_steps(out, world, seed, real)
+    steps += _segmentation_steps(out, world, seed)
+    steps += _diffusion_steps(out, world, seed, weights)
+    steps += _generation_steps(out, world, seed, weights, banks)
+    steps += _evaluation_steps(out, world, weights, banks)
+    if weights and "u4d_most_stage1" in weights and "u4d_most_stage2" in weights:
+        steps += sequence_steps(out, seed, weights)
+    steps.append(
+        Step("downstream", "downstream, toy size: sup-only vs MT+LaserMix vs + baseline bank vs + U4D bank vs + real "
+             "bank (mIoU, ECE on sequence 02)", ["experiment", str(out / "downstream.yaml"), "--no-progress"])
+    )  # fmt: skip
+    return steps
+
+
+def _world_steps(out: Path, world: Path, seed: int, real: Path) -> list[Step]:
+    """Simulate the demo world, summarise it, picture a frame and, when real scans are there, compare with them."""
     frame0 = world / "sequences" / "00" / "velodyne" / "000000.bin"
     steps = [
         Step("simulate", f"simulate a small world ({SEQUENCES} sequences x {FRAMES} frames, HDL-64E)",
@@ -81,8 +98,13 @@ def demo_steps(out: Path, seed: int, real: Path, weights: dict[str, Path] | None
                  ["sim-report", str(world), "--real", str(real), "--png", str(out / "sim_vs_real.png"),
                   "--max-frames", str(FRAMES)])
         )  # fmt: skip
+    return steps
+
+
+def _segmentation_steps(out: Path, world: Path, seed: int) -> list[Step]:
+    """Train the segmentor for seconds, evaluate it and write the probabilities U4D's uncertainty reads."""
     seg_dir = out / "seg"
-    steps += [
+    return [
         Step("seg-train", "train a small MinkUNet-like segmentor for seconds (sequences 00-01, held-out 02)",
              ["seg-train", DEMO_PRESETS["seg"], f"data.root={world}", 'data.train_sequences=["00", "01"]',
               'data.val_sequences=["02"]', "optim.steps=40", "eval_every=20", "checkpoint_every=20", f"seed={seed}",
@@ -93,10 +115,14 @@ def demo_steps(out: Path, seed: int, real: Path, weights: dict[str, Path] | None
         Step("seg-predict", "per-point probabilities for U4D's uncertainty",
              ["seg-predict", str(seg_dir / "model.pt"), str(world), "--out", str(out / "probs")]),
     ]  # fmt: skip
+
+
+def _diffusion_steps(out: Path, world: Path, seed: int, weights: dict[str, Path] | None) -> list[Step]:
+    """Train U4D's two stages and the baseline for seconds (the training loops run; shipped nets make the banks)."""
     diffusion = [DEMO_PRESETS["diffusion"], f"data_root={world}", 'sequences=["00", "01"]', f"seed={seed}"]
     probs = f"probs_root={out / 'probs'}"
     check = "training loop check, seconds; the banks below use the shipped nets" if weights else "seconds"
-    steps += [
+    return [
         Step("train-stage1", f"U4D stage 1: diffusion of the uncertain region P_u + mask head ({check})",
              ["train-diffusion", *diffusion, "stage=stage1", probs, "--out", str(out / "u4d_stage1")]),
         Step("train-stage2", f"U4D stage 2: completion conditioned on (x0_u, m_u) ({check})",
@@ -104,7 +130,13 @@ def demo_steps(out: Path, seed: int, real: Path, weights: dict[str, Path] | None
         Step("train-baseline", f"R2DM-style baseline: one unconditional stage ({check})",
              ["train-diffusion", *diffusion, "stage=baseline", "--out", str(out / "baseline")]),
     ]  # fmt: skip
-    banks = {method: out / f"bank_{method}" for method in METHODS}
+
+
+def _generation_steps(
+    out: Path, world: Path, seed: int, weights: dict[str, Path] | None, banks: dict[str, Path]
+) -> list[Step]:
+    """Generate both banks (with the shipped nets when there are some), picture them, and bank real scans of the
+    unused places for the ceiling arm."""
     if weights:
         generate = [DEMO_PRESETS["generate"], f"num={BANK_SCANS}", f"seed={seed}"]
         nets = {"u4d": [f"stage1={weights['u4d_stage1']}", f"stage2={weights['u4d_stage2']}"],
@@ -115,7 +147,7 @@ def demo_steps(out: Path, seed: int, real: Path, weights: dict[str, Path] | None
         nets = {"u4d": [f"stage1={out / 'u4d_stage1'}", f"stage2={out / 'u4d_stage2'}"],
                 "baseline": [f"baseline={out / 'baseline'}"]}  # fmt: skip
         size = f"{TOY_BANK_SCANS} scans with the seconds-trained nets (no shipped nets found)"
-    steps += [
+    return [
         Step("generate-u4d", f"generate {size}: U4D, hard regions first",
              ["generate", *generate, "mode=u4d", *nets["u4d"], "--out", str(banks["u4d"])]),
         Step("generate-baseline", f"generate {size}: the R2DM-style baseline",
@@ -129,26 +161,23 @@ def demo_steps(out: Path, seed: int, real: Path, weights: dict[str, Path] | None
              str(BANK_SCANS if weights else TOY_BANK_SCANS), *ceiling_geometry(out, weights), "--out",
              str(out / "bank_real")]),
     ]  # fmt: skip
+
+
+def _evaluation_steps(out: Path, world: Path, weights: dict[str, Path] | None, banks: dict[str, Path]) -> list[Step]:
+    """Score each bank against the demo world (BEV JSD/MMD, FRD/FPD with the shipped extractors, points)."""
     # the shipped nets never saw this world: every scan of it is a held-out reference; the demo's own nets saw 00-01
     reference = [] if weights else ["--real-sequences", "02"]
     extractors = []
     for kind in ("frd", "fpd"):
         if weights and f"extractor_{kind}" in weights:
             extractors += [f"--extractor-{kind}", str(weights[f"extractor_{kind}"])]
-    for method, bank in banks.items():
-        steps.append(
-            Step(f"evaluate-{method}", f"generation metrics of the {method} bank (BEV JSD/MMD, FRD/FPD, points)",
-                 ["evaluate", "--bank", str(bank), "--real", str(world), *reference,
-                  "--metrics", "jsd,mmd,frd,fpd,points", *extractors, "--json", "--md", "--out",
-                  str(out / f"eval_{method}")])
-        )  # fmt: skip
-    if weights and "u4d_most_stage1" in weights and "u4d_most_stage2" in weights:
-        steps += sequence_steps(out, seed, weights)
-    steps.append(
-        Step("downstream", "downstream, toy size: sup-only vs MT+LaserMix vs + baseline bank vs + U4D bank vs + real "
-             "bank (mIoU, ECE on sequence 02)", ["experiment", str(out / "downstream.yaml"), "--no-progress"])
-    )  # fmt: skip
-    return steps
+    return [
+        Step(f"evaluate-{method}", f"generation metrics of the {method} bank (BEV JSD/MMD, FRD/FPD, points)",
+             ["evaluate", "--bank", str(bank), "--real", str(world), *reference,
+              "--metrics", "jsd,mmd,frd,fpd,points", *extractors, "--json", "--md", "--out",
+              str(out / f"eval_{method}")])
+        for method, bank in banks.items()
+    ]  # fmt: skip
 
 
 def ceiling_geometry(out: Path, weights: dict[str, Path] | None) -> list[str]:

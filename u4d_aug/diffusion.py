@@ -186,81 +186,114 @@ class GaussianDiffusion(nn.Module):
         t, ε and the MoST gate noise are drawn from `generator` (torch's default generator if None).
         """
         stage = self.cfg.stage
-        net_cond, task, bce_target, ones = None, None, None, slice(None)
-        if stage in ("stage2", "u4d"):
-            if cond is None or m_u is None:
-                raise ValueError(f"GaussianDiffusion({stage}): needs cond=x0_u and m_u")
-            net_cond = stage_cond(cond, m_u)
-        elif stage == "stage1":
-            if m_u is None:
-                raise ValueError("GaussianDiffusion(stage1): needs m_u, the target of the mask head")
-            if cond is not None:
-                raise ValueError("GaussianDiffusion(stage1): stage 1 is unconditional, got cond")
-            bce_target = m_u
-        elif cond is not None or m_u is not None:
-            raise ValueError("GaussianDiffusion(baseline): the baseline is unconditional, got cond/m_u")
-
-        batch = x0.shape[0]
+        net_cond, bce_target = _stage_inputs(stage, cond, m_u)
+        task, ones, rest = None, slice(None), slice(None)  # u4d: the samples of the stage-1 and stage-2 tasks
         if stage == "u4d":  # stage-1 samples first: their target is x0_u, their condition empty
-            first = stage1_count(batch, self.cfg.stage1_share)
-            ones = slice(0, first)
-            x0 = torch.cat([cond[ones], x0[first:]])
-            task = torch.cat([torch.full((first,), STAGE1_TASK), torch.full((batch - first,), STAGE2_TASK)])
-            task = task.to(x0.device)
+            x0, task, ones, rest = _split_tasks(x0, cond, self.cfg.stage1_share)
             bce_target = m_u[ones]
-        draw_device = generator.device if generator is not None else x0.device
-        t = torch.rand(batch, generator=generator, device=draw_device).to(x0.device) * self.cfg.train_t_max  # (B,)
-        eps = torch.randn(x0.shape, generator=generator, device=draw_device).to(x0.device, x0.dtype)
-        lam = log_snr(t)  # (B,)
-        alpha, sigma = alpha_sigma(lam.view(batch, *([1] * (x0.dim() - 1))))
-        x_t = alpha * x0 + sigma * eps
+        lam, alpha, sigma, eps, x_t = _diffuse(x0, self.cfg.train_t_max, generator)
         if stage in ("stage2", "u4d") and self.cfg.cond_noise > 0:  # drawn after t and ε: runs without it unchanged
             net_cond = stage_cond(noisy_condition(cond, m_u, self.cfg.cond_noise, generator), m_u)
         if stage == "u4d":
-            net_cond = torch.cat([empty_condition(net_cond[ones]), net_cond[first:]])
-
-        kwargs = {}
-        if crop_offsets is not None:
-            kwargs["crop_offsets"] = crop_offsets
-        if poses is not None:
-            kwargs["poses"] = poses
-        if task is not None:
-            kwargs["task"] = task
-        if self.most:
-            kwargs["generator"] = generator
+            net_cond = torch.cat([empty_condition(net_cond[ones]), net_cond[rest]])
+        kwargs = _net_kwargs(crop_offsets, poses, task, self.most, generator)
         pred, mask_logits = self.net(x_t, lam, net_cond, **kwargs)
         if self.cfg.parameterization == "v":
             target = alpha * eps - sigma * x0
             weight = min_snr_weight(lam, self.cfg.min_snr_gamma) * torch.exp(lam) / (torch.exp(lam) + 1.0)
         else:
             target, weight = eps, min_snr_weight(lam, self.cfg.min_snr_gamma)
-        mse = _mean_per_sample((pred.float() - target.float()).square(), loss_weight)  # (B,)
-        eps_loss = (weight * mse).mean()
-        losses = {"eps_mse": eps_loss}
+        weighted_mse = weight * _mean_per_sample((pred.float() - target.float()).square(), loss_weight)  # (B,)
+        loss = weighted_mse.mean()
+        losses = {"eps_mse": loss}
         if stage == "u4d":
-            losses["eps_mse_stage1"] = (weight * mse)[ones].mean()
-            losses["eps_mse_stage2"] = (weight * mse)[first:].mean()
-        loss = eps_loss
+            losses["eps_mse_stage1"] = weighted_mse[ones].mean()
+            losses["eps_mse_stage2"] = weighted_mse[rest].mean()
         if bce_target is not None:
-            if mask_logits is None:
-                raise ValueError(f"GaussianDiffusion({stage}): the net has no mask head")
-            pos_weight = torch.tensor(self.cfg.mask_pos_weight, device=x0.device)
-            bce = F.binary_cross_entropy_with_logits(
-                mask_logits[ones].float(),
-                bce_target.to(mask_logits.device, torch.float32),
-                pos_weight=pos_weight,
-                reduction="none",
-            )
-            bce = _mean_per_sample(bce, loss_weight).mean()
-            losses["mask_bce"] = bce
-            loss = loss + self.cfg.mask_weight * bce
+            losses["mask_bce"] = self._mask_bce(mask_logits, bce_target, ones, loss_weight, x0.device)
+            loss = loss + self.cfg.mask_weight * losses["mask_bce"]
         if self.most:
-            cv = self.net.most_aux_loss()  # Shazeer et al. (2017) importance loss, summed over the MoST blocks
-            losses["most_cv"] = cv
-            loss = loss + self.cfg.most_cv_weight * cv
+            losses["most_cv"] = self.net.most_aux_loss()  # Shazeer et al. (2017) importance loss, over MoST blocks
+            loss = loss + self.cfg.most_cv_weight * losses["most_cv"]
         losses = {k: v.detach() for k, v in losses.items()}
         losses["loss"] = loss
         return losses
+
+    def _mask_bce(
+        self, mask_logits: Tensor | None, target: Tensor, ones: slice, loss_weight: Tensor | None, device: torch.device
+    ) -> Tensor:
+        """Weighted BCE of the mask head's logits of the stage-1 samples against m_u (L_u's second term)."""
+        if mask_logits is None:
+            raise ValueError(f"GaussianDiffusion({self.cfg.stage}): the net has no mask head")
+        bce = F.binary_cross_entropy_with_logits(
+            mask_logits[ones].float(),
+            target.to(mask_logits.device, torch.float32),
+            pos_weight=torch.tensor(self.cfg.mask_pos_weight, device=device),
+            reduction="none",
+        )
+        return _mean_per_sample(bce, loss_weight).mean()
+
+
+def _stage_inputs(stage: str, cond: Tensor | None, m_u: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
+    """(the net's condition concat(x0_u, m_u) or None, the BCE target m_u or None) of a stage's inputs, checked."""
+    if stage in ("stage2", "u4d"):
+        if cond is None or m_u is None:
+            raise ValueError(f"GaussianDiffusion({stage}): needs cond=x0_u and m_u")
+        return stage_cond(cond, m_u), None
+    if stage == "stage1":
+        if m_u is None:
+            raise ValueError("GaussianDiffusion(stage1): needs m_u, the target of the mask head")
+        if cond is not None:
+            raise ValueError("GaussianDiffusion(stage1): stage 1 is unconditional, got cond")
+        return None, m_u
+    if cond is not None or m_u is not None:
+        raise ValueError("GaussianDiffusion(baseline): the baseline is unconditional, got cond/m_u")
+    return None, None
+
+
+def _split_tasks(x0: Tensor, x0_u: Tensor, share: float) -> tuple[Tensor, Tensor, slice, slice]:
+    """A u4d batch: the targets (x0_u for the first `stage1_count` samples, x0 for the rest), their task ids (B,) and
+    the slices of the stage-1 and stage-2 samples."""
+    batch = x0.shape[0]
+    first = stage1_count(batch, share)
+    ones, rest = slice(0, first), slice(first, None)
+    target = torch.cat([x0_u[ones], x0[rest]])
+    task = torch.cat([torch.full((first,), STAGE1_TASK), torch.full((batch - first,), STAGE2_TASK)])
+    return target, task.to(target.device), ones, rest
+
+
+def _diffuse(
+    x0: Tensor, t_max: float, generator: torch.Generator | None
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """t ~ U(0, t_max) (B,) then ε, both from `generator`: (log-SNR (B,), alpha, sigma, ε, x_t = alpha x0 + sigma ε)."""
+    batch = x0.shape[0]
+    draw_device = generator.device if generator is not None else x0.device
+    t = torch.rand(batch, generator=generator, device=draw_device).to(x0.device) * t_max  # (B,)
+    eps = torch.randn(x0.shape, generator=generator, device=draw_device).to(x0.device, x0.dtype)
+    lam = log_snr(t)  # (B,)
+    alpha, sigma = alpha_sigma(lam.view(batch, *([1] * (x0.dim() - 1))))
+    return lam, alpha, sigma, eps, alpha * x0 + sigma * eps
+
+
+def _net_kwargs(
+    crop_offsets: Tensor | None,
+    poses: Tensor | None,
+    task: Tensor | None,
+    most: bool,
+    generator: torch.Generator | None,
+) -> dict:
+    """The optional inputs of the net's forward that are set: crop offsets, poses, task ids, the generator of the
+    MoST gate noise (nets with MoST only)."""
+    kwargs = {}
+    if crop_offsets is not None:
+        kwargs["crop_offsets"] = crop_offsets
+    if poses is not None:
+        kwargs["poses"] = poses
+    if task is not None:
+        kwargs["task"] = task
+    if most:
+        kwargs["generator"] = generator
+    return kwargs
 
 
 def _mean_per_sample(values: Tensor, column_weight: Tensor | None) -> Tensor:

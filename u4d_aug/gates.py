@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -157,8 +158,14 @@ def run_gates(args: argparse.Namespace) -> int:
     """`u4d gates`: the MoST gate analysis of a trained sequence net (figure, optional json)."""
     from u4d_aug.pipeline import load_generator
 
+    if args.frames is not None and args.frames < 1:
+        raise InputError(f"--frames {args.frames}: expected L >= 1 (leave it out for the frames the net trained on)")
+    if args.steps < 1:
+        raise InputError(f"--steps {args.steps}: expected >= 1")
+    if not math.isfinite(args.step):
+        raise InputError(f"--step {args.step}: expected a finite number of metres per frame")
     loaded = load_generator(args.checkpoint)
-    frames = args.frames or loaded[1].frames
+    frames = args.frames if args.frames is not None else loaded[1].frames
     trajectory = gate_trajectory(loaded, frames, args.steps, torch.Generator().manual_seed(args.seed), step=args.step)
     title = f"{args.checkpoint} ({loaded[1].diffusion.stage}, L={frames}, DDPM {args.steps})"
     plot_gates(args.png, trajectory, title)

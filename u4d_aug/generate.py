@@ -56,6 +56,7 @@ from u4d_aug.export_bank import export_bank
 from u4d_aug.io import load_checkpoint, remove_temp_files
 from u4d_aug.outfolder import check_output_folder
 from u4d_aug.pipeline import (
+    Loaded,
     MeanStart,
     Sampler,
     complete,
@@ -103,7 +104,8 @@ class GenerateConfig:
     # P_u covers in training range images); null = every pixel over the head's calibrated threshold
     stage1_mask_fraction: float | None = None
     # below this log-SNR the samplers take each net's training mean image (per row; x0_u's for stage 1) as the x0
-    # estimate instead of the net's own, which divides by α ≈ 0 there (benchmarks/results/mean_start_diagnostic.md);
+    # estimate instead of the net's own, which divides by α ≈ 0 there
+    # (benchmarks/results/generation/mean_start_diagnostic.md);
     # null = the net's own at every step. The mean: read from mean_data_root / mean_probs_root when set, else the
     # one `u4d export-weights` stored in the weights file (the shipped nets have it), else read from the training
     # scans the nets' configs name
@@ -133,7 +135,7 @@ class GenerateConfig:
     propagate: bool = False
     # with propagate, u4d mode: stage 2's x̂0 is also pinned to the propagated pixels at every sampler step, as the
     # baseline's inpainting always is (a no-op in baseline mode); it joins the fill to them
-    # (benchmarks/results/propagation_fill_pinned_*.md)
+    # (benchmarks/results/temporal/propagation_fill_pinned_*.md)
     propagate_pin: bool = False
     # for other codebases (`u4d export`, done once every sample is written): all-ignore .label files (value 0)
     # beside the scans, and mmdetection3d's semantickitti_infos_train.pkl in the bank
@@ -206,36 +208,97 @@ def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info
     """The work of `generate_bank` once the bank is locked; `paths`: {net role: checkpoint file}."""
     hashes = {name: file_sha256(path) for name, path in paths.items()}
     config = config_to_dict(cfg)
-    identity = {"mode": cfg.mode, "checkpoints": hashes, "seed": cfg.seed,
-                "sampling": {k: config[k] for k in ("sampler", "steps", "stage1_steps")}}  # fmt: skip
-    if cfg.sampler_grid != "time":  # banks written before the grid option (all "time") stay compatible
-        identity["sampling"]["sampler_grid"] = cfg.sampler_grid
-    if cfg.stage1_mask_fraction is not None:  # likewise for banks written before the mask cap
-        identity["sampling"]["stage1_mask_fraction"] = cfg.stage1_mask_fraction
-    if cfg.mode == "complete":
-        identity["source"] = {k: config[k] for k in ("data_root", "sequences", "probs_root")}
-    nets = {name: load_generator(path, info.device) for name, path in paths.items()}
-    mean_sources = {}
-    if cfg.mean_start_below is not None:  # banks written before the mean start stay compatible
-        identity["sampling"]["mean_start_below"] = cfg.mean_start_below
-        for name, (net, net_cfg) in list(nets.items()):
-            mean, mean_sources[name] = training_mean(net_cfg, name, cfg, paths[name])  # name: the role
-            nets[name] = (MeanStart(net, mean.to(info.device), cfg.mean_start_below), net_cfg)
+    identity = _bank_identity(cfg, hashes, config)
+    nets, mean_sources = _load_nets(cfg, paths, info.device)
     main = nets["stage2"] if "stage2" in nets else nets["baseline"]
-    sensor = get_sensor(main[1].sensor)
     frames = cfg.frames or main[1].frames  # L: 1 = single scans in sequence 00, > 1 = one sequence per sample
     # configs of the nets with an ego-motion input, the final stage's first (its training sequences give the motion)
     posed = [loaded[1] for loaded in (main, *nets.values()) if loaded[1].net.pose_dim > 0] if frames > 1 else []
-    motions: np.ndarray | None = None  # (num, L, 4) ego motion of each sample (u4d and baseline modes)
-    motion_sources: list[dict] = []
+    motions, motion_sources = _bank_motions(cfg, posed, frames, identity)
+    _check_propagate(cfg, motions, frames)
+    check_compatible(Path(out), identity)
+    layout, old = _open_layout(Path(out), frames)
+    scans = _real_scans(cfg, main[1], frames) if cfg.mode == "complete" else None
+    run = _Generation(cfg, nets, main[1], frames, bool(posed), motions, layout, scans)
+    manifest = _new_manifest(run, identity, config, paths, mean_sources, motion_sources, old)
+    if info.is_main:
+        _check_finished_samples(layout, old, manifest)
+    barrier()  # the other ranks look at the samples once rank 0 has checked them
+    _generate_blocks(run, info, progress)
+    barrier()
+    if info.is_main:
+        _finish_manifest(manifest, layout, cfg.num, frames)
+    return manifest
+
+
+@dataclass
+class _Generation:
+    """What every block of a bank's samples is generated with (`generate_locked`)."""
+
+    cfg: GenerateConfig
+    nets: dict[str, Loaded]  # by role: stage1, stage2, baseline (in MeanStart with mean_start_below)
+    train_cfg: DiffusionTrainConfig  # the final stage's: sensor, range image, row mode, frame stride
+    frames: int  # L: 1 = single scans in sequence 00, > 1 = one sequence per sample
+    posed: bool  # the nets take each frame's ego motion
+    motions: np.ndarray | None  # (num, L, 4) ego motion of each sample (u4d and baseline modes), else None
+    layout: BankLayout
+    scans: Scans | Windows | None  # completion mode: the real scans (or L-frame windows) x0_u is taken from
+
+
+def _bank_identity(cfg: GenerateConfig, hashes: dict[str, str], config: dict) -> dict:
+    """What a re-run must match to add to the bank: mode, checkpoint digests, seed, the sampling options and
+    completion mode's real scans; an option left at the value banks had before it existed is left out, so those
+    banks stay compatible. `_bank_motions` adds where the ego motions come from."""
+    identity = {"mode": cfg.mode, "checkpoints": hashes, "seed": cfg.seed,
+                "sampling": {k: config[k] for k in ("sampler", "steps", "stage1_steps")}}  # fmt: skip
+    sampling = identity["sampling"]
+    if cfg.sampler_grid != "time":
+        sampling["sampler_grid"] = cfg.sampler_grid
+    if cfg.stage1_mask_fraction is not None:
+        sampling["stage1_mask_fraction"] = cfg.stage1_mask_fraction
+    if cfg.mode == "complete":
+        identity["source"] = {k: config[k] for k in ("data_root", "sequences", "probs_root")}
+    if cfg.mean_start_below is not None:
+        sampling["mean_start_below"] = cfg.mean_start_below
+    if cfg.propagate:
+        sampling["propagate"] = True
+    if cfg.propagate_pin and cfg.mode == "u4d":  # the baseline's inpainting pins them anyway
+        sampling["propagate_pin"] = True
+    return identity
+
+
+def _load_nets(cfg: GenerateConfig, paths: dict[str, Path], device: torch.device) -> tuple[dict[str, Loaded], dict]:
+    """The nets by role, each in a `MeanStart` of its training mean image with mean_start_below, and where each
+    mean came from ({} without)."""
+    nets = {name: load_generator(path, device) for name, path in paths.items()}
+    mean_sources = {}
+    if cfg.mean_start_below is not None:
+        for name, (net, net_cfg) in list(nets.items()):
+            mean, mean_sources[name] = training_mean(net_cfg, name, cfg, paths[name])  # name: the role
+            nets[name] = (MeanStart(net, mean.to(device), cfg.mean_start_below), net_cfg)
+    return nets, mean_sources
+
+
+def _bank_motions(
+    cfg: GenerateConfig, posed: list[DiffusionTrainConfig], frames: int, identity: dict
+) -> tuple[np.ndarray | None, list[dict]]:
+    """(num, L, 4) ego motion of every sample and where each came from, for nets with an ego-motion input in u4d and
+    baseline modes (recorded in `identity`); (None, []) otherwise: completion mode conditions on the real frames'."""
     if posed and cfg.mode == "complete":
         if cfg.motion_file:
             raise InputError("motion_file: completion mode conditions on the motion of the real frames it completes")
-    elif posed:
-        motions, motion_sources = sample_motions(cfg, posed[0], frames)
+        return None, []
+    if posed:
+        motions, sources = sample_motions(cfg, posed[0], frames)
         identity["motion"] = {"file": file_sha256(cfg.motion_file)} if cfg.motion_file else "training sequences"
-    elif cfg.motion_file:
+        return motions, sources
+    if cfg.motion_file:
         raise InputError("motion_file: these generators have no ego-motion input (net.pose_dim = 0 or one frame)")
+    return None, []
+
+
+def _check_propagate(cfg: GenerateConfig, motions: np.ndarray | None, frames: int) -> None:
+    """Refuse propagate without sequences with an ego motion, and propagate_pin without propagate."""
     if cfg.propagate and (cfg.mode not in ("u4d", "baseline") or motions is None):
         raise InputError(
             "propagate: moves frame 0 along each sequence's ego motion, so it needs mode=u4d or baseline, "
@@ -243,162 +306,229 @@ def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info
         )
     if cfg.propagate_pin and not cfg.propagate:
         raise InputError("propagate_pin: pins stage 2 to the propagated pixels, so it needs propagate=true")
-    if cfg.propagate:  # like the other sampling options: banks written before it stay compatible
-        identity["sampling"]["propagate"] = True
-    if cfg.propagate_pin and cfg.mode == "u4d":  # the baseline's inpainting pins them anyway
-        identity["sampling"]["propagate_pin"] = True
-    check_compatible(Path(out), identity)
-    layout = BankLayout(Path(out), frames)
+
+
+def _open_layout(out: Path, frames: int) -> tuple[BankLayout, dict | None]:
+    """The bank's layout and its manifest (None for a new bank); refuses a bank of another frame count."""
+    layout = BankLayout(out, frames)
     old = read_manifest(layout.root)
     if old is not None and old.get("frames", 1) != frames:
         raise InputError(
             f"{layout.manifest_path}: bank holds {old.get('frames', 1)}-frame samples, asked for {frames}; "
             "choose another --out or delete the bank"
         )
+    return layout, old
 
-    scans: Scans | Windows | None = None
-    if cfg.mode == "complete":
-        if not cfg.data_root:
-            raise InputError("data_root: completion mode needs real scans to take x0_u from")
-        real = (main[1].data_format, main[1].nuscenes_version)  # real scans laid out as the generator's were
-        if frames == 1:
-            scans = open_scans(cfg.data_root, cfg.sequences, False, *real)
-        else:
-            try:
-                scans = open_sequences(cfg.data_root, frames, cfg.sequences, main[1].frame_stride, True, *real)
-            except InputError as exc:
-                raise InputError(f"completion mode writes the real frames' poses with each sequence: {exc}") from None
-        if len(scans) == 0:
-            raise InputError(f"{cfg.data_root}: no scans found")
-        first = scans[0]
-        points = first["points"] if frames == 1 else first["points"][0]
-        check_beams(points, get_sensor(main[1].sensor), f"{cfg.data_root}: scan of sequence {first['seq']}")
 
+def _real_scans(cfg: GenerateConfig, train_cfg: DiffusionTrainConfig, frames: int) -> Scans | Windows:
+    """Completion mode: the real scans of data_root (L-frame windows with poses for sequence generators), laid out
+    as the generator's training scans were; their beams checked against its sensor."""
+    if not cfg.data_root:
+        raise InputError("data_root: completion mode needs real scans to take x0_u from")
+    real = (train_cfg.data_format, train_cfg.nuscenes_version)  # real scans laid out as the generator's were
+    if frames == 1:
+        scans = open_scans(cfg.data_root, cfg.sequences, False, *real)
+    else:
+        try:
+            scans = open_sequences(cfg.data_root, frames, cfg.sequences, train_cfg.frame_stride, True, *real)
+        except InputError as exc:
+            raise InputError(f"completion mode writes the real frames' poses with each sequence: {exc}") from None
+    if len(scans) == 0:
+        raise InputError(f"{cfg.data_root}: no scans found")
+    first = scans[0]
+    points = first["points"] if frames == 1 else first["points"][0]
+    check_beams(points, get_sensor(train_cfg.sensor), f"{cfg.data_root}: scan of sequence {first['seq']}")
+    return scans
+
+
+def _new_manifest(
+    run: _Generation,
+    identity: dict,
+    config: dict,
+    paths: dict[str, Path],
+    mean_sources: dict,
+    motion_sources: list[dict],
+    old: dict | None,
+) -> dict:
+    """The bank's manifest before any sample is checked or written: identity, config, image and one entry per
+    sample; a re-run keeps the larger sample listing and the export record of the old manifest."""
+    train_cfg, cfg = run.train_cfg, run.cfg
     manifest = {
         **identity,
         "config": config,
         "checkpoint_paths": {name: str(path) for name, path in paths.items()},
-        "sensor": main[1].sensor,
-        "height": main[1].height,
-        "width": main[1].width,
-        "row_mode": main[1].row_mode,
-        "frames": frames,
+        "sensor": train_cfg.sensor,
+        "height": train_cfg.height,
+        "width": train_cfg.width,
+        "row_mode": train_cfg.row_mode,
+        "frames": run.frames,
         **({"mean_start": mean_sources} if mean_sources else {}),
-        "samples": [_sample_entry(cfg, i, scans, frames, motion_sources) for i in range(cfg.num)],
+        "samples": [_sample_entry(cfg, i, run.scans, run.frames, motion_sources) for i in range(cfg.num)],
         "complete": False,
     }
     if old is not None and len(old.get("samples", [])) > cfg.num:
         manifest["samples"] = old["samples"]  # a re-run asking for fewer samples keeps the larger listing
     if old is not None and "export" in old:
         manifest["export"] = old["export"]  # what `u4d export` wrote beside the samples stays recorded
-    if info.is_main:
-        removed = remove_temp_files(layout.root)
-        if removed:
-            logger.info("%s: removed %d temp file(s) of a killed run", layout.root, removed)
-        verified = verify_samples(layout, old)  # samples changed since they were written are removed
-        for entry in manifest["samples"]:
-            entry.pop("sha256", None)
-            if entry["index"] in verified:
-                entry["sha256"] = verified[entry["index"]]
-        write_manifest(layout.root, manifest)
-    barrier()  # the other ranks look at the samples once rank 0 has checked them
+    return manifest
 
+
+def _check_finished_samples(layout: BankLayout, old: dict | None, manifest: dict) -> None:
+    """Rank 0, before any rank writes: remove the temp files of killed writes and the samples changed since they
+    were written, keep the digests of the others in the manifest, and write it."""
+    removed = remove_temp_files(layout.root)
+    if removed:
+        logger.info("%s: removed %d temp file(s) of a killed run", layout.root, removed)
+    verified = verify_samples(layout, old)  # samples changed since they were written are removed
+    for entry in manifest["samples"]:
+        entry.pop("sha256", None)
+        if entry["index"] in verified:
+            entry["sha256"] = verified[entry["index"]]
+    write_manifest(layout.root, manifest)
+
+
+def _generate_blocks(run: _Generation, info: DistInfo, progress: bool) -> None:
+    """Generate and write this rank's blocks that miss a sample."""
+    cfg, layout = run.cfg, run.layout
     # fixed blocks of batch_size consecutive samples, sharded across ranks: a block's scans do not depend on the
     # rank count, and a block with a missing sample is generated again whole (finished samples are not rewritten)
     blocks = [list(range(start, min(start + cfg.batch_size, cfg.num))) for start in range(0, cfg.num, cfg.batch_size)]
     todo = [block for block in shard(blocks, info.rank, info.world_size) if not all(map(layout.is_done, block))]
     bar = progress_bar(total=sum(map(len, todo)), enabled=(progress and info.is_main), desc=f"generate {cfg.mode}")
+    sensor = get_sensor(run.train_cfg.sensor)
     for block in todo:
-        n = len(block)
         generators = [torch.Generator().manual_seed(cfg.seed + i) for i in block]  # sample i: seed + i
-        masks = uncertainty = x0_u = None  # per sample and frame: (n, L, H, W), (n, L, H, W), (n, L, 2, H, W)
-        motion = None if motions is None else torch.from_numpy(motions[block])  # (n, L, 4)
-        if motions is not None:
+        if run.motions is not None:
             for i in block:
                 if not layout.is_done(i):  # poses first, frames last (a sample is done once all its frames are)
-                    write_sequence_poses(layout, i, poses_from_motion(motions[i]))
-        if cfg.mode == "u4d":
-            if cfg.propagate:
-                assert motions is not None  # checked with the config
-                poses = np.stack([poses_from_motion(motions[i]) for i in block])  # (n, L, 4, 4)
-                result = generate_u4d_propagated(
-                    nets["stage1"],
-                    nets["stage2"],
-                    n,
-                    cfg.steps,
-                    generators,
-                    poses,
-                    cfg.sampler,
-                    cfg.stage1_steps,
-                    grid=cfg.sampler_grid,
-                    motion=motion,
-                    mask_fraction=cfg.stage1_mask_fraction,
-                    pin_known=cfg.propagate_pin,
-                )
-            else:
-                result = generate_u4d(
-                    nets["stage1"],
-                    nets["stage2"],
-                    n,
-                    cfg.steps,
-                    generators,
-                    cfg.sampler,
-                    cfg.stage1_steps,
-                    frames,
-                    grid=cfg.sampler_grid,
-                    motion=motion,
-                    mask_fraction=cfg.stage1_mask_fraction,
-                )
-            masks, x0_u = _per_sample(result["m_u_pred"], n)[:, :, 0], _per_sample(result["x0_u"], n)
-        elif cfg.mode == "baseline" and cfg.propagate:
-            assert motions is not None  # checked with the config
-            poses = np.stack([poses_from_motion(motions[i]) for i in block])  # (n, L, 4, 4)
-            result = generate_baseline_propagated(
-                nets["baseline"], n, cfg.steps, generators, poses, cfg.sampler, grid=cfg.sampler_grid, motion=motion
-            )
-        elif cfg.mode == "baseline":
-            result = generate_baseline(
-                nets["baseline"], n, cfg.steps, generators, cfg.sampler, frames, grid=cfg.sampler_grid, motion=motion
-            )
-        else:
-            parts = [
-                _real_sample_condition(scans, i, generator, frames, main[1], cfg)
-                for i, generator in zip(block, generators)
-            ]
-            for i, (_, _, _, poses) in zip(block, parts):
-                if poses is not None and not layout.is_done(i):  # finished samples of the block stay untouched
-                    write_sequence_poses(layout, i, poses)
-            x0_u, m_u, entropy_image = (torch.stack([part[k] for part in parts]) for k in range(3))  # (n, L, ...)
-            if frames == 1:
-                x0_u, m_u = x0_u[:, 0], m_u[:, 0]  # single scans: (n, C, H, W)
-            if posed:  # the real frames' own motion, (n, L, 4)
-                motion = torch.from_numpy(np.stack([relative_motion(part[3]) for part in parts]))
-            result = complete(
-                nets["stage2"], x0_u, m_u, cfg.steps, generators, cfg.sampler, grid=cfg.sampler_grid, motion=motion
-            )
-            masks, uncertainty, x0_u = _per_sample(m_u, n)[:, :, 0], entropy_image.numpy(), _per_sample(x0_u, n)
-        clouds = to_points(result["x0"], sensor, main[1].row_mode)  # n·L point clouds, samples then frames
-        for j, i in enumerate(block):
-            if layout.is_done(i):
-                continue
-            for frame in range(frames):
-                side = [None if part is None else part[j, frame] for part in (masks, uncertainty, x0_u)]
-                write_sample(layout, i, clouds[j * frames + frame], *side, frame=frame)
-        bar.update(n)
+                    write_sequence_poses(layout, i, poses_from_motion(run.motions[i]))
+        x0, side = _sample_block(run, block, generators)
+        _write_block(run, block, to_points(x0, sensor, run.train_cfg.row_mode), side)
+        bar.update(len(block))
     bar.close()
 
-    barrier()
-    if info.is_main:
-        for entry in manifest["samples"]:
-            if "sha256" not in entry and layout.is_done(entry["index"]):
-                entry["sha256"] = sample_digests(layout, entry["index"])
-        manifest["complete"] = all(layout.is_done(i) for i in range(cfg.num))
-        if frames == 1:
-            manifest["empty"] = [i for i in range(cfg.num) if layout.is_empty(i)]
-        else:  # [sample, frame] pairs
-            manifest["empty"] = [[i, f] for i in range(cfg.num) for f in range(frames) if layout.is_empty(i, f)]
-        write_manifest(layout.root, manifest)
-    return manifest
+
+# per sample and frame: stage-1 mask (n, L, H, W), uncertainty (n, L, H, W), x0_u (n, L, 2, H, W), each or None
+_Side = tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]
+
+
+def _sample_block(run: _Generation, block: list[int], generators: list[torch.Generator]) -> tuple[Tensor, _Side]:
+    """The scans x0 of a block's samples, (n[·L], 2, H, W), and the side images written beside them."""
+    motion = None if run.motions is None else torch.from_numpy(run.motions[block])  # (n, L, 4)
+    if run.cfg.mode == "u4d":
+        return _generate_u4d(run, block, generators, motion)
+    if run.cfg.mode == "baseline":
+        return _generate_baseline(run, block, generators, motion)
+    return _complete_block(run, block, generators)
+
+
+def _block_poses(run: _Generation, block: list[int]) -> np.ndarray:
+    """(n, L, 4, 4) poses of the ego motions of a block's samples (propagate)."""
+    assert run.motions is not None  # checked with the config
+    return np.stack([poses_from_motion(run.motions[i]) for i in block])
+
+
+def _generate_u4d(
+    run: _Generation, block: list[int], generators: list[torch.Generator], motion: Tensor | None
+) -> tuple[Tensor, _Side]:
+    """U4D mode: stage 1's uncertain region, then stage 2 completes it (with propagate: frame 0 moved along the
+    motion first); the scans with stage 1's mask and x0_u."""
+    cfg, n = run.cfg, len(block)
+    if cfg.propagate:
+        result = generate_u4d_propagated(
+            run.nets["stage1"],
+            run.nets["stage2"],
+            n,
+            cfg.steps,
+            generators,
+            _block_poses(run, block),
+            cfg.sampler,
+            cfg.stage1_steps,
+            grid=cfg.sampler_grid,
+            motion=motion,
+            mask_fraction=cfg.stage1_mask_fraction,
+            pin_known=cfg.propagate_pin,
+        )
+    else:
+        result = generate_u4d(
+            run.nets["stage1"],
+            run.nets["stage2"],
+            n,
+            cfg.steps,
+            generators,
+            cfg.sampler,
+            cfg.stage1_steps,
+            run.frames,
+            grid=cfg.sampler_grid,
+            motion=motion,
+            mask_fraction=cfg.stage1_mask_fraction,
+        )
+    return result["x0"], (_per_sample(result["m_u_pred"], n)[:, :, 0], None, _per_sample(result["x0_u"], n))
+
+
+def _generate_baseline(
+    run: _Generation, block: list[int], generators: list[torch.Generator], motion: Tensor | None
+) -> tuple[Tensor, _Side]:
+    """Baseline mode: one unconditional stage (with propagate: frames 1..L-1 inpainted around frame 0 moved along
+    the motion); the scans, no side images."""
+    cfg, n = run.cfg, len(block)
+    net = run.nets["baseline"]
+    if cfg.propagate:
+        poses = _block_poses(run, block)
+        result = generate_baseline_propagated(
+            net, n, cfg.steps, generators, poses, cfg.sampler, grid=cfg.sampler_grid, motion=motion
+        )
+    else:
+        result = generate_baseline(
+            net, n, cfg.steps, generators, cfg.sampler, run.frames, grid=cfg.sampler_grid, motion=motion
+        )
+    return result["x0"], (None, None, None)
+
+
+def _complete_block(run: _Generation, block: list[int], generators: list[torch.Generator]) -> tuple[Tensor, _Side]:
+    """Completion mode: stage 2 completes the x0_u of real scans (sequences: their frames' poses written first and
+    their own motion as the condition); the scans with m_u, the entropy image and x0_u."""
+    cfg, n, frames = run.cfg, len(block), run.frames
+    parts = [
+        _real_sample_condition(run.scans, i, generator, frames, run.train_cfg, cfg)
+        for i, generator in zip(block, generators)
+    ]
+    for i, (_, _, _, poses) in zip(block, parts):
+        if poses is not None and not run.layout.is_done(i):  # finished samples of the block stay untouched
+            write_sequence_poses(run.layout, i, poses)
+    x0_u, m_u, entropy_image = (torch.stack([part[k] for part in parts]) for k in range(3))  # (n, L, ...)
+    if frames == 1:
+        x0_u, m_u = x0_u[:, 0], m_u[:, 0]  # single scans: (n, C, H, W)
+    motion = None
+    if run.posed:  # the real frames' own motion, (n, L, 4)
+        motion = torch.from_numpy(np.stack([relative_motion(part[3]) for part in parts]))
+    result = complete(
+        run.nets["stage2"], x0_u, m_u, cfg.steps, generators, cfg.sampler, grid=cfg.sampler_grid, motion=motion
+    )
+    return result["x0"], (_per_sample(m_u, n)[:, :, 0], entropy_image.numpy(), _per_sample(x0_u, n))
+
+
+def _write_block(run: _Generation, block: list[int], clouds: list[np.ndarray], side: _Side) -> None:
+    """Write the n·L point clouds (samples then frames) of a block's unfinished samples with their side images."""
+    for j, i in enumerate(block):
+        if run.layout.is_done(i):
+            continue
+        for frame in range(run.frames):
+            images = [None if part is None else part[j, frame] for part in side]
+            write_sample(run.layout, i, clouds[j * run.frames + frame], *images, frame=frame)
+
+
+def _finish_manifest(manifest: dict, layout: BankLayout, num: int, frames: int) -> None:
+    """Rank 0, once every rank is done: the digests of the new samples, whether all are there, the empty ones."""
+    for entry in manifest["samples"]:
+        if "sha256" not in entry and layout.is_done(entry["index"]):
+            entry["sha256"] = sample_digests(layout, entry["index"])
+    manifest["complete"] = all(layout.is_done(i) for i in range(num))
+    if frames == 1:
+        manifest["empty"] = [i for i in range(num) if layout.is_empty(i)]
+    else:  # [sample, frame] pairs
+        manifest["empty"] = [[i, f] for i in range(num) for f in range(frames) if layout.is_empty(i, f)]
+    write_manifest(layout.root, manifest)
 
 
 def _per_sample(images: torch.Tensor, n: int) -> np.ndarray:

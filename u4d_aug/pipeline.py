@@ -40,6 +40,7 @@ from u4d_aug.sampling import (
 )
 from u4d_aug.sampling import sample as sample_named
 from u4d_aug.stage import DiffusionTrainConfig, build_net, config_from_checkpoint
+from u4d_aug.validate import check_state_fits
 from u4d_aug.weights import is_exported, load_exported
 
 # u4d_aug.sampling.sample: DDIM, ancestral DDPM, DPM-Solver++(2M) and its SDE form; the last two also on grid="logsnr"
@@ -59,8 +60,15 @@ def load_generator(ckpt: str | Path, device: torch.device | str = "cpu") -> Load
     if is_exported(state):  # `u4d export-weights`: the EMA weights in float16
         load_exported(net, state, str(path))
     else:
+        shadow = state.get("ema")
+        if not isinstance(shadow, dict):
+            raise InputError(
+                f"{path}: no EMA weights ('ema'); expected a train-diffusion checkpoint or exported weights"
+            )
+        check_state_fits(shadow.get("params"), dict(net.named_parameters()), f"{path} (ema)")
+        check_state_fits(shadow.get("buffers"), dict(net.named_buffers()), f"{path} (ema buffers)")
         ema = EMA(net)
-        ema.load_state_dict(state["ema"])
+        ema.load_state_dict(shadow)
         ema.copy_to(net)
     return net.requires_grad_(False).to(device).eval(), cfg
 

@@ -1,9 +1,9 @@
 """Scene propagation along the ego motion: frame 0 of a generated sequence moved into every later frame's range view.
 
-The pose embedding of the MoST nets does not move the scene (benchmarks/results/temporal_follow.md), so a sequence
-that must follow its motion takes the geometry explicitly: frame 0's points, transformed by T_j^-1 T_0 and projected
-into frame j's range view, are frame j's known region (x0_u, m_u: the stage-2 condition of U4D, paper §2), and stage 2
-completes the pixels they do not reach (newly seen space, the far field). The world is static under this warp.
+The pose embedding of the MoST nets does not move the scene (benchmarks/results/temporal/temporal_follow.md), so a
+sequence that must follow its motion takes the geometry explicitly: frame 0's points, transformed by T_j^-1 T_0 and
+projected into frame j's range view, are frame j's known region (x0_u, m_u: the stage-2 condition of U4D, paper §2), and
+stage 2 completes the pixels they do not reach (newly seen space, the far field). The world is static under this warp.
 """
 
 from __future__ import annotations

@@ -110,6 +110,7 @@ def write_real_bank(
     geometry: dict | None,
     generators: list[Path] | None = None,
     max_scans: int | None = None,
+    progress: bool = True,
 ) -> dict[str, Any]:
     """Write the bank (resuming) and return its manifest; geometry None copies the scans unprojected."""
     places = resolve_sequences(root, sequences)
@@ -132,7 +133,7 @@ def write_real_bank(
         verified = verify_samples(layout, old)
         manifest = {**identity, "samples": [], "complete": False}
         write_manifest(out, manifest)
-        for index, (seq, frame) in enumerate(progress_bar(scans, desc="bank-real", unit="scan")):
+        for index, (seq, frame) in enumerate(progress_bar(scans, desc="bank-real", unit="scan", enabled=progress)):
             source = f"sequences/{seq}/velodyne/{frame}.bin"
             if index not in verified:
                 points = read_kitti_scan(root / source)
@@ -184,6 +185,7 @@ def add_bank_real_arguments(parser: argparse.ArgumentParser) -> None:
         help="a generator run whose training places the bank must not share (repeatable)",
     )
     parser.add_argument("--max-scans", type=int, default=None, help="only the first scans (in place order)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run_bank_real(args: argparse.Namespace) -> int:
@@ -191,7 +193,9 @@ def run_bank_real(args: argparse.Namespace) -> int:
     if args.max_scans is not None and args.max_scans < 1:
         raise InputError(f"--max-scans {args.max_scans}: expected a positive count")
     geometry = parse_geometry(args)
-    manifest = write_real_bank(args.root, args.sequences, args.out, geometry, args.generator, args.max_scans)
+    manifest = write_real_bank(
+        args.root, args.sequences, args.out, geometry, args.generator, args.max_scans, not args.no_progress
+    )
     places = manifest["source"]["sequences"]
     how = "unprojected" if geometry is None else f"through the {geometry['height']}x{geometry['width']} range image"
     print(

@@ -33,6 +33,7 @@ from u4d_aug.errors import InputError
 from u4d_aug.host import host_info
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_text, load_checkpoint, read_jsonl
 from u4d_aug.runfolder import CHECKPOINT_GLOB, checkpoints, prepare, resume_point
+from u4d_aug.validate import check_state_fits
 
 logger = logging.getLogger(__name__)
 
@@ -119,7 +120,9 @@ def restore(
     ckpt = start.checkpoint
     if ckpt is None:
         return
-    warn_config_changes(start, cfg, ignore)
+    changed = warn_config_changes(start, cfg, ignore)
+    hint = f"the config changed: {'; '.join(changed)}" if changed else ""
+    check_state_fits(ckpt.get("model"), model.state_dict(), f"{start.path} (model)", hint)
     model.load_state_dict(ckpt["model"])
     optimizer.load_state_dict(ckpt["optimizer"])
     if ema is not None:
@@ -129,9 +132,10 @@ def restore(
     torch.set_rng_state(ckpt["rng"]["torch"])
 
 
-def warn_config_changes(start: Start, cfg: Any, ignore: tuple[str, ...] = ()) -> None:
-    """Resuming with another config is allowed (e.g. more steps) but not exact: warn which keys differ. A key the
-    checkpoint predates, at its default value, is no change; nor is a since-removed key at its "off" value."""
+def warn_config_changes(start: Start, cfg: Any, ignore: tuple[str, ...] = ()) -> list[str]:
+    """Resuming with another config is allowed (e.g. more steps) but not exact: warn which keys differ, and return
+    them ("key: old -> new"). A key the checkpoint predates, at its default value, is no change; nor is a
+    since-removed key at its "off" value."""
     old, removed = without_removed_keys(type(cfg), start.checkpoint.get("config") or {})
     defaults = {key: value for key, _, value in _differences({}, config_to_dict(type(cfg)()))}
     changed = [
@@ -142,6 +146,7 @@ def warn_config_changes(start: Start, cfg: Any, ignore: tuple[str, ...] = ()) ->
     changed += [f"{key}: {value!r} -> (removed)" for key, value in removed.items()]
     if changed:
         warnings.warn(f"{start.path}: resuming with a changed config ({'; '.join(changed)})", stacklevel=2)
+    return changed
 
 
 def begin_run(out: Path, cfg: Any, start: Start, info: DistInfo) -> None:

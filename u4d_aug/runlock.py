@@ -76,7 +76,7 @@ def read_holder(path: Path) -> dict | None:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         return None
-    except OSError:
+    except (OSError, UnicodeDecodeError):  # undecodable bytes: as unreadable
         return {}
     with contextlib.suppress(json.JSONDecodeError):
         holder = json.loads(text)

@@ -47,8 +47,8 @@ def mean_start(denoise_fn: DenoiseFn, mean: Tensor, below: float) -> DenoiseFn:
 
     At vanishing SNR the MMSE estimate of x0 is the data mean, while an ε-network's x̂0 = (x_t − σ ε̂)/α divides its
     error by α (5e-4 at log-SNR −15): clamped noise that the samplers' first steps keep
-    (benchmarks/results/mean_start_diagnostic.md). There the returned ε is (x_t − α μ)/σ, the ε of x̂0 = μ; the
-    `extra` of the wrapped function (stage-1 mask logits) is passed through.
+    (benchmarks/results/generation/mean_start_diagnostic.md). There the returned ε is (x_t − α μ)/σ, the ε of x̂0 = μ;
+    the `extra` of the wrapped function (stage-1 mask logits) is passed through.
     """
 
     def wrapped(x_t: Tensor, lam: Tensor, cond: Tensor | None) -> Tensor | tuple[Tensor, Any]:

@@ -1,4 +1,5 @@
-"""Checks of numbers and names a user hands us: finite config floats, plain names, finite training losses.
+"""Checks of numbers and names a user hands us: finite config floats, plain names, finite training losses, loaded
+weights that fit the net their config builds.
 
 Each check raises an InputError (or its NonFiniteLossError) whose one line names the key, the name or the step.
 """
@@ -90,3 +91,34 @@ def _get(cfg: Any, key: str) -> Any:
         if index:
             value = value[int(index.rstrip("]"))]
     return value
+
+
+def state_mismatches(state: Any, expected: dict[str, Any]) -> list[str]:
+    """What keeps `state` (name -> tensor) from loading into tensors of `expected` (name -> tensor): missing and
+    unexpected names, other shapes, non-tensors; [] when it fits."""
+    import torch
+
+    if not isinstance(state, dict):
+        return [f"a {type(state).__name__} where a name -> tensor mapping belongs"]
+    problems = [f"{name}: missing" for name in expected if name not in state]
+    problems += [f"{name}: not in this net" for name in state if name not in expected]
+    for name, want in expected.items():
+        have = state.get(name)
+        if name not in state:
+            continue
+        if not isinstance(have, torch.Tensor):
+            problems.append(f"{name}: a {type(have).__name__}, not a tensor")
+        elif tuple(have.shape) != tuple(want.shape):
+            problems.append(
+                f"{name}: shape {tuple(have.shape)} here, {tuple(want.shape)} in the net this config builds"
+            )
+    return problems
+
+
+def check_state_fits(state: Any, expected: dict[str, Any], source: str, hint: str = "") -> None:
+    """Refuse weights that load safely but do not fit the net built from the config: one line naming the file, the
+    first differing tensors and `hint` (e.g. which config keys changed) instead of torch's size-mismatch traceback."""
+    problems = state_mismatches(state, expected)
+    if problems:
+        shown = "; ".join(problems[:3]) + (f"; and {len(problems) - 3} more" if len(problems) > 3 else "")
+        raise InputError(f"{source}: its weights do not fit the net ({shown}){'; ' + hint if hint else ''}")

@@ -28,6 +28,7 @@ from torch import Tensor
 
 from u4d_aug.errors import InputError
 from u4d_aug.run import checkpoint_kind as checkpoint_kind_of
+from u4d_aug.validate import check_state_fits
 
 WEIGHTS_FORMAT = "u4d-weights-v1"
 # The checkpoint kinds, as their writers name them (tests/u4d_aug/test_weights.py checks they agree; u4d_aug does not
@@ -177,12 +178,10 @@ def exported_model(state: dict, source: str) -> dict[str, Tensor]:
 
 def load_exported(net: torch.nn.Module, state: dict, source: str) -> None:
     """Load exported weights into `net` (built from the file's config); only `RECOMPUTED_BUFFERS` may be absent."""
-    missing, unexpected = net.load_state_dict(exported_model(state, source), strict=False)
-    if unexpected or set(missing) - set(RECOMPUTED_BUFFERS):
-        raise InputError(
-            f"{source}: exported weights do not fit the net of their config (missing "
-            f"{sorted(set(missing) - set(RECOMPUTED_BUFFERS))[:3]}, unexpected {sorted(unexpected)[:3]})"
-        )
+    model = exported_model(state, source)
+    expected = {name: t for name, t in net.state_dict().items() if name in model or name not in RECOMPUTED_BUFFERS}
+    check_state_fits(model, expected, source, "exported weights must fit the net of their own config")
+    net.load_state_dict(model, strict=False)
 
 
 def stored_row_mean(state: dict, source: str, role: str | None = None) -> tuple[Tensor, dict] | None:

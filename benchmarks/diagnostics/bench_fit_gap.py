@@ -10,7 +10,7 @@ scan is scored whole (no subsampling, no augmentation, BatchNorm in eval mode) a
     python benchmarks/diagnostics/bench_fit_gap.py RUN_A/checkpoints/step_0000600.pt RUN_B/... \
         [--scans 24] [--weights model]
 
-Writes benchmarks/results/fit_gap.json (or --out).
+Writes benchmarks/results/segmentation/fit_gap.json (or --out).
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def main() -> int:
     parser.add_argument("--scans", type=int, default=24, help="scans per set, evenly spaced")
     parser.add_argument("--weights", choices=["model", "ema"], default="model")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "fit_gap.json")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "segmentation" / "fit_gap.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     rows = []

@@ -9,7 +9,7 @@ no other augmentation.
 
     python benchmarks/diagnostics/bench_lasermix_context.py RUN/burn_in.pt [--pairs 8] [--areas 2 3 4 5 6]
 
-Writes benchmarks/results/lasermix_context.json (or --out).
+Writes benchmarks/results/segmentation/lasermix_context.json (or --out).
 """
 
 from __future__ import annotations
@@ -76,7 +76,9 @@ def main() -> int:
     parser.add_argument("--areas", type=int, nargs="+", default=[2, 3, 4, 5, 6])
     parser.add_argument("--seed", type=int, default=0, help="which scans, subsamples and pairings")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch's default)")
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "lasermix_context.json")
+    parser.add_argument(
+        "--out", type=Path, default=REPO / "benchmarks" / "results" / "segmentation" / "lasermix_context.json"
+    )
     args = parser.parse_args()
     if args.pairs < 1 or min(args.areas) < 1:
         parser.error(f"--pairs and --areas must be >= 1; got --pairs {args.pairs}, --areas {args.areas}")

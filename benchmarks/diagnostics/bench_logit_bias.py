@@ -9,7 +9,7 @@ buy with the features the net has: if no b lifts IoU_c without costing the class
 net does not tell c apart and a class weight will not either (more training or context must). Per class of
 --classes and bias in --biases: mIoU, IoU_c and the IoU of the two classes c is most mistaken for. Scans: every
 --every-th labelled scan of --sequences, one forward each (log-probabilities kept in float16). Writes
-benchmarks/results/logit_bias.json.
+benchmarks/results/segmentation/logit_bias.json.
 """
 
 from __future__ import annotations
@@ -68,7 +68,9 @@ def run(argv: list[str] | None = None) -> int:
     parser.add_argument("--classes", nargs="+", default=["other-ground", "parking", "truck", "terrain"])
     parser.add_argument("--biases", type=float, nargs="+", default=[-1.0, 1.0, 2.0, 3.0])
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "logit_bias.json")
+    parser.add_argument(
+        "--out", type=Path, default=REPO / "benchmarks" / "results" / "segmentation" / "logit_bias.json"
+    )
     args = parser.parse_args(argv)
     names = list(SEMANTICKITTI_CLASSES)
     unknown = [c for c in args.classes if c not in names]

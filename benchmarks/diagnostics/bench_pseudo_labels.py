@@ -11,7 +11,7 @@ that gets a pseudo-label, each class's share of all pseudo-labels and their prec
     python benchmarks/diagnostics/bench_pseudo_labels.py RUN/checkpoints/step_0000600.pt \
         [--scans 8] [--class-shares 0.2 0.5]
 
-Writes benchmarks/results/pseudo_labels.json (or --out).
+Writes benchmarks/results/segmentation/pseudo_labels.json (or --out).
 """
 
 from __future__ import annotations
@@ -101,7 +101,9 @@ def main() -> int:
     parser.add_argument("--scans", type=int, default=8)
     parser.add_argument("--seed", type=int, default=0, help="which unlabeled scans and subsamples")
     parser.add_argument("--class-shares", type=float, nargs="*", default=[0.2, 0.5])
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "pseudo_labels.json")
+    parser.add_argument(
+        "--out", type=Path, default=REPO / "benchmarks" / "results" / "segmentation" / "pseudo_labels.json"
+    )
     args = parser.parse_args()
     try:
         cfg, step, logits, truth = teacher_outputs(args.checkpoint, args.scans, args.seed)

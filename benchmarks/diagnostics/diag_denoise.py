@@ -1,7 +1,7 @@
 """How much noise each generator removes in one call, by log-SNR: the precision of a few-step sampler's last x̂0.
 
     python benchmarks/diagnostics/diag_denoise.py --root data/sim_eval --probs data/sim_eval_probs --sequences 00 \
-        --num 4 --out benchmarks/results/denoise_64x1024.json
+        --num 4 --out benchmarks/results/generation/denoise_64x1024.json
 
 Each net (`--nets NAME=WEIGHTS ...`; default the shipped baseline, U4D stage 2 and stage 1; a one-net u4d checkpoint
 as `NAME=WEIGHTS@stage1` or `@stage2` for one of its two tasks) reads the first `--num` scans of ROOT's SEQUENCES as
@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--log-snr", type=float, nargs="+", default=LOG_SNRS, help="noise levels")
     parser.add_argument("--seed", type=int, default=0, help="seed of the noise")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "denoise.json")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "generation" / "denoise.json")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     nets = {}

@@ -6,7 +6,7 @@
 The mean start itself is `u4d generate ... mean_start_below=-10` (both stages; `sampling.mean_start`,
 `pipeline.MeanStart`); this script wraps only the conditional (stage-2) sampler calls, by patching
 `u4d_aug.pipeline.sample_named`, to separate what each stage's first step costs
-(benchmarks/results/mean_start_diagnostic.md). Samples are seeded from 5000 like that table's other rows.
+(benchmarks/results/generation/mean_start_diagnostic.md). Samples are seeded from 5000 like that table's other rows.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """How well each generator fills what propagation leaves unknown, against what it was trained to fill (real truth).
 
     python benchmarks/diagnostics/diag_propagation_fill.py --root data/sim_seg --probs data/sim_seg_probs_heldout \
-        --sequences 88-93 --out benchmarks/results/propagation_fill
+        --sequences 88-93 --out benchmarks/results/temporal/propagation_fill
 
 With `propagate=true` (`u4d_aug.propagate`) frames 1..L-1 of a sequence are frame 0 moved along the poses (~70 % of
 the pixels) plus what the net fills in; U4D's stage 2 was trained to complete around P_u (~10 % known, paper §2).
@@ -164,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="window i is filled from seed + i by every net")
     parser.add_argument("--pin-known", action="store_true", help="stage 2: x̂0 pinned to the known pixels every step")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "propagation_fill")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "temporal" / "propagation_fill")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     try:

@@ -8,7 +8,7 @@ quantiles 0.01..0.99 of both (least squares in log intensity) with clip(floor + 
 seeds 7-9 are not those bench_sim_realism_sources.py measures (0, 1); gain and gamma trade off against each other where
 few simulated returns lie (r > 0.6), so one seed of 12 places moves them by ~0.3 while the curve below r = 0.4 stays
 within ~0.01 (at r = 0.5 it spans 0.17-0.21). Prints the values to paste into hdl32(), the remission JS (base 2,
-report.INTENSITY_BINS) before and after on the rendered scans, and writes benchmarks/results/<name>.json.
+report.INTENSITY_BINS) before and after on the rendered scans, and writes benchmarks/results/world/<name>.json.
 
     python benchmarks/diagnostics/fit_sensor_response.py [--seeds 7 8 9] [--places 12] [--frames 2]
 """
@@ -34,7 +34,7 @@ from u4d_aug.data.sim.writer import build_sequence, render_frame
 from u4d_aug.io import atomic_write_json
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "benchmarks" / "results"
+RESULTS = ROOT / "benchmarks" / "results" / "world"
 REAL = Path(os.environ.get("U4D_REAL_DATA") or ROOT.parent / "shared" / "data" / "real") / "nuscenes_mmdet3d_demo"
 
 

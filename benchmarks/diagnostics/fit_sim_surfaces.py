@@ -11,7 +11,7 @@ surfaces is then evaluated offline on those returns with fixed random numbers,
 and gain (0.6-1.5), speckle (0-0.6) and, for the materials in ZERO_FIT, the zero probability (0-0.3) of every
 material are chosen by coordinate descent (3 sweeps over grids) to minimise the mean of the macro and the
 share-weighted per-class remission JS distance against ../shared/data/real/semantickitti (frames 0-2). Prints the
-table to paste into MEASURED and writes benchmarks/results/sim_surface_fit.json.
+table to paste into MEASURED and writes benchmarks/results/world/sim_surface_fit.json.
 
     python benchmarks/diagnostics/fit_sim_surfaces.py [--places 8] [--frames 2]
 """
@@ -38,7 +38,7 @@ from u4d_aug.data.sim.writer import build_sequence
 from u4d_aug.io import atomic_write_json
 
 ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "benchmarks" / "results"
+RESULTS = ROOT / "benchmarks" / "results" / "world"
 REAL = Path(os.environ.get("U4D_REAL_DATA") or ROOT.parent / "shared" / "data" / "real") / "semantickitti"
 FIT_SET = ["lidar.surface_model=measured", "lidar.range_noise=0.008", "objects.sign_back_metal=true"]
 CLEAN = ["lidar.intensity_noise=0", "lidar.zero_threshold=[0, 0]", "lidar.intensity_step=0.0001"]

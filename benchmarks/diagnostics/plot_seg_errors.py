@@ -1,7 +1,7 @@
 """Where a segmentor goes wrong on one scan: BEV of the ground truth, the prediction and the wrong points.
 
     python benchmarks/diagnostics/plot_seg_errors.py runs/lean_v025_s0/model.pt data/sim_seg --sequence 95 --frame 3 \
-        --out benchmarks/results/seg_cpu_rich/lean_voxel025_errors_95_3.png
+        --out benchmarks/results/segmentation/seg_cpu_rich/lean_voxel025_errors_95_3.png
 
 Three bird's-eye views of the scan (SemanticKITTI palette): labels, predicted classes, and the wrongly predicted
 points coloured by the predicted class (right points grey). --focus CLASS centres a fourth, zoomed view on the

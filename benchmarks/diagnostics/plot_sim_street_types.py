@@ -2,7 +2,7 @@
 
 Every panel is frame `--frame` of place 0 of a world whose places all have that type (seed `--seed`, default
 config otherwise), so the panels differ only by what the type lays out. Writes
-benchmarks/results/sim_street_types.png.
+benchmarks/results/world/sim_street_types.png.
 
     python benchmarks/diagnostics/plot_sim_street_types.py [--seed 1] [--frame 0] [--extent 40]
 """
@@ -23,7 +23,7 @@ from u4d_aug.data.sim.scenes import STREET_TYPES
 from u4d_aug.data.sim.writer import build_sequence, render_frame
 from u4d_aug.viz import draw_bev, label_colors, plt, save_figure
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+RESULTS = Path(__file__).resolve().parents[1] / "results" / "world"
 
 
 def main() -> int:

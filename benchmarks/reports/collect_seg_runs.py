@@ -7,7 +7,8 @@ mIoU), `config.yaml` (seed), `hosts.jsonl` (the machine), and the `u4d seg-eval 
 (real SemanticKITTI), if present. Prints a table per seed and the mean +- std over seeds, per variant too.
 
     python benchmarks/reports/collect_seg_runs.py runs/lean_v025_lr02_s0 runs/lean_v025_lr02_s1 runs/lean_v025_lr02_s2 \
-        --command "THE TRAINING COMMAND" --out benchmarks/results/seg_cpu_rich/lean_voxel025_lr02_seeds.json
+        --command "THE TRAINING COMMAND" \
+        --out benchmarks/results/segmentation/seg_cpu_rich/lean_voxel025_lr02_seeds.json
 
 Writes OUT and OUT with `_learning_curve.png` in place of `.json`. `--shared RUN` marks a run that did not have the
 machine to itself (`alone_on_machine: false` in the json; its steps in the budget are not comparable).

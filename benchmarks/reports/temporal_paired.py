@@ -2,7 +2,8 @@
 
     python benchmarks/reports/temporal_paired.py --bank u4d_most=runs/temporal/banks/u4d_most_s1 \
         --bank baseline_most=runs/temporal/banks/baseline_most_s1 \
-        --bank u4d_no_temporal=runs/temporal/banks/u4d_no_temporal_s1 --out benchmarks/results/temporal_paired_s1
+        --bank u4d_no_temporal=runs/temporal/banks/u4d_no_temporal_s1 \
+        --out benchmarks/results/temporal/temporal_paired_s1
 
 Banks generated with the same seed draw the same ego trajectories (`poses.txt`), so each sequence is a matched pair
 across methods and the per-sequence difference removes the trajectory's own difficulty (a sharp turn is hard for

@@ -2,7 +2,7 @@
 
     python benchmarks/reports/temporal_table.py --method u4d_most=runs/eval/u4d_most_s0 \
         --method u4d_most=runs/eval/u4d_most_s1 --method floor=runs/eval/floor \
-        --fusion gating=runs/eval/fusion_gating --out benchmarks/results/temporal
+        --fusion gating=runs/eval/fusion_gating --out benchmarks/results/temporal/temporal
 
 Each DIR holds the evaluation.json of `u4d evaluate --json --out DIR` (u4d_aug/metrics/evaluate.py); repeating a NAME
 adds a seed. A method's score is its "table2.bank" side (for the real floor, the bank is the held-out real sequences)
@@ -35,7 +35,7 @@ from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder, read_json_file
 from u4d_aug.viz import plt, save_figure
 
-DEFAULT_OUT = Path(__file__).resolve().parents[1] / "results" / "temporal"
+DEFAULT_OUT = Path(__file__).resolve().parents[1] / "results" / "temporal" / "temporal"
 # u4d_aug.metrics.temporal TTCE_/CTC_INTERVALS
 INTERVALS = {"ttce": ("3", "4"), "ttce_global": ("3", "4"), "ctc": ("1", "2", "3", "4")}
 HEADS = {"ttce": "TTCE", "ttce_global": "TTCE-global", "ctc": "CTC"}

@@ -1,7 +1,7 @@
 """Sim-to-real transfer: a segmentor trained on one simulated world, scored on the labelled real scans.
 
     python benchmarks/reports/transfer_table.py --runs ../runs/transfer --worlds seg_rich varied \
-        --out benchmarks/results/sim_to_real_transfer
+        --out benchmarks/results/world/sim_to_real_transfer
 
 Reads RUNS/WORLD_sSEED/eval_real.json (the real SemanticKITTI scans) and eval_sim.json (held-out simulated places),
 both `u4d seg-eval --json` outputs (segmentation/evaluate.py `summary_of`); the first world is "before", the last
@@ -45,7 +45,7 @@ from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.io import atomic_open, atomic_write_json, atomic_write_text, make_folder, read_json_file
 from u4d_aug.validate import check_plain_name
 
-DEFAULT_OUT = Path(__file__).resolve().parents[1] / "results" / "sim_to_real_transfer"
+DEFAULT_OUT = Path(__file__).resolve().parents[1] / "results" / "world" / "sim_to_real_transfer"
 DEFAULT_WORLDS = ("seg_rich", "varied")
 REAL_FILE, SIM_FILE = "eval_real.json", "eval_sim.json"
 REAL_KEYS = ("miou_present", "ece_per_scan", "ece_pooled", "iou", "confusion")  # what this table reads

@@ -13,7 +13,7 @@ from segmentation.experiment import aggregate
 from tests.tiny_nets import REPO, load_script
 
 report = load_script("downstream_report")
-REAL = REPO / "benchmarks" / "results" / "experiment_cpu_tenpct_seq" / "b1500_results.json"
+REAL = REPO / "benchmarks" / "results" / "segmentation" / "experiment_cpu_tenpct_seq" / "b1500_results.json"
 T_975_DF2 = 4.302652729911275  # Student t, 97.5 % quantile, 2 degrees of freedom (tables)
 
 

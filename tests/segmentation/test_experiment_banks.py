@@ -8,6 +8,7 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -55,16 +56,21 @@ def test_five_arms_run_on_generated_banks_and_draw_them_into_the_loss(tmp_path, 
     for bank in banks.values():  # real generated scans, not empty files
         scans = sorted((bank / "sequences").rglob("*.bin"))
         assert len(scans) == BANK_SCANS and all(len(read_kitti_scan(p)) > 50 for p in scans)
-    # every unlabeled scan each semi step receives, with the source it came from
-    loaded: list[tuple[str, torch.Tensor]] = []
+    # every unlabeled scan each semi step receives, and the item it was made from: its source, sequence, frame, points
+    items: list[dict] = []
+    loaded: list[torch.Tensor] = []
     given: list[torch.Tensor] = []
-    original_load, original_step = segmentation.batches.load_unlabeled, segmentation.train.semi_step
+    original_item, original_load = UnlabeledStream.load, segmentation.batches.load_unlabeled
+    original_step = segmentation.train.semi_step
+
+    def spy_item(stream: UnlabeledStream, seed, step, slot, with_labels=False):
+        item = original_item(stream, seed, step, slot, with_labels)
+        items.append(item)
+        return item
 
     def spy_load(stream: UnlabeledStream, cfg, step, slots):
         scans, labels = original_load(stream, cfg, step, slots)
-        for slot, scan in zip(slots, scans):
-            source, _ = stream.pick(cfg.seed, step, slot)
-            loaded.append((stream.names[source], scan))
+        loaded.extend(scans)
         return scans, labels
 
     def spy_step(student, teacher, batch, cfg, device, class_weight=None):
@@ -73,6 +79,7 @@ def test_five_arms_run_on_generated_banks_and_draw_them_into_the_loss(tmp_path, 
         assert torch.isfinite(out["loss"]) and out["loss_mt"] > 0
         return out
 
+    monkeypatch.setattr(UnlabeledStream, "load", spy_item)
     monkeypatch.setattr(segmentation.batches, "load_unlabeled", spy_load)
     monkeypatch.setattr(segmentation.train, "semi_step", spy_step)
 
@@ -94,14 +101,19 @@ def test_five_arms_run_on_generated_banks_and_draw_them_into_the_loss(tmp_path, 
     assert list(by_arm) == ARMS
     assert all(entry["status"] == "done" and 0 < entry["miou"]["mean"] < 1 for entry in by_arm.values())
     # the arms run one after the other, each semi step's unlabeled scans are the ones loaded for it, unchanged
-    assert len(given) == len(loaded) == 4 * (STEPS - BURN_IN) * 2
-    assert all(torch.equal(a, b) for a, b in zip(given, (scan for _, scan in loaded)))
-    per_arm = [loaded[i : i + 12] for i in range(0, len(loaded), 12)]  # mt, mt+r2dm, mt+u4d, mt+u4d-random
-    assert all(name == f"{root} (split)" for name, _ in per_arm[0])  # MT+LaserMix alone: the unlabeled split only
-    for scans, bank in zip(per_arm[1:], (banks["r2dm"], banks["u4d"], banks["u4d_random"])):
-        names = {name for name, _ in scans}
+    assert len(given) == len(loaded) == len(items) == 4 * (STEPS - BURN_IN) * 2
+    assert all(torch.equal(a, b) for a, b in zip(given, loaded))
+    # each loaded item is the file of the source it names: its source is what was loaded, not the stream's draw
+    roots = {f"{root} (split)": root, **{str(bank): bank for bank in banks.values()}}
+    for item in items:
+        path = roots[item["source"]] / "sequences" / item["seq"] / "velodyne" / f"{item['frame']}.bin"
+        assert np.array_equal(item["points"], read_kitti_scan(path)), path
+    per_arm = [items[i : i + 12] for i in range(0, len(items), 12)]  # mt, mt+r2dm, mt+u4d, mt+u4d-random
+    assert all(item["source"] == f"{root} (split)" for item in per_arm[0])  # MT+LaserMix alone: the split only
+    for arm_items, bank in zip(per_arm[1:], (banks["r2dm"], banks["u4d"], banks["u4d_random"])):
+        names = {item["source"] for item in arm_items}
         assert names <= {str(bank), f"{root} (split)"}
-        from_bank = sum(name == str(bank) for name, _ in scans)
+        from_bank = sum(item["source"] == str(bank) for item in arm_items)
         assert 2 <= from_bank <= 10, from_bank  # ratio 0.5 of 12 slots: P(outside 2..10) < 0.7 %; fixed by the seed
     # the configured ratio, over many draws of the stream a bank arm trained with (read back from its run folder)
     runs = tmp_path / "out" / "runs"

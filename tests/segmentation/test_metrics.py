@@ -1,4 +1,4 @@
-"""segmentation.metrics (mIoU as mmdet3d seg_eval, ECE as Calib3D) and segmentation.plots."""
+"""segmentation.metrics (mIoU as mmdet3d seg_eval, ECE as Calib3D)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 import torch
-from matplotlib.figure import Figure
 from sklearn.metrics import confusion_matrix as sk_confusion_matrix
 
 from segmentation.metrics import (
@@ -25,7 +24,6 @@ from segmentation.metrics import (
     top_confusions,
     top_label,
 )
-from segmentation.plots import plot_confusion, plot_learning_curve, plot_reliability
 
 # ----------------------------------------------------------------------------------------------- IoU
 
@@ -196,37 +194,3 @@ def test_bins_add_and_summary():
     assert summary["ece_per_scan"] == pytest.approx((ECE1 + ECE2) / 2)
     assert summary["bins"]["count"][9] == 3 and summary["bins"]["accuracy"][0] is None
     assert summary["confusion"] == cm.matrix.tolist()
-
-
-# --------------------------------------------------------------------------------------------- plots
-
-
-def _is_png(path) -> bool:
-    return path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-
-
-def test_plots_write_png_atomically(tmp_path, monkeypatch):
-    acc = CalibrationAccumulator(2)
-    acc.update(np.array(SCAN1_PROBS), SCAN1_TARGET)
-    plot_reliability(acc.pooled, tmp_path / "rel.png", title="toy")
-    plot_reliability(ReliabilityBins.empty(), tmp_path / "empty.png")
-    records = [{"step": s, "loss": 1 / (s + 1), "lr": 1e-3} for s in range(0, 50, 5)]
-    records += [{"step": 25, "miou": 0.4, "ece_pooled": 0.05}, {"step": 50, "miou": 0.5}]
-    plot_learning_curve(records, tmp_path / "sub" / "curve.png")
-    plot_learning_curve([], tmp_path / "none.png")
-    plot_confusion(np.array([[5, 1, 0], [2, 7, 0], [0, 0, 0]]), ["a", "b", "c"], tmp_path / "confusion.png")
-    for name in ("rel.png", "empty.png", "sub/curve.png", "none.png", "confusion.png"):
-        assert _is_png(tmp_path / name)
-    leftovers = [p.name for p in tmp_path.rglob("*") if p.name.endswith(".tmp")]
-    assert leftovers == []
-
-    def killed_midway(fig, file, **kwargs):  # the PNG encoder dies after its first bytes
-        file.write(b"\x89PNG\r\n\x1a\n half")
-        raise MemoryError("killed midway")
-
-    old = (tmp_path / "rel.png").read_bytes()
-    monkeypatch.setattr(Figure, "savefig", killed_midway)
-    with pytest.raises(MemoryError):
-        plot_reliability(acc.pooled, tmp_path / "rel.png", title="toy")
-    assert (tmp_path / "rel.png").read_bytes() == old  # the previous figure, whole
-    assert [p.name for p in tmp_path.rglob("*") if p.name.endswith(".tmp")] == []

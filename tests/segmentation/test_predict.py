@@ -1,4 +1,5 @@
-"""Per-point probability export (the contract with u4d_aug.uncertainty) and checkpoint evaluation."""
+"""Per-point probability export (segmentation/predict.py; the contract with u4d_aug.uncertainty), test-time views
+and readouts."""
 
 from __future__ import annotations
 
@@ -12,14 +13,8 @@ import pytest
 import torch
 
 from segmentation.config import SegTrainConfig
-from segmentation.evaluate import (
-    add_seg_eval_arguments,
-    evaluate,
-    evenly_spaced,
-    format_summary,
-    run_seg_eval,
-)
-from segmentation.metrics import CalibrationAccumulator, ConfusionMatrix, mean_iou, top_confusions
+from segmentation.evaluate import evaluate
+from segmentation.metrics import ConfusionMatrix, mean_iou
 from segmentation.predict import (
     add_seg_predict_arguments,
     checkpoint_hash,
@@ -124,7 +119,7 @@ def test_a_checkpoint_of_another_kind_is_refused_in_one_line(trained, tmp_path):
         predict_root(tmp_path / "diffusion.pt", root, tmp_path / "o", progress=False)
     wrong = {**state, "model": {key: value.reshape(-1)[:1] for key, value in state["model"].items()}}
     torch.save(wrong, tmp_path / "wrong.pt")
-    with pytest.raises(InputError, match="wrong.pt: its weights do not fit the net its config describes"):
+    with pytest.raises(InputError, match=r"wrong.pt: its weights do not fit the net \(\S+: shape \(1,\) here, \("):
         predict_root(tmp_path / "wrong.pt", root, tmp_path / "o", progress=False)
 
 
@@ -185,69 +180,6 @@ def test_views_average_the_softmax_over_mirror_and_turned_views(trained, tmp_pat
     for bad in (0, 5, 36):
         with pytest.raises(InputError, match="--views must be 1-4"):
             evaluate(ckpt, root, ["00"], views=bad)
-
-
-def test_evaluate_matches_metrics_by_hand(trained, tmp_path):
-    root, ckpt = trained
-    png = tmp_path / "rel.png"
-    summary = evaluate(ckpt, root, ["01"], reliability_png=png)
-    assert png.is_file() and summary["num_scans"] == 3 and summary["sequences"] == ["01"]
-
-    model = model_from_checkpoint(load_checkpoint(ckpt), torch.device("cpu"))
-    cm, calibration = ConfusionMatrix(19, SEMANTICKITTI_IGNORE), CalibrationAccumulator(SEMANTICKITTI_IGNORE)
-    for item in ScanDataset(root, ["01"]):
-        probs = predict_probs(model, item["points"], torch.device("cpu"))
-        cm.update(probs.argmax(1), item["labels"])
-        calibration.update(probs, item["labels"])
-    assert summary["miou"] == pytest.approx(mean_iou(cm.matrix))
-    assert summary["ece_per_scan"] == pytest.approx(calibration.ece_per_scan)
-    assert summary["ece_pooled"] == pytest.approx(calibration.ece_pooled)
-    assert summary["classes_present"] == ["car", "road", "building"]
-    present = [summary["iou"][c] for c in summary["classes_present"]]
-    assert summary["miou_present"] == pytest.approx(np.mean(present))
-    np.testing.assert_array_equal(summary["confusion"], cm.matrix)
-    assert "mIoU" in format_summary(summary)
-
-
-def test_run_seg_eval_prints_table_and_json(trained, tmp_path, capsys):
-    root, ckpt = trained
-    parser = argparse.ArgumentParser()
-    add_seg_eval_arguments(parser)
-    assert run_seg_eval(parser.parse_args([str(ckpt), str(root), "--sequences", "01", "--json"])) == 0
-    summary = json.loads(capsys.readouterr().out)
-    assert set(summary) >= {"miou", "iou", "ece_per_scan", "ece_pooled", "bins", "miou_present"}
-    png, confusion_png = tmp_path / "r.png", tmp_path / "c.png"
-    # the 3 scans of sequence 01 again, so that the table shows the summary printed as json above
-    args = [str(ckpt), str(root), "--sequences", "01", "--max-scans", "3", "--png", str(png)]
-    args += ["--confusion-png", str(confusion_png)]
-    assert run_seg_eval(parser.parse_args(args)) == 0
-    text = capsys.readouterr().out
-    assert "ECE per scan" in text and "road" in text and png.is_file()
-    assert confusion_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    # each class row names what its points are mistaken for, from the confusion matrix of the summary
-    names, checked = list(summary["iou"]), 0
-    for k, confused in enumerate(top_confusions(summary["confusion"])):
-        if confused:
-            row = next(line for line in text.splitlines() if line.startswith(names[k] + " "))
-            assert f"{names[confused[0][0]]} {100 * confused[0][1]:.0f} %" in row
-            checked += 1
-    assert checked > 0  # the tiny net mistakes some class for another
-
-
-def test_evenly_spaced():
-    assert evenly_spaced(5, None) == [0, 1, 2, 3, 4]
-    assert evenly_spaced(10, 3) == [0, 4, 9] or evenly_spaced(10, 3) == [0, 5, 9]
-    assert evenly_spaced(3, 10) == [0, 1, 2]
-
-
-@pytest.mark.real
-def test_evaluate_on_real_semantickitti(trained, real_root):
-    """Sim-to-real style: a checkpoint evaluated on real labeled scans; only GT classes enter miou_present."""
-    _, ckpt = trained
-    summary = evaluate(ckpt, real_root / "semantickitti", ["00"], max_scans=1)
-    assert summary["num_scans"] == 1 and summary["num_points"] > 100_000
-    assert {"road", "car", "building", "vegetation"} <= set(summary["classes_present"])
-    assert 0.0 <= summary["miou_present"] <= 1.0 and not math.isnan(summary["ece_pooled"])
 
 
 def test_cli_sequence_ranges() -> None:

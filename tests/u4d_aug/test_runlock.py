@@ -82,6 +82,9 @@ def test_unreadable_recycled_and_foreign_locks(tmp_path):
     (folder / LOCK_NAME).write_text("")  # a run killed while writing its lock
     with run_lock(folder):
         pass
+    (folder / LOCK_NAME).write_bytes(b"\xff\xfe\x00garbage")  # bytes that are no text: as unreadable
+    with run_lock(folder):
+        pass
     mine = {"pid": os.getpid(), "host": socket.gethostname(), "start": "1", "started": 0}
     assert is_stale(mine)  # this pid, but a process started at another time: recycled
     foreign = {"pid": 1, "host": "another-machine", "start": None}

@@ -1,4 +1,4 @@
-"""DDPM / DDIM / DPM-Solver++(2M) and 2M SDE samplers (one signature, generator in, extra out) and the EMA."""
+"""DDPM / DDIM / DPM-Solver++(2M) and 2M SDE samplers (one signature, generator in, extra out)."""
 
 from __future__ import annotations
 
@@ -6,10 +6,8 @@ import math
 
 import pytest
 import torch
-from torch import nn
 
 from u4d_aug.diffusion import LOG_SNR_MAX, LOG_SNR_MIN, alpha_sigma, log_snr
-from u4d_aug.ema import EMA
 from u4d_aug.nn.unet import RangeUNet, UNetConfig
 from u4d_aug.sampling import (
     ddim_sample,
@@ -355,59 +353,6 @@ def test_mean_start_gives_back_what_an_exact_net_samples():
         )
         assert (off - exact).abs().max().item() > 0.2, sampler.__name__  # samples that switched level
         assert (started - exact).abs().max().item() < 1e-3, sampler.__name__
-
-
-# --- EMA (u4d_aug/ema.py): the weights the samplers run with ---------------------------------------------
-
-
-def linear_pair() -> tuple[nn.Module, nn.Module]:
-    torch.manual_seed(0)
-    a = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4))
-    b = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4))
-    with torch.no_grad():
-        for p in b.parameters():
-            p.add_(1.0)
-        b[1].running_mean.fill_(2.0)
-    return a, b
-
-
-def test_ema_decay_zero_copies_and_decay_one_keeps():
-    a, b = linear_pair()
-    ema = EMA(a, decay=0.0)
-    ema.update(b)
-    target = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4))
-    ema.copy_to(target)
-    for p, q in zip(target.state_dict().values(), b.state_dict().values()):
-        assert torch.equal(p, q)
-
-    a, b = linear_pair()
-    start = {k: v.clone() for k, v in a.named_parameters()}
-    ema = EMA(a, decay=1.0)
-    ema.update(b)
-    ema.copy_to(a)
-    for name, p in a.named_parameters():
-        assert torch.equal(p, start[name])
-    assert torch.equal(a[1].running_mean, b[1].running_mean)  # buffers are copied, not averaged
-
-
-def test_ema_average_warmup_and_state_roundtrip():
-    a, b = linear_pair()
-    ema = EMA(a, decay=0.75, warmup_steps=1)
-    assert ema.current_decay() == 0.0
-    ema.update(a)  # warm-up: copy
-    ema.update(b)  # 0.75 a + 0.25 b
-    expected = {n: 0.75 * p + 0.25 * dict(b.named_parameters())[n] for n, p in a.named_parameters()}
-    restored = EMA(b, decay=0.1)
-    restored.load_state_dict(ema.state_dict())
-    target = nn.Sequential(nn.Linear(3, 4), nn.BatchNorm1d(4))
-    restored.copy_to(target)
-    for name, p in target.named_parameters():
-        assert torch.allclose(p, expected[name].detach(), atol=1e-6)
-    assert restored.decay == 0.75 and restored.num_updates == 2
-    with pytest.raises(ValueError, match="do not match"):
-        EMA(nn.Linear(3, 4)).load_state_dict(ema.state_dict())
-    with pytest.raises(ValueError, match="decay"):
-        EMA(a, decay=1.5)
 
 
 @pytest.mark.parametrize("sampler", SAMPLERS)

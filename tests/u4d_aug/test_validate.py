@@ -1,4 +1,5 @@
-"""u4d_aug.validate: finite config numbers, positive sizes, plain names, finite losses; one line naming the key."""
+"""u4d_aug.validate: finite config numbers, positive sizes, plain names, finite losses, weights that fit the net;
+one line naming the key."""
 
 from __future__ import annotations
 
@@ -14,7 +15,9 @@ from u4d_aug.validate import (
     check_finite_loss,
     check_plain_name,
     check_positive,
+    check_state_fits,
     nonfinite_keys,
+    state_mismatches,
 )
 
 
@@ -67,3 +70,23 @@ def test_finite_loss_guard_names_the_step():
     with pytest.raises(NonFiniteLossError, match="training step 8: the gradient norm is inf"):
         check_finite_loss(torch.tensor(1.0), 8, torch.tensor(float("inf")))
     assert issubclass(NonFiniteLossError, InputError)  # exit code 2 through the CLI
+
+
+def test_state_mismatches_name_missing_foreign_reshaped_and_non_tensors():
+    net = torch.nn.Linear(3, 2)
+    expected = net.state_dict()
+    assert state_mismatches(dict(expected), expected) == []
+    wrong = {"weight": torch.zeros(2, 4), "bias": "x", "extra": torch.zeros(1)}
+    problems = state_mismatches(wrong, expected)
+    assert problems == [
+        "extra: not in this net",
+        "weight: shape (2, 4) here, (2, 3) in the net this config builds",
+        "bias: a str, not a tensor",
+    ]
+    assert state_mismatches([1, 2], expected) == ["a list where a name -> tensor mapping belongs"]
+    with pytest.raises(
+        InputError,
+        match=r"^ckpt.pt: its weights do not fit the net \(weight: missing; bias: missing\); "
+        r"the config changed: width 3 -> 4$",
+    ):
+        check_state_fits({}, expected, "ckpt.pt", "the config changed: width 3 -> 4")

@@ -231,60 +231,15 @@ def evaluate(
         "real": str(real),
         "counts": {"bank": len(bank_entries), "real": len(real_entries)},
         "real_sequences": sorted({seq for seq, _, _ in real_entries}),
-        "config": {
-            "metrics": list(metrics),
-            "max_scans": max_scans,
-            "eval_window_m": [bev.EVAL_MIN_DEPTH, bev.EVAL_MAX_DEPTH],
-            "bev": {
-                "range_m": [bev.BEV_MIN_DEPTH, bev.BEV_MAX_DEPTH],
-                "field_m": bev.BEV_FIELD_SIZE,
-                "bins": bev.BEV_BINS,
-                "mmd_sigma": bev.MMD_SIGMA,
-                "mmd_scale": bev.MMD_REPORT_SCALE,
-            },
-            "ttce": {
-                "intervals": list(temporal.TTCE_INTERVALS),
-                "max_correspondence_m": temporal.MAX_CORRESPONDENCE,
-                "voxel_size_m": temporal.TTCE_VOXEL_SIZE,
-                "min_range_m": temporal.MIN_RANGE,
-            },
-            "ttce_global": {
-                "intervals": list(temporal.TTCE_INTERVALS),
-                "feature_voxel_m": temporal.GLOBAL_VOXEL_SIZE,
-                "ransac_iterations": temporal.GLOBAL_RANSAC_ITERATIONS,
-            },
-            "ctc": {"intervals": list(temporal.CTC_INTERVALS), "min_range_m": temporal.MIN_RANGE},
-        },  # fmt: skip
+        "config": _evaluation_settings(metrics, max_scans),
         "table1": {},
         "table2": {},
         "seconds": {},
     }
     wanted1 = [m for m in TABLE1 if m in metrics]
     if wanted1:
-        if "jsd" in wanted1 or "mmd" in wanted1:
-            start = time.perf_counter()
-            bank_scans = _scans(bank_entries, "BEV bank", progress)
-            real_scans = _scans(real_entries, "BEV real", progress)
-            hist_bank = bev.bev_histograms(read_kitti_scan(path) for _, _, path in bank_scans)  # (S_b, 100, 100)
-            hist_real = bev.bev_histograms(read_kitti_scan(path) for _, _, path in real_scans)  # (S_r, 100, 100)
-            result["seconds"]["bev_histograms"] = time.perf_counter() - start
-        if any(name in STATISTICS for name in wanted1):
-            stats_bank = scan_statistics(bank_entries, "statistics bank", progress)
-            stats_real = scan_statistics(real_entries, "statistics real", progress)
-        for name in wanted1:
-            start = time.perf_counter()
-            if name == "jsd":
-                entry = {"value": bev.bev_jsd(hist_real, hist_bank), "unit": "JS distance (natural log)"}
-            elif name == "mmd":
-                raw = bev.bev_mmd(hist_real, hist_bank)
-                entry = {"value": raw * bev.MMD_REPORT_SCALE, "raw": raw, "unit": "x1e-4"}
-            elif name in STATISTICS:
-                entry = _statistic_metric(name, stats_bank, stats_real)
-            else:
-                checkpoint = extractor_frd if name == "frd" else extractor_fpd
-                entry = _feature_metric(name, checkpoint, bank_entries, real_entries, progress)
-            result["table1"][name] = entry
-            result["seconds"][name] = time.perf_counter() - start
+        extractors = {"frd": extractor_frd, "fpd": extractor_fpd}
+        result["table1"] = _table1(wanted1, bank_entries, real_entries, extractors, result["seconds"], progress)
     wanted2 = tuple(m for m in TABLE2 if m in metrics)
     if wanted2:
         result["table2"]["bank"] = _temporal_table(bank, bank_entries, wanted2, "temporal bank", progress)
@@ -293,6 +248,70 @@ def evaluate(
         else:
             result["table2"]["real"] = _temporal_table(real, real_entries, wanted2, "temporal real", progress)
     return result
+
+
+def _evaluation_settings(metrics: tuple[str, ...], max_scans: int | None) -> dict[str, Any]:
+    """The protocol of an evaluation as its result records it: metrics, scan cap, windows, bins and ICP settings."""
+    return {
+        "metrics": list(metrics),
+        "max_scans": max_scans,
+        "eval_window_m": [bev.EVAL_MIN_DEPTH, bev.EVAL_MAX_DEPTH],
+        "bev": {
+            "range_m": [bev.BEV_MIN_DEPTH, bev.BEV_MAX_DEPTH],
+            "field_m": bev.BEV_FIELD_SIZE,
+            "bins": bev.BEV_BINS,
+            "mmd_sigma": bev.MMD_SIGMA,
+            "mmd_scale": bev.MMD_REPORT_SCALE,
+        },
+        "ttce": {
+            "intervals": list(temporal.TTCE_INTERVALS),
+            "max_correspondence_m": temporal.MAX_CORRESPONDENCE,
+            "voxel_size_m": temporal.TTCE_VOXEL_SIZE,
+            "min_range_m": temporal.MIN_RANGE,
+        },
+        "ttce_global": {
+            "intervals": list(temporal.TTCE_INTERVALS),
+            "feature_voxel_m": temporal.GLOBAL_VOXEL_SIZE,
+            "ransac_iterations": temporal.GLOBAL_RANSAC_ITERATIONS,
+        },
+        "ctc": {"intervals": list(temporal.CTC_INTERVALS), "min_range_m": temporal.MIN_RANGE},
+    }
+
+
+def _table1(
+    wanted: list[str],
+    bank_entries: list[tuple[str, str, Path]],
+    real_entries: list[tuple[str, str, Path]],
+    extractors: dict[str, str | Path | None],
+    seconds: dict[str, float],
+    progress: bool,
+) -> dict[str, Any]:
+    """Table 1 entries of the `wanted` metrics, bank vs real; the seconds each took go to `seconds` (BEV
+    histograms, read once for JSD and MMD, under "bev_histograms")."""
+    if "jsd" in wanted or "mmd" in wanted:
+        start = time.perf_counter()
+        bank_scans = _scans(bank_entries, "BEV bank", progress)
+        real_scans = _scans(real_entries, "BEV real", progress)
+        hist_bank = bev.bev_histograms(read_kitti_scan(path) for _, _, path in bank_scans)  # (S_b, 100, 100)
+        hist_real = bev.bev_histograms(read_kitti_scan(path) for _, _, path in real_scans)  # (S_r, 100, 100)
+        seconds["bev_histograms"] = time.perf_counter() - start
+    if any(name in STATISTICS for name in wanted):
+        stats_bank = scan_statistics(bank_entries, "statistics bank", progress)
+        stats_real = scan_statistics(real_entries, "statistics real", progress)
+    table = {}
+    for name in wanted:
+        start = time.perf_counter()
+        if name == "jsd":
+            table[name] = {"value": bev.bev_jsd(hist_real, hist_bank), "unit": "JS distance (natural log)"}
+        elif name == "mmd":
+            raw = bev.bev_mmd(hist_real, hist_bank)
+            table[name] = {"value": raw * bev.MMD_REPORT_SCALE, "raw": raw, "unit": "x1e-4"}
+        elif name in STATISTICS:
+            table[name] = _statistic_metric(name, stats_bank, stats_real)
+        else:
+            table[name] = _feature_metric(name, extractors[name], bank_entries, real_entries, progress)
+        seconds[name] = time.perf_counter() - start
+    return table
 
 
 def _fmt(value: Any, digits: int = 4) -> str:

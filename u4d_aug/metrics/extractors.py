@@ -462,7 +462,7 @@ def _heldout_dataset(cfg: ExtractorConfig) -> Any:
 # training
 
 
-def train_extractor(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
+def train_extractor(kind: str, cfg: ExtractorConfig, progress: bool = True) -> tuple[Path, str]:
     """Train the FRD or FPD net on labelled training scans; writes out_dir/{kind}.pt + log; returns (path, hash).
 
     Holds out_dir/.KIND.lock (`u4d_aug.runlock`) while it runs: the other kind may train into the same folder.
@@ -470,10 +470,10 @@ def train_extractor(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
     if kind not in EXTRACTOR_KINDS:
         raise InputError(f"extractor kind {kind!r} is not one of {', '.join(EXTRACTOR_KINDS)}")
     with run_lock(cfg.out_dir, name=f".{kind}.lock"):
-        return train_extractor_locked(kind, cfg)
+        return train_extractor_locked(kind, cfg, progress)
 
 
-def train_extractor_locked(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
+def train_extractor_locked(kind: str, cfg: ExtractorConfig, progress: bool = True) -> tuple[Path, str]:
     """The run of `train_extractor` once its lock is held: data, net, loop, held-out scores, checkpoint."""
     from u4d_aug.data.datasets import ScanDataset
 
@@ -500,7 +500,11 @@ def train_extractor_locked(kind: str, cfg: ExtractorConfig) -> tuple[Path, str]:
     model.train()
     start = time.perf_counter() - seconds
     bar = progress_bar(
-        range(done + 1, cfg.train.steps + 1), desc=f"train-extractor {kind}", initial=done, total=cfg.train.steps
+        range(done + 1, cfg.train.steps + 1),
+        desc=f"train-extractor {kind}",
+        initial=done,
+        total=cfg.train.steps,
+        enabled=progress,
     )
     for step in bar:
         picks = rng.choice(len(dataset), size=min(cfg.train.batch_size, len(dataset)), replace=False)
@@ -647,12 +651,13 @@ def add_train_extractor_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("kind", choices=EXTRACTOR_KINDS, help="frd: range-view net; fpd: PointNet")
     parser.add_argument("config", type=Path, help="yaml config (configs/extractor/*.yaml)")
     parser.add_argument("overrides", nargs="*", help="key.sub=value overrides, e.g. train.steps=100")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run_train_extractor(args: argparse.Namespace) -> int:
     """Train one extractor and print its checkpoint path and hash."""
     cfg = load_config(ExtractorConfig, args.config, args.overrides)
-    path, digest = train_extractor(args.kind, cfg)
+    path, digest = train_extractor(args.kind, cfg, progress=not args.no_progress)
     print(f"{args.kind} extractor: {path} hash {digest}")
     return 0
 

@@ -110,6 +110,72 @@ class LevelBlock(nn.Module):
         return self.attn(h) if self.attn is not None else h
 
 
+def _ray_features(
+    cfg: UNetConfig, elevation: Tensor | None, azimuth: Tensor | None, channels: int
+) -> RayFourierFeatures | None:
+    """The ray-angle Fourier features of the stem (None when net.fourier_features is off)."""
+    if not cfg.fourier_features:
+        return None
+    if elevation is None or azimuth is None:
+        raise InputError(
+            "net.fourier_features=true needs the ray angles: pass elevation (H,) and azimuth (W,) "
+            "from u4d_aug.range_view.ray_angles(sensor, H, W, row_mode) or set "
+            "net.fourier_features=false"
+        )
+    return RayFourierFeatures(elevation, azimuth, channels)
+
+
+def _encoder(
+    cfg: UNetConfig, widths: list[int], embed_channels: int
+) -> tuple[nn.ModuleList, list[int], dict[int, int]]:
+    """Per level `num_res_blocks` LevelBlocks, then a stride-2 downsample but at the lowest level; returns the blocks,
+    the width of every skip they leave (the stem's first) and the index of each level's last LevelBlock."""
+    down = nn.ModuleList()
+    skip_widths = [widths[0]]
+    width = widths[0]
+    ends = {}
+    for level, (out_width, blocks) in enumerate(zip(widths, cfg.num_res_blocks)):
+        lowest = level == len(widths) - 1
+        for _ in range(blocks):
+            down.append(LevelBlock(width, out_width, embed_channels, cfg, attention=lowest))
+            width = out_width
+            skip_widths.append(width)
+        ends[level] = len(down) - 1
+        if not lowest:
+            down.append(Downsample(width))
+            skip_widths.append(width)
+    return down, skip_widths, ends
+
+
+def _decoder(
+    cfg: UNetConfig, widths: list[int], skip_widths: list[int], embed_channels: int
+) -> tuple[nn.ModuleList, dict[int, int]]:
+    """Per level, lowest first, `num_res_blocks` + 1 LevelBlocks that each read one skip (taken from the end of
+    `skip_widths` until none is left), then an upsample but at level 0; returns them and each level's last index."""
+    up = nn.ModuleList()
+    width = widths[-1]
+    ends = {}
+    for level in reversed(range(len(widths))):
+        lowest = level == len(widths) - 1
+        for _ in range(cfg.num_res_blocks[level] + 1):
+            skip = skip_widths.pop()
+            up.append(LevelBlock(width + skip, widths[level], embed_channels, cfg, attention=lowest))
+            width = widths[level]
+        ends[level] = len(up) - 1
+        if level > 0:
+            up.append(Upsample(width))
+    assert not skip_widths
+    return up, ends
+
+
+def _zero_conv(in_channels: int, out_channels: int) -> RingConv2d:
+    """A 3x3 ring conv with zero weights and bias: an output head that starts at 0."""
+    conv = RingConv2d(in_channels, out_channels, 3)
+    nn.init.zeros_(conv.weight)
+    nn.init.zeros_(conv.bias)
+    return conv
+
+
 class RangeUNet(nn.Module):
     """ε_θ(x_t, log-SNR, cond) on (B, C, H, W) or (B, L, C, H, W); returns (ε̂, mask logits or None).
 
@@ -127,84 +193,45 @@ class RangeUNet(nn.Module):
         widths = [cfg.base_channels * m for m in cfg.channel_multipliers]
         embed_channels = 4 * cfg.base_channels
         self.embed = NoiseLevelEmbedding(cfg.base_channels, embed_channels)
-
         self.stem = RingConv2d(cfg.in_channels + cfg.cond_channels, widths[0], 3)
-        self.ray_features: RayFourierFeatures | None = None
-        if cfg.fourier_features:
-            if elevation is None or azimuth is None:
-                raise InputError(
-                    "net.fourier_features=true needs the ray angles: pass elevation (H,) and azimuth (W,) "
-                    "from u4d_aug.range_view.ray_angles(sensor, H, W, row_mode) or set "
-                    "net.fourier_features=false"
-                )
-            self.ray_features = RayFourierFeatures(elevation, azimuth, widths[0])
-
-        num_levels = len(widths)
-        self.down = nn.ModuleList()
-        skip_widths = [widths[0]]
-        width = widths[0]
-        down_ends, up_ends = {}, {}  # level -> index of its last LevelBlock in self.down / self.up
-        for level, (out_width, blocks) in enumerate(zip(widths, cfg.num_res_blocks)):
-            lowest = level == num_levels - 1
-            for _ in range(blocks):
-                self.down.append(LevelBlock(width, out_width, embed_channels, cfg, attention=lowest))
-                width = out_width
-                skip_widths.append(width)
-            down_ends[level] = len(self.down) - 1
-            if not lowest:
-                self.down.append(Downsample(width))
-                skip_widths.append(width)
-
+        self.ray_features: RayFourierFeatures | None = _ray_features(cfg, elevation, azimuth, widths[0])
+        self.down, skip_widths, down_ends = _encoder(cfg, widths, embed_channels)
         self.mid = nn.ModuleList(
             [
-                LevelBlock(width, width, embed_channels, cfg, attention=True),
-                LevelBlock(width, width, embed_channels, cfg, attention=False),
+                LevelBlock(widths[-1], widths[-1], embed_channels, cfg, attention=True),
+                LevelBlock(widths[-1], widths[-1], embed_channels, cfg, attention=False),
             ]
         )
-
-        self.up = nn.ModuleList()
-        for level in reversed(range(num_levels)):
-            lowest = level == num_levels - 1
-            for _ in range(cfg.num_res_blocks[level] + 1):
-                skip = skip_widths.pop()
-                self.up.append(LevelBlock(width + skip, widths[level], embed_channels, cfg, attention=lowest))
-                width = widths[level]
-            up_ends[level] = len(self.up) - 1
-            if level > 0:
-                self.up.append(Upsample(width))
-        assert not skip_widths
-
-        self.out_norm = group_norm(width, cfg.gn_groups)
-        self.out_conv = RingConv2d(width, cfg.out_channels, 3)
-        nn.init.zeros_(self.out_conv.weight)
-        nn.init.zeros_(self.out_conv.bias)
-        self.mask_conv: RingConv2d | None = None
-        if cfg.mask_head:
-            self.mask_conv = RingConv2d(width, 1, 3)
-            nn.init.zeros_(self.mask_conv.weight)
-            nn.init.zeros_(self.mask_conv.bias)
-
+        self.up, up_ends = _decoder(cfg, widths, skip_widths, embed_channels)
+        self.out_norm = group_norm(widths[0], cfg.gn_groups)
+        self.out_conv = _zero_conv(widths[0], cfg.out_channels)
+        self.mask_conv: RingConv2d | None = _zero_conv(widths[0], 1) if cfg.mask_head else None
         # MoST blocks keyed by the index of the LevelBlock they follow, inserted in depth order (input -> output)
         self.most_down = nn.ModuleDict()
         self.most_mid = nn.ModuleDict()
         self.most_up = nn.ModuleDict()
         self.most_names: list[str] = []
         if cfg.most:
-            levels = range(num_levels) if cfg.most_levels is None else cfg.most_levels
-            for level in sorted(levels):
-                self.most_down[str(down_ends[level])] = self._most_block(widths[level], embed_channels)
-                self.most_names.append(f"enc{level}")
-            if num_levels - 1 in levels:
-                self.most_mid[str(len(self.mid) - 1)] = self._most_block(widths[-1], embed_channels)
-                self.most_names.append("mid")
-            for level in sorted(levels, reverse=True):
-                self.most_up[str(up_ends[level])] = self._most_block(widths[level], embed_channels)
-                self.most_names.append(f"dec{level}")
-
+            self._add_most_blocks(widths, embed_channels, down_ends, up_ends)
         # built last for the same reason as the MoST blocks; zero-initialised output, so it starts as no condition
         self.pose_embed = PoseEmbedding(cfg.pose_dim, embed_channels) if cfg.pose_dim > 0 else None
         # built last too: a seeded net's other weights do not depend on num_tasks
         self.task_embed = nn.Embedding(cfg.num_tasks, embed_channels) if cfg.num_tasks > 0 else None
+
+    def _add_most_blocks(
+        self, widths: list[int], embed_channels: int, down_ends: dict[int, int], up_ends: dict[int, int]
+    ) -> None:
+        """A MoST block after the last LevelBlock of each chosen level, encoder then mid then decoder."""
+        levels = range(len(widths)) if self.cfg.most_levels is None else self.cfg.most_levels
+        for level in sorted(levels):
+            self.most_down[str(down_ends[level])] = self._most_block(widths[level], embed_channels)
+            self.most_names.append(f"enc{level}")
+        if len(widths) - 1 in levels:
+            self.most_mid[str(len(self.mid) - 1)] = self._most_block(widths[-1], embed_channels)
+            self.most_names.append("mid")
+        for level in sorted(levels, reverse=True):
+            self.most_up[str(up_ends[level])] = self._most_block(widths[level], embed_channels)
+            self.most_names.append(f"dec{level}")
 
     def _most_block(self, channels: int, embed_channels: int) -> MoSTBlock:
         cfg = self.cfg

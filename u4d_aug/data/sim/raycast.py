@@ -139,6 +139,19 @@ def _cast(scene, rays: np.ndarray, nthreads: int):
     return out["t_hit"].numpy(), out["primitive_ids"].numpy(), out["primitive_normals"].numpy()
 
 
+@dataclass
+class _Hits:
+    """The surface each ray of a sweep hits first (`LidarSimulator._hits`), in the order of the kept rays."""
+
+    t_hit: np.ndarray  # (R,) float32 distance along the ray, 0 where nothing is hit
+    hit: np.ndarray  # (R,) bool
+    normal: np.ndarray  # (R, 3) surface normal
+    semantic: np.ndarray  # (R,) raw SemanticKITTI id
+    instance: np.ndarray  # (R,)
+    material: np.ndarray  # (R,) index into geometry.MATERIALS
+    reflectivity: np.ndarray  # (R,)
+
+
 class LidarSimulator:
     """Static scene built once; `scan(pose, dynamic_mesh, rng)` casts one sweep."""
 
@@ -163,14 +176,27 @@ class LidarSimulator:
 
     def scan(self, pose: np.ndarray, dynamic: TriangleMesh | None, rng: np.random.Generator) -> Scan:
         """Cast the sweep from LiDAR pose (4, 4) world<-sensor; the nearest hit of static/dynamic wins."""
-        cfg, kept = self.cfg, self._kept
-        local, offset_z, ring = kept  # (R, 3) unit directions, (R,) laser height, (R,) ring, ego-masked rays only
-        count = len(local)
+        rays = self._rays(pose)
+        hits = self._hits(rays, dynamic)
+        normal = hits.normal
+        cos_inc = np.abs(normal[:, 0] * rays[:, 3] + normal[:, 1] * rays[:, 4] + normal[:, 2] * rays[:, 5])
+        distance = self._distance(hits, rng)
+        keep = self._returned(hits, distance, cos_inc, rng)
+        intensity, keep = self._intensity(hits, distance, cos_inc, keep, rng)
+        return self._points(np.flatnonzero(keep), distance, intensity, hits)
+
+    def _rays(self, pose: np.ndarray) -> np.ndarray:
+        """(R, 6) world origins and directions of the ego-masked rays from LiDAR pose (4, 4) world<-sensor."""
+        local, offset_z, _ = self._kept  # (R, 3) unit directions, (R,) laser height
         rot = pose[:3, :3].astype(np.float32)
-        rays = np.empty((count, 6), dtype=np.float32)
+        rays = np.empty((len(local), 6), dtype=np.float32)
         for axis in range(3):  # explicit 3x3 products: much faster than (R, 3) @ (3, 3) in numpy
             rays[:, 3 + axis] = local[:, 0] * rot[axis, 0] + local[:, 1] * rot[axis, 1] + local[:, 2] * rot[axis, 2]
             rays[:, axis] = offset_z * rot[axis, 2] + np.float32(pose[axis, 3])
+        return rays
+
+    def _hits(self, rays: np.ndarray, dynamic: TriangleMesh | None) -> _Hits:
+        """The nearer hit of the static scene and the moving agents along each ray, with its surface's labels."""
         t_hit, prim, normal = _cast(self.scene, rays, self.nthreads)
         from_dynamic = None
         if dynamic is not None and dynamic.num_triangles:
@@ -190,27 +216,43 @@ class LidarSimulator:
             d = prim[from_dynamic]
             semantic[from_dynamic], instance[from_dynamic] = dynamic.semantic[d], dynamic.instance[d]
             material[from_dynamic], reflectivity[from_dynamic] = dynamic.material[d], dynamic.reflectivity[d]
-        n = count
-        cos_inc = np.abs(normal[:, 0] * rays[:, 3] + normal[:, 1] * rays[:, 4] + normal[:, 2] * rays[:, 5])
-        # range: Gaussian noise plus penetration into porous material (leaves)
+        return _Hits(t_hit, hit, normal, semantic, instance, material, reflectivity)
+
+    def _distance(self, hits: _Hits, rng: np.random.Generator) -> np.ndarray:
+        """Measured range of each ray: Gaussian noise plus penetration into porous material (leaves), range-growing
+        noise and mixed pixels (measured model)."""
+        cfg, t_hit, material = self.cfg, hits.t_hit, hits.material
+        n = len(t_hit)
         distance = t_hit + np.float32(cfg.range_noise) * rng.standard_normal(n, dtype=np.float32)
         distance += self._terms.penetration[material] * rng.standard_exponential(n, dtype=np.float32)
         if cfg.range_noise_per_m > 0:
             distance += np.float32(cfg.range_noise_per_m) * t_hit * rng.standard_normal(n, dtype=np.float32)
         if self._next is not None:
-            distance = mixed_pixels(distance, t_hit, hit, self._next, cfg, rng)
-        # drop: random, material (glass, spokes), grazing incidence; then the range limits
-        u = rng.random((3, n), dtype=np.float32)
-        keep = hit & (u[0] >= cfg.random_drop) & (u[1] >= _DROP[material])
+            distance = mixed_pixels(distance, t_hit, hits.hit, self._next, cfg, rng)
+        return distance
+
+    def _returned(self, hits: _Hits, distance: np.ndarray, cos_inc: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """(R,) bool, the rays that return: drop at random, by material (glass, spokes), at grazing incidence; then
+        the range limits."""
+        cfg = self.cfg
+        u = rng.random((3, len(distance)), dtype=np.float32)
+        keep = hits.hit & (u[0] >= cfg.random_drop) & (u[1] >= _DROP[hits.material])
         keep &= u[2] * np.float32(cfg.grazing_cos) >= np.float32(cfg.grazing_cos) - cos_inc
         keep &= (distance >= self.sensor.min_range) & (distance <= self.sensor.max_range)
-        # intensity = reflectivity x g(|cos|) x falloff(range) + noise; weak returns read 0; 0.01 steps
+        return keep
+
+    def _intensity(
+        self, hits: _Hits, distance: np.ndarray, cos_inc: np.ndarray, keep: np.ndarray, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(intensity, keep without the dark returns lost): reflectivity x g(|cos|) x falloff(range) + noise; weak
+        returns read 0; 0.01 steps; on the sensor's own scale."""
+        cfg, material, n = self.cfg, hits.material, len(distance)
         incidence = np.power(
             np.minimum(cos_inc / np.float32(cfg.incidence_ref), np.float32(1.0)),
             np.float32(cfg.intensity_incidence_exp),
         )
         falloff = np.exp(-np.maximum(distance - np.float32(cfg.falloff_start), 0) / np.float32(cfg.falloff_scale))
-        intensity = reflectivity * incidence * falloff
+        intensity = hits.reflectivity * incidence * falloff
         measured = cfg.surface_model != "basic"
         if measured:
             intensity = intensity * self._terms.gain[material]
@@ -218,7 +260,7 @@ class LidarSimulator:
             intensity = intensity * self._ring_gain
         if cfg.dark_drop > 0:  # too little light comes back: the return is lost
             lost = np.float32(cfg.dark_drop) * np.clip(1.0 - intensity / np.float32(cfg.dark_level), 0.0, 1.0)
-            keep &= rng.random(n, dtype=np.float32) >= lost
+            keep = keep & (rng.random(n, dtype=np.float32) >= lost)
         if measured or cfg.speckle > 0:
             sigma = self._terms.speckle[material]
             intensity = intensity * np.exp(sigma * rng.standard_normal(n, dtype=np.float32) - sigma * sigma / 2)
@@ -232,16 +274,20 @@ class LidarSimulator:
         )
         if not self.sensor.reports_remission:  # the sensor's own intensity scale (HDL-32E: nuScenes')
             intensity = intensity_response(self.sensor, intensity)
-        sel = np.flatnonzero(keep)
+        return intensity, keep
+
+    def _points(self, sel: np.ndarray, distance: np.ndarray, intensity: np.ndarray, hits: _Hits) -> Scan:
+        """The returns `sel` (indices of the kept rays) as a Scan in the sensor frame, labels cut at label_range."""
+        local, offset_z, ring = self._kept
         points = np.empty((len(sel), 4), dtype=np.float32)
         d = distance[sel]
         points[:, 0] = local[sel, 0] * d
         points[:, 1] = local[sel, 1] * d
         points[:, 2] = local[sel, 2] * d + offset_z[sel]
         points[:, 3] = intensity[sel]
-        semantic, instance = semantic[sel], instance[sel]
-        if cfg.label_range is not None:  # the annotation stops short of the sensor's reach
-            far = d > np.float32(cfg.label_range)
+        semantic, instance = hits.semantic[sel], hits.instance[sel]
+        if self.cfg.label_range is not None:  # the annotation stops short of the sensor's reach
+            far = d > np.float32(self.cfg.label_range)
             semantic[far], instance[far] = 0, 0
         return Scan(points, semantic, instance, ring[sel])
 

@@ -325,6 +325,18 @@ def _check_manifest(path: Path, new: dict) -> None:
             )
 
 
+def check_counts(sequences: int, frames: int, seed: int, workers: int, layout: str) -> None:
+    """One line naming the first of `u4d simulate`'s counts that is out of range, or its unknown layout."""
+    if sequences < 1 or frames < 1:
+        raise InputError(f"simulate: --sequences and --frames must be >= 1, got {sequences}, {frames}")
+    if workers < 1:
+        raise InputError(f"simulate: --workers must be >= 1, got {workers}")
+    if seed < 0:
+        raise InputError(f"simulate: --seed must be >= 0 (numpy seeds are non-negative), got {seed}")
+    if layout not in LAYOUTS:
+        raise InputError(f"simulate: --format {layout!r}: expected one of {', '.join(LAYOUTS)}")
+
+
 def simulate(
     out_dir: str | Path,
     sequences: int,
@@ -344,12 +356,7 @@ def simulate(
     the keyframes at 2 Hz, as nuScenes samples; config_source {"config": preset or file, "overrides": [...]} is
     recorded in manifest.json (which preset wrote the world).
     """
-    if sequences < 1 or frames < 1:
-        raise InputError(f"simulate: --sequences and --frames must be >= 1, got {sequences}, {frames}")
-    if workers < 1:
-        raise InputError(f"simulate: --workers must be >= 1, got {workers}")
-    if layout not in LAYOUTS:
-        raise InputError(f"simulate: --format {layout!r}: expected one of {', '.join(LAYOUTS)}")
+    check_counts(sequences, frames, seed, workers, layout)
     cfg = config if config is not None else SimConfig()
     if keyframe_every is None:
         keyframe_every = max(1, round(cfg.frame_rate / 2.0))
@@ -428,6 +435,7 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
         help="--format nuscenes: every N-th frame is a labelled keyframe (default: 2 Hz, as nuScenes)",
     )
     parser.add_argument("--workers", type=int, default=1, help="processes, one sequence each")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--config", type=Path, default=None, help="SimConfig yaml (a file or a preset, e.g. sim/tiny)")
     parser.add_argument("overrides", nargs="*", help="key=value config overrides, e.g. agents.cars_per_100m=3")
     parser.add_argument(
@@ -455,6 +463,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         layout=getattr(args, "format", "semantickitti"),
         keyframe_every=getattr(args, "keyframe_every", None),
         config_source={"config": None if args.config is None else str(args.config), "overrides": overrides},
+        progress=not getattr(args, "no_progress", False),
     )
     print(
         f"wrote {summary['written']} frames ({summary['skipped']} already there) to {summary['out']} "

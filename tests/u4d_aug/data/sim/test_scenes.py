@@ -227,34 +227,6 @@ def test_every_type_has_people_cyclists_and_vehicles(kind: str) -> None:
 # roundabouts
 
 
-def _roundabout_net(island: float = 4.0):
-    from u4d_aug.data.sim.streets import make_network
-
-    cfg = load_config(SimConfig, None, ["street.main_street_prob=0"]).street
-    net = make_network(np.random.default_rng(0), cfg, 300.0)
-    i, j = len(net.xs) // 2, len(net.ys) // 2
-    net.roundabouts[(i, j)] = island
-    return net, (i, j)
-
-
-@pytest.mark.parametrize("turn, sweep_deg", [(0, (120, 200)), (3, (40, 110)), (1, (220, 300))])
-def test_roundabout_paths_circle_the_island(turn: int, sweep_deg) -> None:
-    from u4d_aug.data.sim.streets import DIRECTIONS, lane_path
-
-    net, (i, j) = _roundabout_net()
-    out = DIRECTIONS[turn].astype(int)  # along +x into the roundabout, then straight (0), right (3) or left (1)
-    nodes = [(i - 1, j), (i, j), (i + out[0], j + out[1])]
-    path, turning = lane_path(net, nodes, lambda line, side: line.lane_width / 2)
-    center = net.node(i, j)
-    dist = np.linalg.norm(path - center, axis=1)
-    assert dist.min() >= net.roundabouts[(i, j)] + 1.0  # never over the island
-    assert np.all(np.linalg.norm(np.diff(path, axis=0), axis=1) < 0.2)  # one continuous path
-    arc = path[turning > 0]
-    angles = np.unwrap(np.arctan2(*(arc - center).T[::-1]))
-    swept = np.degrees(angles[-1] - angles[0])
-    assert sweep_deg[0] < swept < sweep_deg[1]  # counter-clockwise, as right-hand traffic goes round
-
-
 def test_roundabout_world_has_an_island_the_ego_drives_round() -> None:
     cfg = _only("residential", "street.roundabout_prob=1", "street.main_street_prob=0")
     seq = build_sequence(1, 0, 30, hdl64(), cfg)

@@ -1,4 +1,5 @@
-"""`u4d show SCAN --ply OUT`: positions, intensity and labels as .ply attributes (open3d tensor API), atomic."""
+"""`u4d show SCAN --ply OUT` (u4d_aug/cli.py): positions, intensity and labels as .ply attributes (open3d tensor API),
+atomic."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""`u4d show SEQUENCE_DIR`: every frame's depth image and a BEV of the frames moved by their poses (u4d_aug.viz)."""
+"""`u4d show SEQUENCE_DIR` (u4d_aug/cli.py): every frame's depth image and a BEV of the frames moved by their poses."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ import pytest
 from u4d_aug.cli import main
 from u4d_aug.data.formats import write_calib, write_kitti_scan, write_poses
 from u4d_aug.trajectory import poses_from_motion, straight_motion
-from u4d_aug.viz import plot_sequence
 
 IDENTITY_CALIB = {"P0": np.eye(3, 4), "Tr": np.eye(3, 4)}
 
@@ -47,11 +46,6 @@ def test_sequence_folder_without_poses_is_named(tmp_path, capsys):
     assert "poses.txt" in err and "need frame 2" in err and "Traceback" not in err
     assert main(["show", str(tmp_path / "seq"), "--ply", str(tmp_path / "x.ply")]) == 2
     assert "--ply exports one scan" in capsys.readouterr().err
-
-
-def test_plot_sequence_checks_lengths(tmp_path):
-    with pytest.raises(ValueError, match="expected L each"):
-        plot_sequence(tmp_path / "x.png", [np.ones((4, 8))], [np.zeros((3, 4))] * 2, np.tile(np.eye(4), (2, 1, 1)))
 
 
 @pytest.mark.real

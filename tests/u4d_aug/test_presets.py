@@ -1,4 +1,5 @@
-"""Presets named by their path under configs/ resolve from any folder; the wheel ships configs/ as package data."""
+"""Presets named by their path under configs/ (u4d_aug/presets.py) resolve from any folder; the wheel ships configs/ as
+package data."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""The `u4d` command: help lists every command, info/show on real scans, one-line errors for bad input."""
+"""The `u4d` command (u4d_aug/cli.py): help lists every command, info/show on real scans, one-line errors for bad
+input."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.tiny_nets import REPO
 from u4d_aug.cli import CONFIGS_DIR, DELEGATED, EXAMPLES, main
 from u4d_aug.data.formats import read_kitti_scan, read_poses
 from u4d_aug.demo import sequence_motion
@@ -190,6 +192,20 @@ def test_every_example_parses_and_its_overrides_load(name, tmp_path, monkeypatch
         load_config(cls, getattr(args, "config", None), overrides)
 
 
+# the commands whose work draws a progress bar (tqdm): each takes --no-progress
+PROGRESS_COMMANDS = ["simulate", "seg-train", "seg-eval", "seg-predict", "train-diffusion", "generate",
+                     "train-extractor", "evaluate", "experiment", "bank-real"]  # fmt: skip
+
+
+@pytest.mark.parametrize("name", PROGRESS_COMMANDS)
+def test_every_long_command_takes_no_progress(name):
+    from u4d_aug.cli import delegated_parser
+    from u4d_aug.cmdline import parse_command_line
+
+    words = [*shlex.split(EXAMPLES[name])[2:], "--no-progress"]
+    assert parse_command_line(delegated_parser(name)[0], words).no_progress is True
+
+
 def test_overrides_after_flags_reach_the_config(tmp_path, capsys):
     missing = tmp_path / "missing.pt"
     argv = ["generate", "u4d/generate_cpu", "--out", str(tmp_path / "bank"), "mode=baseline", f"baseline={missing}"]
@@ -203,9 +219,8 @@ def test_a_shipped_weights_path_from_another_folder_says_where_the_file_is(tmp_p
     argv = ["generate", "u4d/generate_hdl64", "--out", str(tmp_path / "bank"), "mode=baseline", "num=1"]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
-    repo = Path(__file__).resolve().parents[1]
     assert err.startswith("error: weights/baseline.pt: baseline checkpoint not found (relative to ")
-    assert f"name {repo / 'weights' / 'baseline.pt'})" in err and not (tmp_path / "bank").exists()
+    assert f"name {REPO / 'weights' / 'baseline.pt'})" in err and not (tmp_path / "bank").exists()
 
 
 def test_unknown_flag_is_still_refused_in_one_line(capsys):
@@ -229,7 +244,6 @@ def test_one_launch_path_no_command_module_is_a_script_of_its_own():
     have no `main` and no `__main__` block of their own (they used to, one launch path each)."""
     import ast
     import importlib
-    from pathlib import Path
 
     for name in ("u4d_aug.train", "u4d_aug.generate", "segmentation.train", "segmentation.evaluate",
                  "segmentation.predict", "segmentation.experiment"):  # fmt: skip

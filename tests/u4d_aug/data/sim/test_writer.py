@@ -1,4 +1,5 @@
-"""Simulated world (u4d_aug/data/sim): determinism, motion, pose consistency, layout, realism checks."""
+"""Simulated worlds written to disk (u4d_aug/data/sim/writer.py): determinism and resume, layout, poses, labels,
+the command, the manifest, the sensor's intensity response."""
 
 from __future__ import annotations
 
@@ -26,14 +27,10 @@ from u4d_aug.data.formats import (
 )
 from u4d_aug.data.labels import SEMANTICKITTI_RAW_NAMES, map_semantickitti
 from u4d_aug.data.sensors import hdl32, hdl64, intensity_response
-from u4d_aug.data.sim import objects
-from u4d_aug.data.sim.agents import _EgoLane
 from u4d_aug.data.sim.config import SimConfig
-from u4d_aug.data.sim.geometry import RAW, MeshBuilder, strip
+from u4d_aug.data.sim.geometry import RAW
 from u4d_aug.data.sim.report import INTENSITY_BINS
 from u4d_aug.data.sim.scenes import STREET_TYPES
-from u4d_aug.data.sim.streets import Bend, Warp, lane_path, make_hills, make_network
-from u4d_aug.data.sim.world import _add_mesh
 from u4d_aug.data.sim.writer import (
     add_simulate_arguments,
     build_sequence,
@@ -63,11 +60,6 @@ def tiny_world(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("sim") / "a"
     simulate(out, sequences=1, frames=3, seed=7, config=_tiny(), progress=False)
     return out
-
-
-def test_raw_ids_are_semantickitti() -> None:
-    for name, raw in RAW.items():
-        assert SEMANTICKITTI_RAW_NAMES[raw] == name
 
 
 def test_same_seed_byte_identical_and_resume(tiny_world: Path, tmp_path: Path) -> None:
@@ -129,29 +121,6 @@ def test_ring_major_storage_order() -> None:
     assert np.all(np.diff(azimuth) > -1e-3)  # counter-clockwise from the front
 
 
-def test_moving_agents_move_and_keep_instance_ids() -> None:
-    seq = build_sequence(11, 0, 3, hdl64(), _tiny("lidar.azimuth_steps=1024"))
-    moving = [a for a in seq.agents if a.mesh.semantic[0] >= 252]
-    assert moving
-    for agent in moving:
-        assert len(np.unique(agent.mesh.instance)) == 1 and agent.mesh.instance[0] > 0
-        assert np.linalg.norm(agent.xy[1] - agent.xy[0]) > 0.05
-    ids = [int(a.mesh.instance[0]) for a in seq.agents]
-    assert len(set(ids)) == len(ids)
-    scans = [render_frame(seq, f) for f in range(2)]
-    seen = []
-    for scan in scans:
-        sel = scan.semantic >= 252
-        seen.append(set(np.unique(scan.instance[sel]).tolist()))
-        for inst in seen[-1]:  # one label per instance
-            assert len(np.unique(scan.semantic[scan.instance == inst])) == 1
-    assert seen[0] & seen[1], "a moving agent visible in both frames keeps its id"
-    # the shared agents moved in the world between the frames
-    for inst in seen[0] & seen[1]:
-        agent = next(a for a in seq.agents if a.mesh.instance[0] == inst)
-        assert np.linalg.norm(agent.xy[1] - agent.xy[0]) > 0.05
-
-
 def test_static_points_align_with_poses(tmp_path: Path) -> None:
     out = tmp_path / "dense"
     simulate(out, 1, 3, seed=5, config=_tiny("lidar.azimuth_steps=2083"), progress=False)
@@ -202,140 +171,6 @@ def test_cli_arguments(tmp_path: Path, capsys, caplog) -> None:
         load_config(SimConfig, None, ["lidar.nope=1"])
 
 
-def test_streets_bend_within_limits() -> None:
-    cfg = _tiny("street.straight_prob=0")
-    warp = make_network(np.random.default_rng(3), cfg.street, 400.0).warp
-    s = np.linspace(-400.0, 400.0, 8001)
-    for bend in (warp.bend_x, warp.bend_y):
-        slope = bend.slope(s)
-        np.testing.assert_allclose(np.gradient(bend(s), s), slope, atol=1e-3)
-        assert np.ptp(np.degrees(np.arctan(slope))) > 10.0  # the streets genuinely change direction
-        assert np.abs(slope).max() <= cfg.street.bend_max_slope + 1e-9
-        curvature = np.abs(np.gradient(slope, s)) / (1.0 + slope**2) ** 1.5
-        assert curvature.max() <= 1.0 / cfg.street.bend_min_radius + 1e-4
-    straight = make_network(np.random.default_rng(3), _tiny("street.straight_prob=1").street, 400.0).warp
-    xy = np.random.default_rng(0).uniform(-300, 300, (100, 2))
-    np.testing.assert_array_equal(straight.points(xy), xy)
-
-
-def test_hills_gradient_and_limits() -> None:
-    cfg = _tiny("street.flat_prob=0")
-    xy = np.random.default_rng(0).uniform(-400, 400, (2000, 2))
-    for seed in range(5):
-        hills = make_hills(np.random.default_rng(seed), cfg.street)
-        eps = 1e-3
-        numeric = np.stack(
-            [
-                (hills(xy + [eps, 0]) - hills(xy - [eps, 0])) / (2 * eps),
-                (hills(xy + [0, eps]) - hills(xy - [0, eps])) / (2 * eps),
-            ],
-            axis=-1,
-        )
-        np.testing.assert_allclose(hills.gradient(xy), numeric, atol=1e-6)
-        grade = np.linalg.norm(hills.gradient(xy), axis=1)
-        assert grade.max() <= cfg.street.hill_max_grade + 1e-9
-        assert np.ptp(hills(xy)) > 1.0  # genuinely hilly over a few hundred metres
-        assert np.sum(np.abs(hills.amplitude) * np.linalg.norm(hills.wavevector, axis=1) ** 2) <= (
-            1.0 / cfg.street.hill_min_radius + 1e-12
-        )
-    flat = make_hills(np.random.default_rng(0), _tiny("street.flat_prob=1").street)
-    assert np.all(flat(xy) == 0.0)
-
-
-def test_ego_rides_the_hills() -> None:
-    seq = build_sequence(2, 0, 20, hdl64(), _tiny("street.flat_prob=0"))
-    hills = seq.world.network.warp.hills
-    poses, xy = seq.ego.poses, seq.ego.xy
-    assert np.ptp(hills(seq.ego.route_xy)) > 0.3  # the route climbs or descends
-    np.testing.assert_allclose(poses[:, 2, 3], hills(xy) + seq.cfg.lidar.sensor_height, atol=0.02)
-    # the body's up axis is normal to the ground (up to the sensor mount tilt, std 0.3 deg)
-    grade = hills.gradient(xy)
-    normal = np.column_stack([-grade, np.ones(len(grade))])
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    cos = np.einsum("ij,ij->i", poses[:, :3, 2], normal)
-    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 1.5
-    # the road around the sensor (within 8 m: beyond, the lane camber lowers it) lies at -sensor_height
-    for frame in (0, 19):
-        scan = render_frame(seq, frame)
-        r = np.linalg.norm(scan.points[:, :3], axis=1)
-        road = (scan.semantic == RAW["road"]) & (r < 8)
-        assert abs(np.median(scan.points[road, 2]) + seq.cfg.lidar.sensor_height) < 0.05
-
-
-def test_warp_bends_surfaces_and_carries_objects_rigidly() -> None:
-    warp = Warp(Bend(np.array([10.0]), np.array([2 * np.pi / 200]), np.array([0.0])), Bend(*np.zeros((3, 0))))
-    mb = MeshBuilder(warp)
-    mb.axis = 0  # objects belong to the x-street
-    xs = np.linspace(0.0, 100.0, 51)
-    band = strip(np.column_stack([xs, np.full(51, 5.0)]), np.column_stack([xs, np.full(51, 8.0)]), 0.1)
-    mb.add(band, "sidewalk", "paving", 0.3)
-    car = objects.place(objects.car(np.random.default_rng(0), "car", 5), 0.0, (25.0, 3.0, 0.0))
-    _add_mesh(mb, car)
-    mesh = mb.build()
-    n = len(band[0])
-    # surfaces follow the bent street point by point
-    np.testing.assert_allclose(mesh.vertices[:n, :2], warp.points(band[0][:, :2]), atol=1e-4)
-    # the car keeps its shape and turns with the street: heading atan(df/dx) at its centre, 12.5 deg
-    moved = mesh.vertices[n:].astype(np.float64)
-    original = car.vertices.astype(np.float64)
-    np.testing.assert_allclose(moved[:, 2], original[:, 2], atol=1e-5)
-    pairs = np.random.default_rng(1).integers(0, len(original), (200, 2))
-    dist = np.linalg.norm(moved[pairs[:, 0]] - moved[pairs[:, 1]], axis=1)
-    np.testing.assert_allclose(dist, np.linalg.norm(original[pairs[:, 0]] - original[pairs[:, 1]], axis=1), atol=1e-4)
-    axis = np.linalg.svd(moved[:, :2] - moved[:, :2].mean(axis=0), full_matrices=False)[2][0]
-    heading = np.degrees(np.arctan2(axis[1], axis[0])) % 180.0
-    expected = np.degrees(np.arctan(10.0 * 2 * np.pi / 200 * np.cos(2 * np.pi * 25.0 / 200)))
-    assert abs(heading - expected) < 0.5, (heading, expected)
-
-
-def test_ego_and_agents_drive_the_bent_streets() -> None:
-    seq = build_sequence(4, 0, 30, hdl64(), _tiny("street.straight_prob=0"))
-    warp = seq.world.network.warp
-    np.testing.assert_allclose(seq.ego.route_xy, warp.points(seq.ego.route_lattice))
-    lattice_heading = np.arctan2(*np.diff(seq.ego.route_lattice, axis=0).T[::-1])
-    world_heading = np.arctan2(*np.diff(seq.ego.route_xy, axis=0).T[::-1])
-    assert np.abs(np.angle(np.exp(1j * (world_heading - lattice_heading)))).max() > np.radians(3.0)
-    step = np.linalg.norm(np.diff(seq.ego.xy, axis=0), axis=1) * 10.0
-    assert np.all((step > 4.5) & (step < 12.5)), step  # speeds hold on the curves
-    # the ego stays on its lane: the ground just ahead of and behind the sensor is carriageway in every frame
-    for frame in (0, 29):
-        scan = render_frame(seq, frame)
-        x, y, z = scan.points[:, :3].T
-        lane = (np.abs(y) < 1.0) & (np.abs(x) > 4.0) & (np.abs(x) < 8.0) & (z < -1.6)
-        assert lane.sum() > 100
-        assert np.isin(scan.semantic[lane], [RAW["road"], RAW["lane-marking"]]).mean() > 0.95
-    vehicles = [a for a in seq.agents if a.kind != "person"]
-    assert vehicles
-    for agent in vehicles:  # heading follows the path tangent, also on the curves
-        motion = np.diff(agent.xy, axis=0)
-        moving = np.linalg.norm(motion, axis=1) > 0.2
-        direction = np.arctan2(motion[moving, 1], motion[moving, 0])
-        mid = np.angle(np.exp(1j * agent.yaw[1:]) + np.exp(1j * agent.yaw[:-1]))[moving]
-        assert np.abs(np.angle(np.exp(1j * (direction - mid)))).max() < np.radians(8.0)
-
-
-def test_ego_keeps_clear_of_parked_cars_on_its_right() -> None:
-    net = make_network(np.random.default_rng(0), SimConfig().street, 200.0)
-    j = len(net.ys) // 2
-    line = net.ys[j]
-    line.lanes_per_direction, line.lane_width = 1, 4.0
-    nodes = [(0, j), (1, j), (2, j)]  # straight along +x: the negative side (index 0) is on the right
-    ego = _EgoLane(center_bias=0.4, parked_clearance=0.8)
-    offsets = {}
-    for parking in ((2.2, 0.0), (0.0, 2.2)):
-        line.parking = parking
-        path, turning = lane_path(net, nodes, ego)
-        assert not turning.any()
-        offsets[parking] = line.position - path[:, 1]  # metres right of the centre line
-    # rightmost lane centre 2.0 m, pulled 40 % towards the centre: 1.2 m; parked cars on the right: 0.8 m more
-    np.testing.assert_allclose(offsets[(0.0, 2.2)], 1.2, atol=1e-9)
-    np.testing.assert_allclose(offsets[(2.2, 0.0)], 0.4, atol=1e-9)
-    # main streets keep their inner lane; the pull never crosses the centre line
-    assert _EgoLane(0.4, 5.0)(line, 1) == 0.0
-    line.lanes_per_direction = 2
-    assert _EgoLane(0.4, 0.8)(line, 1) == 2.0
-
-
 @pytest.mark.slow
 def test_default_hdl64_frame_point_count() -> None:
     seq = build_sequence(0, 0, 1, hdl64(), SimConfig())
@@ -357,16 +192,6 @@ def test_four_sequences_cover_fifteen_classes(tmp_path: Path) -> None:
 
 def _instances(mesh, label: str) -> int:
     return len(np.unique(mesh.instance[mesh.semantic == RAW[label]]))
-
-
-def test_sidewalk_bicycles_only_when_asked() -> None:
-    off = build_sequence(4, 0, 3, hdl64(), _tiny()).world.mesh
-    on = build_sequence(4, 0, 3, hdl64(), _tiny("objects.sidewalk_bicycle_prob=1.0")).world.mesh
-    assert _instances(on, "bicycle") >= _instances(off, "bicycle") + 10
-    # every bicycle is a rigid ~1.8 m object standing on the ground, not floating or buried
-    for inst in np.unique(on.instance[on.semantic == RAW["bicycle"]]):
-        v = on.vertices[np.unique(on.triangles[(on.instance == inst) & (on.semantic == RAW["bicycle"])])]
-        assert 1.3 < np.ptp(v[:, :2], axis=0).max() < 2.2 and 0.8 < np.ptp(v[:, 2]) < 1.4
 
 
 def test_rich_preset_makes_rare_classes_frequent() -> None:

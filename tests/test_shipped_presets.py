@@ -70,7 +70,7 @@ def test_fewlabel_fit_changes_only_lr_and_loss_level():
 
 def recorded_overrides(results_json: str) -> list[str]:
     """The key=value overrides of the training command a results json records (not threads, seed, env)."""
-    path = CONFIGS.parent / "benchmarks" / "results" / "seg_cpu_rich" / results_json
+    path = CONFIGS.parent / "benchmarks" / "results" / "segmentation" / "seg_cpu_rich" / results_json
     words = shlex.split(json.loads(path.read_text())["command"])
     return [w for w in words if "=" in w and not w.startswith(("threads=", "seed=", "OMP_NUM_THREADS="))]
 
