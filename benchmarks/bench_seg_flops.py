@@ -38,10 +38,12 @@ def counting_convs(table: dict):
     """Within the block, every `sparse.sparse_conv` call adds its FLOP to table[(M_out, C_in, C_out, K)]."""
     original = sparse.sparse_conv
 
-    def counted(features: torch.Tensor, weight: torch.Tensor, kmap: sparse.KernelMap) -> torch.Tensor:
+    def counted(
+        features: torch.Tensor, weight: torch.Tensor, kmap: sparse.KernelMap, keep_gathers: bool = False
+    ) -> torch.Tensor:
         volume, c_in, c_out = weight.shape
         table[(kmap.num_out, c_in, c_out, volume)] += 2.0 * kmap.num_pairs() * c_in * c_out
-        return original(features, weight, kmap)
+        return original(features, weight, kmap, keep_gathers)
 
     sparse.sparse_conv = counted
     try:
