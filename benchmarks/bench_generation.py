@@ -85,7 +85,7 @@ def training_budget(run: Path) -> dict:
         "steps": int(steps),
         "batch_size": cfg["batch_size"],
         "minutes": round(minutes, 2),
-        "params": sum(p.numel() for p in load_generator(path)[0].parameters()),  # not buffers (ray features)
+        "params": sum(p.numel() for p in load_generator(path).net.parameters()),  # not buffers (ray features)
         "size": [cfg["height"], cfg["width"]],
     }
 

@@ -724,7 +724,7 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    cfg = nets["baseline"][1]
+    _, cfg = nets["baseline"]
     result = {
         "benchmark": "generation_speed",
         **headline(samplers, anchor),

@@ -176,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    cfg = nets["most"][1]
+    _, cfg = nets["most"]
     result = {
         "benchmark": "most_cost",
         "command": " ".join(["python", "benchmarks/bench_most.py", *(sys.argv[1:] if argv is None else argv)]),

@@ -55,7 +55,7 @@ def run_setting(loaded, spec: str, num: int) -> dict:
         raise InputError(f"--samplers {spec!r}: expected NAME:STEPS[:GRID], e.g. dpmpp2m-sde:20")
     name, steps, grid = parts[0], int(parts[1]), parts[2] if len(parts) == 3 else "time"
     generators = [torch.Generator().manual_seed(i) for i in range(num)]
-    stage = loaded[1].diffusion.stage
+    stage = loaded.config.diffusion.stage
     start = time.perf_counter()
     if stage == "baseline":
         x0 = generate_baseline(loaded, num, steps, generators, name, grid=grid)["x0"]
@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         path = newest_checkpoint(args.checkpoint) if args.checkpoint.is_dir() else args.checkpoint
         state = load_checkpoint(path, "diffusion checkpoint")
         step = state.get("step", state.get("trained", {}).get("step"))
-        rough, returns = image_roughness(real_images(args.real, loaded[1], args.num))
+        rough, returns = image_roughness(real_images(args.real, loaded.config, args.num))
         settings = [run_setting(loaded, spec, args.num) for spec in args.samplers]
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
         "command": " ".join(sys.argv),
         "machine": host_info(),
         "checkpoint": str(args.checkpoint),
-        "stage": loaded[1].diffusion.stage,
+        "stage": loaded.config.diffusion.stage,
         "step": step,
         "num": args.num,
         "real": {"root": str(args.real), "roughness": rough, "returns": returns},

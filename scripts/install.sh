@@ -20,7 +20,7 @@ if ! "$PY" -c "import torch" >/dev/null 2>&1; then
   echo "[install] pip install torch==2.13.0"
   "$PY" -m pip install -q "torch==2.13.0"
 fi
-if ! "$PY" -c "import u4d_aug, open3d, pytest, xdist, ruff" >/dev/null 2>&1 || [ "${U4D_REINSTALL:-0}" = "1" ]; then
+if ! "$PY" -c "import u4d_aug, open3d, pytest, xdist, ruff, mypy" >/dev/null 2>&1 || [ "${U4D_REINSTALL:-0}" = "1" ]; then
   echo "[install] pip install -e .[dev]"
   "$PY" -m pip install -q -e ".[dev]"
 fi

@@ -134,7 +134,7 @@ class ResidualBlock(nn.Module):
         return x.replace(torch.relu(self.main(x).features + self.shortcut(x).features))
 
 
-def _blocks(in_channels: int, out_channels: int, count: int) -> list[nn.Module]:
+def _blocks(in_channels: int, out_channels: int, count: int) -> list[ResidualBlock]:
     return [ResidualBlock(in_channels, out_channels)] + [
         ResidualBlock(out_channels, out_channels) for _ in range(count - 1)
     ]
@@ -285,7 +285,7 @@ class SPVCNN(nn.Module):
         return x.replace(self.dropout(x.features))
 
 
-def build_model(cfg: SegModelConfig) -> nn.Module:
+def build_model(cfg: SegModelConfig) -> MinkUNet | SPVCNN:
     """The net named by cfg.name."""
     if cfg.name == "minkunet":
         return MinkUNet(cfg)

@@ -23,9 +23,10 @@ import torch
 from torch import nn
 
 from segmentation.mean_teacher import mean_view_probs, scan_views, view_count_error
-from segmentation.models import SegModelConfig, build_model
+from segmentation.models import SPVCNN, MinkUNet, SegModelConfig, build_model
 from u4d_aug.config import config_from_dict
 from u4d_aug.data.datasets import DATASET_FORMATS, SEMANTICKITTI_SPLITS, open_scans
+from u4d_aug.data.formats import usable_rows
 from u4d_aug.data.nuscenes import NUSCENES_VERSION
 from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError
@@ -47,10 +48,16 @@ def load_checkpoint(path: str | Path) -> dict:
     ckpt = load_torch_checkpoint(path, "segmentation checkpoint")
     if "model" not in ckpt or "config" not in ckpt:
         raise InputError(f"{path}: not a segmentation checkpoint (expected keys 'config' and 'model')")
+    names = ckpt.get("class_names")
+    if names is not None and not (isinstance(names, list) and all(isinstance(name, str) for name in names)):
+        raise InputError(f"{path}: 'class_names' must be a list of class names, got {type(names).__name__}")
     if is_exported(ckpt):
         if ckpt.get("kind") != SEGMENTATION_KIND:
             raise InputError(f"{path}: exported {ckpt.get('kind')} weights, not a segmentation checkpoint")
-        ckpt = {**ckpt, "model": exported_model(ckpt, str(path)), "step": ckpt.get("trained", {}).get("step")}
+        trained = ckpt.get("trained", {})
+        if not isinstance(trained, dict):
+            raise InputError(f"{path}: 'trained' must be a mapping (step, source), got {type(trained).__name__}")
+        ckpt = {**ckpt, "model": exported_model(ckpt, str(path)), "step": trained.get("step")}
     elif checkpoint_kind(ckpt) != SEGMENTATION_KIND:
         kind = ckpt.get("kind") or ckpt.get("format")
         found = f"a {kind} checkpoint" if isinstance(kind, str) else "another kind of checkpoint"
@@ -60,7 +67,7 @@ def load_checkpoint(path: str | Path) -> dict:
 
 def model_from_checkpoint(
     ckpt: dict, device: torch.device, source: str = "checkpoint", readout: str | None = None
-) -> nn.Module:
+) -> MinkUNet | SPVCNN:
     """Rebuild the net from the checkpoint's config['model'] and load its weights, in eval mode; `readout`
     (voxel | trilinear) replaces the config's way points read the voxel output (same weights)."""
     config = ckpt.get("config")
@@ -116,8 +123,9 @@ def predict_probs(
 def scan_probs(
     model: nn.Module, points: np.ndarray, device: torch.device, num_classes: int, views: int = 1
 ) -> np.ndarray:
-    """(N, K) float16 for all N rows of a raw scan; rows with NaN/inf coordinates get the uniform 1/K."""
-    finite = np.isfinite(points).all(axis=1)
+    """(N, K) float16 for all N rows of a raw scan; rows with NaN/inf coordinates or beyond 10 km
+    (`formats.usable_rows`) get the uniform 1/K."""
+    finite = usable_rows(points)
     probs = np.full((len(points), num_classes), 1.0 / num_classes, dtype=np.float32)
     if finite.any():
         probs[finite] = predict_probs(model, points[finite], device, views).numpy()

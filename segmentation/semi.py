@@ -154,7 +154,8 @@ def load_unlabeled(
 def pitch_range(cfg: SegTrainConfig) -> tuple[float, float]:
     """LaserMix pitch range (down, up) in degrees: semi.pitch_range_deg, else the sensor's linear FOV."""
     if cfg.semi.pitch_range_deg is not None:
-        return tuple(cfg.semi.pitch_range_deg)
+        down, up = cfg.semi.pitch_range_deg
+        return (down, up)
     sensor = get_sensor(cfg.data.sensor)
     return (sensor.fov_down_deg, sensor.fov_up_deg)
 

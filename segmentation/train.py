@@ -47,6 +47,7 @@ from u4d_aug.data.datasets import NuscenesScanDataset, ScanDataset
 from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, cleanup, init_distributed
 from u4d_aug.errors import InputError
 from u4d_aug.io import append_jsonl, atomic_torch_save, atomic_write_json, read_jsonl
+from u4d_aug.memory import check_net_fits
 from u4d_aug.progress import progress_bar
 from u4d_aug.run import (
     LOG_NAME,
@@ -64,7 +65,8 @@ from u4d_aug.validate import check_finite_loss
 logger = logging.getLogger(__name__)
 
 CHECKPOINT_KIND = "u4d-seg-checkpoint"  # u4d_aug.weights.SEGMENTATION_KIND
-CURVE_KEYS = ("loss", "loss_ce", "loss_lovasz", "loss_sup", "loss_mix", "loss_mt")  # mode "semi": the last 3
+# the logged losses (the last 3: mode "semi" only), then the evaluation metrics
+CURVE_KEYS: tuple[str, ...] = ("loss", "loss_ce", "loss_lovasz", "loss_sup", "loss_mix", "loss_mt")
 CURVE_KEYS += ("val_miou", "val_ece_per_scan", "val_ece_pooled")
 Scans = ScanDataset | NuscenesScanDataset
 _STEP = 3  # seed domain of the dropout of a step (segmentation.batches uses 1, 2; segmentation.semi 4-6)
@@ -75,6 +77,7 @@ def train(cfg: SegTrainConfig, resume: str | Path | None = None, progress: bool 
 
     Rank 0 holds the run lock of OUT (`u4d_aug.runlock`) for the whole run: a second run on OUT is refused.
     """
+    check_net_fits(lambda: build_model(cfg.model), "the net of model.*", "reduce model.width or the other sizes")
     info = init_distributed(cfg.device)
     with run_lock(cfg.out_dir, enabled=info.is_main):
         return train_locked(cfg, info, resume, progress)
@@ -174,6 +177,8 @@ def step_losses(
     if cfg.mode == "supervised" or (cfg.mode == "semi" and in_burn_in(cfg.semi, int(batch["step"]))):
         return supervised_step(model, batch, cfg, device, class_weight)
     elif cfg.mode == "semi":
+        if teacher is None:
+            raise ValueError("mode 'semi' needs the mean teacher (segmentation.mean_teacher.make_teacher); got None")
         return semi_step(model, teacher, batch, cfg, device, class_weight)
     raise ValueError(f"mode must be 'supervised' or 'semi'; got {cfg.mode!r}")
 

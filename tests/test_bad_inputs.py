@@ -70,6 +70,7 @@ def paths(tmp_path_factory, request) -> dict[str, str]:
     full = base / "full_disk"
     if _mount_full_disk(full):
         request.addfinalizer(lambda: subprocess.run(["umount", str(full)], check=False))
+        (full / "scan.ply").write_text("a good .ply\n")  # must survive a failed `show --ply` on the full disk
     torch.set_num_threads(1)
     p: dict[str, Path] = {"base": base, "root": write_toy_root(base / "root", frames=2)}
     rng = np.random.default_rng(0)
@@ -83,9 +84,19 @@ def paths(tmp_path_factory, request) -> dict[str, str]:
     net = build_net(cfg)
     p["diffusion_ckpt"] = base / "diffusion.pt"
     atomic_torch_save(p["diffusion_ckpt"], checkpoint_state(cfg, 0, net, EMA(net)))
+    stage2 = load_config(DiffusionTrainConfig, U4D_TINY, ["diffusion.stage=stage2"])
+    p["stage2_ckpt"] = base / "stage2.pt"
+    stage2_net = build_net(stage2)
+    atomic_torch_save(p["stage2_ckpt"], checkpoint_state(stage2, 0, stage2_net, EMA(stage2_net)))
     wide = build_net(load_config(DiffusionTrainConfig, U4D_TINY, ["diffusion.stage=baseline", "net.base_channels=16"]))
     p["misfit_ckpt"] = base / "misfit.pt"  # loads safely, but its EMA is of a wider net than its config builds
     atomic_torch_save(p["misfit_ckpt"], checkpoint_state(cfg, 0, net, EMA(wide)))
+
+    seg_state = torch.load(p["seg_ckpt"], weights_only=True)
+    first = next(iter(seg_state["model"]))
+    seg_state["model"][first] = torch.zeros(2, 3)  # loads safely, fits no net of its config
+    p["seg_misfit"] = base / "seg_misfit.pt"
+    atomic_torch_save(p["seg_misfit"], seg_state)
 
     # corrupt and hostile files
     p["junk_pt"] = base / "junk.pt"
@@ -134,13 +145,16 @@ def paths(tmp_path_factory, request) -> dict[str, str]:
     p["root_short_bin"] = root_with("root_short_bin", p["short_bin"].read_bytes())
     p["root_nuscenes"] = root_with("root_nuscenes", p["nuscenes_bin"].read_bytes())
     p["root_bad_label"] = root_with("root_bad_label", label_count=7)
+    p["root_huge_bin"] = root_with("root_huge_bin")
+    with open(p["root_huge_bin"] / "sequences" / "00" / "velodyne" / "000001.bin", "r+b") as f:
+        f.truncate(8 * 2**40)  # a sparse 8 TiB file: no disk space used, more than any machine's memory
     p["root_empty"] = base / "root_empty"
     (p["root_empty"] / "sequences").mkdir(parents=True)
 
     # probabilities: NaN, object dtype, truncated (one file per probs root, for scan 00/000000)
     count = len(np.fromfile(good, dtype=np.float32)) // 4
     probs = rng.dirichlet(np.ones(5), count).astype(np.float16)
-    for name in ("probs_nan", "probs_object", "probs_cut"):
+    for name in ("probs_nan", "probs_object", "probs_cut", "probs_logits", "probs_unnormalised"):
         p[name] = base / name
         atomic_save_npy(p[name] / "sequences" / "00" / "probs" / "000001.npy", probs)
         target = p[name] / "sequences" / "00" / "probs" / "000000.npy"
@@ -151,6 +165,10 @@ def paths(tmp_path_factory, request) -> dict[str, str]:
             np.save(target, bad)
         elif name == "probs_object":
             np.save(target, probs.astype(object), allow_pickle=True)
+        elif name == "probs_logits":  # scores, not a softmax: negative and > 1
+            np.save(target, rng.normal(0, 3, probs.shape).astype(np.float16))
+        elif name == "probs_unnormalised":  # in [0, 1] but rows summing to ~2.5
+            np.save(target, rng.random(probs.shape).astype(np.float16))
         else:
             np.save(target, probs)
             target.write_bytes(target.read_bytes()[:-100])
@@ -162,6 +180,22 @@ def paths(tmp_path_factory, request) -> dict[str, str]:
     # a bank-like root of generated scans for evaluate / gen-report
     p["bank"] = base / "bank"
     write_kitti_scan(p["bank"] / "sequences" / "00" / "velodyne" / "000000.bin", points)
+    # output folders with a symbolic link that leaves them: a log file and a checkpoints/ folder
+    p["outside"] = base / "outside"
+    (p["outside"] / "checkpoints").mkdir(parents=True)
+    (p["outside"] / "hosts.jsonl").write_text("kept\n")
+    p["linked_log"] = base / "linked_log"
+    p["linked_log"].mkdir()
+    (p["linked_log"] / "hosts.jsonl").symlink_to(p["outside"] / "hosts.jsonl")
+    p["linked_dir"] = base / "linked_dir"
+    p["linked_dir"].mkdir()
+    (p["linked_dir"] / "checkpoints").symlink_to(p["outside"] / "checkpoints", target_is_directory=True)
+    # banks whose manifest is valid json of the wrong shape
+    for name, manifest in (("bank_list_manifest", []), ("bank_bad_samples", {"mode": "baseline", "samples": 5}),
+                           ("bank_bad_frames", {"mode": "baseline", "frames": "two", "sensor": "hdl64"})):  # fmt: skip
+        p[name] = base / name
+        write_kitti_scan(p[name] / "sequences" / "00" / "velodyne" / "000000.bin", points)
+        (p[name] / "manifest.json").write_text(json.dumps(manifest))
     p["read_only"] = Path(READ_ONLY)
     p["full"] = full
     return {key: str(value) for key, value in p.items()}
@@ -270,6 +304,30 @@ CASES = [
         [*DIFF, "stage=stage1", "probs_root={probs_cut}", "--out", "{base}/d9"],
         "not a readable probability file",
     ),  # fmt: skip
+    (
+        "diffusion-probs-logits",
+        [*DIFF, "stage=stage1", "probs_root={probs_logits}", "--out", "{base}/d12"],
+        "values outside [0, 1]",
+    ),  # fmt: skip
+    (
+        "diffusion-probs-unnormalised",
+        [*DIFF, "stage=stage1", "probs_root={probs_unnormalised}", "--out", "{base}/d13"],
+        "rows do not sum to 1",
+    ),  # fmt: skip
+    (
+        "generate-complete-probs-logits",
+        [
+            *GEN,
+            "mode=complete",
+            "stage2={stage2_ckpt}",
+            "data_root={root}",
+            "probs_root={probs_logits}",
+            'sequences=["00"]',
+            "--out",
+            "{base}/g9",
+        ],
+        "values outside [0, 1]",
+    ),  # fmt: skip
     ("diffusion-resume-payload", [*DIFF, "--out", "{base}/d10", "--resume", "{payload_pt}"], "nothing was run"),
     (
         "diffusion-resume-seg-ckpt",
@@ -278,7 +336,20 @@ CASES = [
     ),  # fmt: skip
     ("diffusion-out-is-file", [*DIFF, "--out", "{file}"], "is a file; expected an output folder"),
     ("diffusion-disk-full", [*DIFF, "--out", "{full}/d"], "cannot write (No space left on device)"),
+    ("show-ply-disk-full", ["show", "{scan}", "--ply", "{full}/scan.ply"], "scan.ply"),
     ("diffusion-locked-folder", [*DIFF, "--out", "{locked}"], "in use by another run"),
+    ("diffusion-linked-log", [*DIFF, "--out", "{linked_log}"], "hosts.jsonl: a symbolic link to"),
+    ("diffusion-linked-checkpoints", [*DIFF, "--out", "{linked_dir}"], "checkpoints: a symbolic link to"),
+    ("seg-train-huge-width", [*SEG, "model.width=10000", "--out", "{base}/s9"], "reduce model.width"),
+    ("diffusion-huge-width", [*DIFF, "net.base_channels=100000", "--out", "{base}/d14"], "more than the"),
+    ("generate-huge-num", [*GEN, "num=100000000000", "--out", "{base}/g10"], "num=100000000000"),
+    (
+        "generate-huge-steps",
+        [*GEN, "mode=baseline", "baseline={diffusion_ckpt}", "steps=1000000000000", "--out", "{base}/g11"],
+        "steps=1000000000000",
+    ),  # fmt: skip
+    ("info-huge-sparse-bin", ["info", "{root_huge_bin}"], "no LiDAR scan is this large"),
+    ("seg-train-linked-checkpoints", [*SEG, "--out", "{linked_dir}"], "outside the output folder"),
     # generate
     ("generate-junk-ckpt", [*GEN, "mode=baseline", "baseline={junk_pt}", "--out", "{base}/g1"], "not a readable"),
     ("generate-payload", [*GEN, "mode=baseline", "baseline={payload_pt}", "--out", "{base}/g2"], "nothing was run"),
@@ -316,6 +387,18 @@ CASES = [
         ["gen-report", "{root}", "--bank", "b={bank}", "--png", "{base}/r.png", "--index", "-1"],
         "--index",
     ),  # fmt: skip
+    (
+        "gen-report-manifest-a-list",
+        ["gen-report", "{root}", "--bank", "b={bank_list_manifest}", "--png", "{base}/r1.png"],
+        "manifest.json: expected a json object",
+    ),  # fmt: skip
+    (
+        "gen-report-manifest-frames-text",
+        ["gen-report", "{root}", "--bank", "b={bank_bad_frames}", "--png", "{base}/r2.png"],
+        "'frames' must be an integer",
+    ),  # fmt: skip
+    ("export-manifest-a-list", ["export", "{bank_list_manifest}", "--labels"], "expected a json object"),
+    ("export-manifest-samples-int", ["export", "{bank_bad_samples}", "--labels"], "'samples' must be a list"),
     # train-extractor
     ("extractor-zero-steps", ["train-extractor", "frd", *EXTRACT, "train.steps=0"], "'train.steps' must be > 0"),
     ("extractor-lr-nan", ["train-extractor", "fpd", *EXTRACT, "train.lr=.nan"], "'train.lr' must be a finite"),
@@ -323,6 +406,8 @@ CASES = [
     # export-weights
     ("export-junk", ["export-weights", "{junk_pt}", "--out", "{base}/w1.pt"], "not a readable"),
     ("export-payload", ["export-weights", "{payload_pt}", "--out", "{base}/w2.pt"], "nothing was run"),
+    ("export-misfit-ema", ["export-weights", "{misfit_ckpt}", "--out", "{base}/w3.pt"], "would not load back"),
+    ("export-seg-misfit", ["export-weights", "{seg_misfit}", "--out", "{base}/w4.pt"], "would not load back"),
     ("export-out-is-folder", ["export-weights", "{diffusion_ckpt}", "--out", "{dir}"], "is a folder"),
     # evaluate
     ("evaluate-zero-scans", ["evaluate", "--bank", "{bank}", "--real", "{root}", "--max-scans", "0"], "--max-scans"),
@@ -384,6 +469,12 @@ def test_bad_input_gives_one_clean_line_and_exit_code_2(paths, capsys, case, arg
     assert fragment in lines[0] and "Traceback" not in stderr
     assert not Path(paths["marker"]).exists()  # no checkpoint ran its payload
     assert not (Path(paths["base"]).parent / "escaped").exists()
+    if argv[0] == "export-weights":  # a refused export writes no file
+        assert not Path(filled[filled.index("--out") + 1]).is_file()
+    if os.path.ismount(paths["full"]):  # a failed write on the full disk keeps the file that was there
+        assert (Path(paths["full"]) / "scan.ply").read_text() == "a good .ply\n"
+    outside = Path(paths["outside"])  # nothing written through a link that leaves --out
+    assert (outside / "hosts.jsonl").read_text() == "kept\n" and not any((outside / "checkpoints").iterdir())
 
 
 def test_the_suite_covers_every_command_with_40_cases_or_more():

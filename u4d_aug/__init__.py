@@ -7,7 +7,7 @@ cheap (no torch until a name that needs it is touched).
 from __future__ import annotations
 
 import importlib
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
@@ -46,6 +46,7 @@ _EXPORTS: dict[str, str] = {
     "load_probs": "u4d_aug.uncertainty",
     # generation
     "load_generator": "u4d_aug.pipeline",
+    "LoadedGenerator": "u4d_aug.pipeline",
     "generate_u4d": "u4d_aug.pipeline",
     "generate_baseline": "u4d_aug.pipeline",
     "complete": "u4d_aug.pipeline",
@@ -71,13 +72,77 @@ _EXPORTS: dict[str, str] = {
 __all__ = ["__version__", *_EXPORTS]
 
 
-def __getattr__(name: str) -> Any:
-    """Import a public name from its module on first access (PEP 562)."""
-    if name not in _EXPORTS:
-        raise AttributeError(f"module 'u4d_aug' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_EXPORTS[name]), name)
-    globals()[name] = value
-    return value
+# Type checkers read the real types from these imports; at run time `__getattr__` imports each name on first use
+# (tests/test_typing.py checks that they cover `__all__`, each from the module `_EXPORTS` names).
+if TYPE_CHECKING:
+    # `X as X` marks a re-export; isort would give each such name its own statement
+    # isort: off
+    from u4d_aug.data.scan import Scan as Scan, read_scan as read_scan
+    from u4d_aug.data.formats import (
+        read_kitti_scan as read_kitti_scan,
+        read_kitti_label as read_kitti_label,
+        write_kitti_scan as write_kitti_scan,
+        read_nuscenes_scan as read_nuscenes_scan,
+        read_nuscenes_lidarseg as read_nuscenes_lidarseg,
+    )
+    from u4d_aug.data.labels import (
+        map_semantickitti as map_semantickitti,
+        map_nuscenes as map_nuscenes,
+        SEMANTICKITTI_CLASSES as SEMANTICKITTI_CLASSES,
+        SEMANTICKITTI_IGNORE as SEMANTICKITTI_IGNORE,
+        NUSCENES_CLASSES as NUSCENES_CLASSES,
+        NUSCENES_IGNORE as NUSCENES_IGNORE,
+        LabelSet as LabelSet,
+        label_set as label_set,
+    )
+    from u4d_aug.data.nuscenes import read_nuscenes_index as read_nuscenes_index
+    from u4d_aug.data.sensors import Sensor as Sensor, get_sensor as get_sensor
+    from u4d_aug.range_view import (
+        Projection as Projection,
+        project as project,
+        project_batch as project_batch,
+        unproject as unproject,
+        to_image as to_image,
+        scatter_to_image as scatter_to_image,
+    )
+    from u4d_aug.uncertainty import (
+        entropy as entropy,
+        select_uncertain as select_uncertain,
+        uncertain_range_view as uncertain_range_view,
+        load_probs as load_probs,
+    )
+    from u4d_aug.pipeline import (
+        load_generator as load_generator,
+        LoadedGenerator as LoadedGenerator,
+        generate_u4d as generate_u4d,
+        generate_baseline as generate_baseline,
+        complete as complete,
+        to_points as to_points,
+    )
+    from u4d_aug.generated import GeneratedScans as GeneratedScans
+    from u4d_aug.data.datasets import (
+        ScanDataset as ScanDataset,
+        SequenceDataset as SequenceDataset,
+        NuscenesScanDataset as NuscenesScanDataset,
+        NuscenesSequenceDataset as NuscenesSequenceDataset,
+        open_scans as open_scans,
+        open_sequences as open_sequences,
+    )
+    from u4d_aug.data.collate import collate_scans as collate_scans, split_points as split_points
+    from u4d_aug.bank import read_manifest as read_manifest
+    from u4d_aug.config import load_config as load_config
+    from u4d_aug.presets import resolve_config_path as resolve_config_path, list_presets as list_presets
+    from u4d_aug.errors import InputError as InputError
+    # isort: on
+else:
+
+    def __getattr__(name: str) -> Any:
+        """Import a public name from its module on first access (PEP 562)."""
+        if name not in _EXPORTS:
+            raise AttributeError(f"module 'u4d_aug' has no attribute {name!r}")
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
 
 
 def __dir__() -> list[str]:

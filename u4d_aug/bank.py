@@ -38,6 +38,7 @@ logger = logging.getLogger(__name__)
 
 BANK_SEQUENCE = "00"
 MANIFEST = "manifest.json"
+DIGESTS = "digests"
 
 
 def sequence_name(index: int) -> str:
@@ -85,6 +86,10 @@ class BankLayout:
 
     def stage1_path(self, index: int, frame: int = 0) -> Path:
         return self._file("stage1", index, frame, ".npy")
+
+    def digest_path(self, index: int) -> Path:
+        """BANK/digests/NNNNNN.json: the sample's file digests, written right after its last file (`record_digests`)."""
+        return Path(self.root) / DIGESTS / f"{index:06d}.json"
 
     def poses_path(self, index: int) -> Path:
         return self.sequence_dir(index) / "poses.txt"
@@ -141,12 +146,39 @@ def remove_sample(layout: BankLayout, index: int) -> None:
         label_path_for(layout.scan_path(index, frame)).unlink(missing_ok=True)
 
 
+def record_digests(layout: BankLayout, index: int) -> dict[str, str]:
+    """Write the digests of sample `index`'s files to `layout.digest_path(index)` (atomically, right after its last
+    file): a sample on disk without its digests was cut short and is generated again on resume."""
+    digests = sample_digests(layout, index)
+    atomic_write_json(layout.digest_path(index), digests)
+    return digests
+
+
+def recorded_digests(layout: BankLayout, entry: dict[str, Any]) -> dict[str, str] | None:
+    """The digests the manifest entry records, else those of the sample's digest file, else None."""
+    recorded = entry.get("sha256")
+    if isinstance(recorded, dict):
+        return recorded
+    path = layout.digest_path(entry["index"])
+    try:
+        recorded = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return recorded if isinstance(recorded, dict) else None
+
+
 def verify_samples(layout: BankLayout, manifest: dict[str, Any] | None) -> dict[int, dict[str, str]]:
-    """{index: digests} of the finished samples whose files match `manifest`; a changed sample is removed (warning)."""
+    """{index: digests} of the finished samples whose files match their recorded digests; a changed sample, or one
+    whose digests were never recorded (its run was killed while writing it), is removed (warning)."""
     verified = {}
     for entry in (manifest or {}).get("samples", []):
-        index, recorded = entry.get("index"), entry.get("sha256")
-        if not isinstance(index, int) or not isinstance(recorded, dict) or not layout.is_done(index):
+        index = entry.get("index")
+        if not isinstance(index, int) or not layout.is_done(index):
+            continue
+        recorded = recorded_digests(layout, entry)
+        if recorded is None:
+            logger.warning("%s: sample %d has no recorded digests (cut short); generating it again", layout.root, index)
+            remove_sample(layout, index)
             continue
         changed = changed_files(layout, recorded)
         if changed:
@@ -197,9 +229,50 @@ def read_manifest(root: str | Path) -> dict[str, Any] | None:
     if not path.is_file():
         return None
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid json ({exc.msg})") from None
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not valid json ({getattr(exc, 'msg', exc)})") from None
+    check_manifest_shape(record, path)
+    return record
+
+
+# the fields a bank's readers use, with the type each must have when present (isinstance, written out)
+_FIELD_TYPES: dict[str, tuple[type, ...]] = {
+    "samples": (list,),
+    "frames": (int,),
+    "height": (int,),
+    "width": (int,),
+    "sensor": (str,),
+    "row_mode": (str,),
+    "mode": (str,),
+    "complete": (bool,),
+    "empty": (list,),
+    "export": (dict,),
+    "config": (dict,),
+}
+
+
+_TYPE_WORDS = {list: "a list", int: "an integer", str: "a string", bool: "true or false", dict: "an object"}
+
+
+def check_manifest_shape(record: Any, path: Path) -> None:
+    """InputError naming the field when a manifest is valid json of the wrong shape: not an object, a field of the
+    wrong type, a sample entry without an integer index, a size below 1."""
+    if not isinstance(record, dict):
+        raise InputError(f"{path}: expected a json object (a bank's manifest), got a {type(record).__name__}")
+    for key, types in _FIELD_TYPES.items():
+        value = record.get(key)
+        if value is None:
+            continue
+        if not isinstance(value, types) or (types == (int,) and isinstance(value, bool)):
+            expected = _TYPE_WORDS[types[0]]
+            raise InputError(f"{path}: '{key}' must be {expected}, got {type(value).__name__} {value!r:.40}")
+        if key in ("frames", "height", "width") and isinstance(value, int) and value < 1:
+            raise InputError(f"{path}: '{key}' must be >= 1, got {value}")
+    for position, entry in enumerate(record.get("samples") or []):
+        index = entry.get("index") if isinstance(entry, dict) else None
+        if not isinstance(index, int) or isinstance(index, bool) or index < 0:
+            raise InputError(f"{path}: samples[{position}] must be an object with an integer 'index' >= 0")
 
 
 def check_compatible(root: str | Path, identity: dict[str, Any]) -> None:

@@ -142,6 +142,15 @@ DELEGATED = (
 )
 
 
+def _load_segmentor(path: Path) -> object:
+    """Load segmentation weights the way `u4d seg-predict` does (export-weights reads its file back with it)."""
+    import torch
+
+    from segmentation import predict
+
+    return predict.model_from_checkpoint(predict.load_checkpoint(path), torch.device("cpu"), str(path))
+
+
 def _delegated_command(name: str) -> tuple[Callable[[argparse.ArgumentParser], None], Callable[..., int]]:
     """(add_arguments, run) of a delegated command, importing its module only now (explicit choices, no registry)."""
     if name == "simulate":
@@ -183,7 +192,10 @@ def _delegated_command(name: str) -> tuple[Callable[[argparse.ArgumentParser], N
     elif name == "export-weights":
         from u4d_aug import export_weights
 
-        return export_weights.add_export_weights_arguments, export_weights.run_export_weights
+        def run(args: argparse.Namespace) -> int:
+            return export_weights.run_export_weights(args, load_segmentor=_load_segmentor)
+
+        return export_weights.add_export_weights_arguments, run
     elif name == "gates":
         from u4d_aug import gates
 
@@ -463,6 +475,27 @@ def _show_sequence(args: argparse.Namespace) -> int:
     return 0
 
 
+_PLY_BYTES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2}
+_PLY_BYTES |= {"int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def _ply_is_whole(path: Path, count: int) -> bool:
+    """Whether a binary .ply of `count` vertices is as long as its header says: header + count x record bytes."""
+    header, record = b"", 0
+    with open(path, "rb") as f:
+        while not header.endswith(b"end_header\n"):
+            line = f.readline()
+            if not line:
+                return False
+            header += line
+    for words in (line.split() for line in header.decode("ascii", "replace").splitlines()):
+        if words[:2] == ["element", "vertex"] and int(words[2]) != count:
+            return False
+        if words[:1] == ["property"] and len(words) == 3:
+            record += _PLY_BYTES.get(words[1], 0)
+    return path.stat().st_size == len(header) + count * record
+
+
 def _write_ply(path: Path, points: np.ndarray, labels: np.ndarray | None) -> None:
     """Export positions, intensity and labels (when known) as .ply attributes with open3d's tensor API, atomically."""
     import contextlib
@@ -486,6 +519,8 @@ def _write_ply(path: Path, points: np.ndarray, labels: np.ndarray | None) -> Non
         os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp makes 0600; the umask's mode like every other output
         if not o3d.t.io.write_point_cloud(tmp, cloud):
             raise InputError(f"{path}: open3d could not write the .ply file")
+        if not _ply_is_whole(Path(tmp), len(points)):  # a full disk makes RPly print errors but report success
+            raise InputError(f"{path}: the .ply could not be written whole (disk full?); the file there is kept")
         os.replace(tmp, path)
     finally:
         with contextlib.suppress(FileNotFoundError):

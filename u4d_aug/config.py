@@ -207,7 +207,7 @@ def _coerce(value: Any, tp: Any, key: str, source: str) -> Any:
         if value in args:
             return value
         raise InputError(f"{source}: key '{key}' must be one of {', '.join(repr(a) for a in args)}, got {value!r}")
-    if dataclasses.is_dataclass(tp):
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         if isinstance(value, tp):
             return value
         if not isinstance(value, Mapping):

@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import argparse
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
 from u4d_aug.batches import net_row_mean
 from u4d_aug.errors import InputError
-from u4d_aug.io import atomic_torch_save, file_sha256, load_checkpoint
+from u4d_aug.io import TEMP_PREFIX, TEMP_SUFFIX, atomic_torch_save, file_sha256, load_checkpoint, make_folder
 from u4d_aug.metrics.extractors import load_extractor
+from u4d_aug.pipeline import load_generator
 from u4d_aug.run import newest_checkpoint
 from u4d_aug.stage import config_from_checkpoint
 from u4d_aug.weights import (
@@ -62,11 +64,17 @@ def training_row_mean(
 
 
 def export_weights(
-    checkpoint_path: str | Path, out_path: str | Path, int8: bool = False, data_root: str = "", probs_root: str = ""
+    checkpoint_path: str | Path,
+    out_path: str | Path,
+    int8: bool = False,
+    data_root: str = "",
+    probs_root: str = "",
+    load_segmentor: Callable[[Path], object] | None = None,
 ) -> dict:
     """Write the float16 (`int8`: large tensors as int8 groups) inference weights of a training checkpoint to
-    `out_path` atomically; returns what it wrote. A run folder stands for its newest checkpoint. A diffusion stage
-    also gets the row mean of its training images (`training_row_mean`; `data_root` / `probs_root` say where)."""
+    `out_path` atomically, once they load back (`write_loadable`); returns what it wrote. A run folder stands for its
+    newest checkpoint. A diffusion stage also gets the row mean of its training images (`training_row_mean`;
+    `data_root` / `probs_root` say where)."""
     source, out = checkpoint_file(Path(checkpoint_path)), Path(out_path)
     state = load_checkpoint(source, "training checkpoint")
     if is_exported(state):
@@ -100,6 +108,7 @@ def export_weights(
     }
     if shapes is not None:
         exported["int8"] = shapes
+    check_loads_back(out, exported, kind, source, load_segmentor)  # before the row mean, which reads the scans
     if kind == DIFFUSION_KIND:
         mean = training_row_mean(state, source, data_root, probs_root)
         if mean is not None:
@@ -110,6 +119,29 @@ def export_weights(
                 exported["row_mean_stage1"] = mean
     atomic_torch_save(out, exported)
     return exported
+
+
+def check_loads_back(
+    out: Path, exported: dict, kind: str, source: Path, load_segmentor: Callable[[Path], object] | None
+) -> None:
+    """InputError unless the kind's loader reads `exported` back from a temp file beside `out` (`generate`,
+    `evaluate` and `seg-predict` load it the same way), so that no file is written that they could not load.
+    Segmentation weights are read by `load_segmentor` (u4d_aug does not import segmentation)."""
+    temp = out.parent / f"{TEMP_PREFIX}{out.name}.check{TEMP_SUFFIX}"
+    make_folder(out.parent)
+    atomic_torch_save(temp, exported)
+    try:
+        if kind == DIFFUSION_KIND:
+            load_generator(temp)
+        elif kind in EXTRACTOR_KINDS:
+            load_extractor(temp)
+        elif load_segmentor is not None:
+            load_segmentor(temp)
+    except InputError as exc:
+        reason = str(exc).replace(str(temp), "the exported file")
+        raise InputError(f"{source}: its exported weights would not load back ({reason}); nothing written") from None
+    finally:
+        temp.unlink(missing_ok=True)
 
 
 def add_export_weights_arguments(parser: argparse.ArgumentParser) -> None:
@@ -133,9 +165,12 @@ def add_export_weights_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--probs-root", default="", help="stage 1: their seg-predict probabilities, likewise")
 
 
-def run_export_weights(args: argparse.Namespace) -> int:
-    """`u4d export-weights`: float16 inference weights + config + hash of a training checkpoint."""
-    exported = export_weights(args.checkpoint, args.out, args.int8, args.data_root, args.probs_root)
+def run_export_weights(args: argparse.Namespace, load_segmentor: Callable[[Path], object] | None = None) -> int:
+    """`u4d export-weights`: float16 inference weights + config + hash of a training checkpoint (segmentation weights
+    are checked with `load_segmentor`, which the CLI passes)."""
+    exported = export_weights(
+        args.checkpoint, args.out, args.int8, args.data_root, args.probs_root, load_segmentor=load_segmentor
+    )
     size, before = args.out.stat().st_size, checkpoint_file(args.checkpoint).stat().st_size
     print(
         f"{exported['kind']} weights: {args.out} ({size / 1e6:.2f} MB; checkpoint {before / 1e6:.2f} MB), "

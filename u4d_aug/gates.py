@@ -165,9 +165,9 @@ def run_gates(args: argparse.Namespace) -> int:
     if not math.isfinite(args.step):
         raise InputError(f"--step {args.step}: expected a finite number of metres per frame")
     loaded = load_generator(args.checkpoint)
-    frames = args.frames if args.frames is not None else loaded[1].frames
+    frames = args.frames if args.frames is not None else loaded.config.frames
     trajectory = gate_trajectory(loaded, frames, args.steps, torch.Generator().manual_seed(args.seed), step=args.step)
-    title = f"{args.checkpoint} ({loaded[1].diffusion.stage}, L={frames}, DDPM {args.steps})"
+    title = f"{args.checkpoint} ({loaded.config.diffusion.stage}, L={frames}, DDPM {args.steps})"
     plot_gates(args.png, trajectory, title)
     summary = summarise_gates(trajectory)
     if args.json:

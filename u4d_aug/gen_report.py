@@ -78,6 +78,27 @@ def bank_scan(bank: Path, index: int, frame: int = 0) -> np.ndarray:
     return read_kitti_scan(layout.scan_path(index, frame))
 
 
+def comparison_rows(
+    real: np.ndarray,
+    generated: dict[str, np.ndarray],
+    geometry: Geometry,
+    uncertainty: tuple[np.ndarray, np.ndarray] | None = None,
+    stage1: np.ndarray | None = None,
+) -> list[tuple[str, np.ndarray, str, str]]:
+    """The range-image rows of the comparison: (title, (H, W) image, colour map, colour-bar label with unit)."""
+    from u4d_aug.viz import DEPTH_LABEL, ENTROPY_LABEL
+
+    rows = [("real: depth (black: no return)", depth_image(real, geometry), "turbo", DEPTH_LABEL)]
+    if uncertainty is not None:
+        rows.append(("real: uncertainty, entropy H(p) of the class probabilities; P_u outlined in cyan",
+                     uncertainty[0], "magma", ENTROPY_LABEL))  # fmt: skip
+    if stage1 is not None:
+        rows.append(("U4D stage 1: x0_u, depth of the uncertain region", stage1, "turbo", DEPTH_LABEL))
+    for name, points in generated.items():
+        rows.append((f"{name}: depth", depth_image(points, geometry), "turbo", DEPTH_LABEL))
+    return rows
+
+
 def plot_comparison(
     path: Path,
     real: np.ndarray,
@@ -90,28 +111,23 @@ def plot_comparison(
     """One PNG: range-image rows (real, uncertainty, stage 1, each bank) above a row of BEVs (real, each bank)."""
     import matplotlib.pyplot as plt
 
-    from u4d_aug.viz import draw_bev, draw_range_image, save_figure
+    from u4d_aug.viz import draw_bev, draw_range_image, save_figure, top_margin
 
-    rows: list[tuple[str, np.ndarray, str]] = [("real: depth [m]", depth_image(real, geometry), "turbo")]
-    if uncertainty is not None:
-        rows.append(("real: uncertainty H(p) [nats], P_u outlined", uncertainty[0], "magma"))
-    if stage1 is not None:
-        rows.append(("U4D stage 1: x0_u (uncertain region) depth [m]", stage1, "turbo"))
-    for name, points in generated.items():
-        rows.append((f"{name}: depth [m]", depth_image(points, geometry), "turbo"))
+    rows = comparison_rows(real, generated, geometry, uncertainty, stage1)
     vmax = float(np.nanpercentile(rows[0][1], 99)) if np.isfinite(rows[0][1]).any() else geometry.sensor.max_range
 
     n_bev = 1 + len(generated)
-    fig = plt.figure(figsize=(4.2 * n_bev, 1.1 * len(rows) + 4.4))
-    grid = fig.add_gridspec(len(rows) + 1, n_bev, height_ratios=[1] * len(rows) + [4.4])
-    for r, (label, image, cmap) in enumerate(rows):
+    fig = plt.figure(figsize=(4.4 * n_bev, 1.4 * len(rows) + 4.6))
+    grid = fig.add_gridspec(len(rows) + 1, n_bev, height_ratios=[1.4] * len(rows) + [4.6], wspace=0.45, hspace=0.4,
+                            top=top_margin(fig))  # fmt: skip
+    for r, (label, image, cmap, unit) in enumerate(rows):
         ax = fig.add_subplot(grid[r, :])
         limits = (0.0, vmax) if cmap == "turbo" else (0.0, float(np.nanmax(image)) if np.isfinite(image).any() else 1)
-        draw_range_image(ax, image, label, cmap=cmap, vmin=limits[0], vmax=limits[1])
+        draw_range_image(ax, image, label, cmap=cmap, vmin=limits[0], vmax=limits[1], unit=unit)
         if cmap == "magma" and uncertainty is not None:
             ax.contour(uncertainty[1], levels=[0.5], colors="cyan", linewidths=0.5)
     for c, (name, points) in enumerate([("real", real), *generated.items()]):
-        draw_bev(fig.add_subplot(grid[-1, c]), points, title=f"{name}: BEV ({len(points):,} points)")
+        draw_bev(fig.add_subplot(grid[-1, c]), points, title=f"{name}: BEV by height ({len(points):,} points)")
     if title:
         fig.suptitle(title, fontsize=10)
     return save_figure(fig, path)

@@ -30,6 +30,8 @@ from u4d_aug.bank import (
     check_compatible,
     file_sha256,
     read_manifest,
+    record_digests,
+    recorded_digests,
     sample_digests,
     sequence_name,
     verify_samples,
@@ -54,6 +56,7 @@ from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, sh
 from u4d_aug.errors import InputError
 from u4d_aug.export_bank import export_bank
 from u4d_aug.io import load_checkpoint, remove_temp_files
+from u4d_aug.memory import check_fits
 from u4d_aug.outfolder import check_output_folder
 from u4d_aug.pipeline import (
     Loaded,
@@ -81,6 +84,9 @@ Scans = ScanDataset | NuscenesScanDataset  # single real scans (completion mode)
 Windows = SequenceDataset | NuscenesSequenceDataset  # L-frame windows with poses
 
 Mode = Literal["u4d", "baseline", "complete"]
+
+
+MANIFEST_ENTRY_BYTES = 2048  # one sample's entry in the manifest while it is built (dicts of digests and seeds)
 
 
 @dataclass
@@ -149,6 +155,7 @@ class GenerateConfig:
             raise InputError(f"stage1_mask_fraction must be in (0, 1] or null, got {self.stage1_mask_fraction}")
         if self.batch_size < 1:
             raise InputError(f"batch_size must be >= 1, got {self.batch_size}")
+        check_fits(MANIFEST_ENTRY_BYTES * self.num, f"num={self.num} (the bank's sample listing)", "lower num")
         if self.frames is not None and self.frames < 1:
             raise InputError(f"frames must be >= 1 or null (the generator's own), got {self.frames}")
         try:
@@ -516,13 +523,14 @@ def _write_block(run: _Generation, block: list[int], clouds: list[np.ndarray], s
         for frame in range(run.frames):
             images = [None if part is None else part[j, frame] for part in side]
             write_sample(run.layout, i, clouds[j * run.frames + frame], *images, frame=frame)
+        record_digests(run.layout, i)  # a sample without this record is generated again on resume
 
 
 def _finish_manifest(manifest: dict, layout: BankLayout, num: int, frames: int) -> None:
     """Rank 0, once every rank is done: the digests of the new samples, whether all are there, the empty ones."""
     for entry in manifest["samples"]:
         if "sha256" not in entry and layout.is_done(entry["index"]):
-            entry["sha256"] = sample_digests(layout, entry["index"])
+            entry["sha256"] = recorded_digests(layout, entry) or sample_digests(layout, entry["index"])
     manifest["complete"] = all(layout.is_done(i) for i in range(num))
     if frames == 1:
         manifest["empty"] = [i for i in range(num) if layout.is_empty(i)]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 from typing import Literal
 
 import torch
@@ -17,15 +18,27 @@ from torch.utils.data import IterableDataset, get_worker_info
 
 from u4d_aug.bank import BANK_SEQUENCE, sequence_name
 from u4d_aug.errors import InputError
-from u4d_aug.pipeline import Loaded, Sampler, generate_baseline, generate_u4d, to_points
+from u4d_aug.pipeline import Loaded, Sampler, generate_baseline, generate_u4d, load_generator, to_points
 
 __all__ = ["GeneratedScans"]
 
 Mode = Literal["u4d", "baseline"]
 
 
+def _loaded(net: Loaded | str | Path, i: int) -> Loaded:
+    """nets[i]: a `load_generator` result as is, a checkpoint / weights path loaded here; else an InputError."""
+    if isinstance(net, (str, Path)):
+        return load_generator(net)
+    if not (isinstance(net, tuple) and len(net) == 2 and isinstance(net[0], torch.nn.Module)):
+        raise InputError(
+            f"GeneratedScans: nets[{i}] is a {type(net).__name__}; expected load_generator(...) or a checkpoint path"
+        )
+    return net
+
+
 class GeneratedScans(IterableDataset):
-    """U4D (nets = [stage 1, stage 2]) or baseline (nets = [net]) scans: {points, labels None, seq, frame}.
+    """U4D (nets = [stage 1, stage 2]) or baseline (nets = [net]) scans: {points, labels None, seq, frame}; a net is
+    `load_generator(...)`'s result or a checkpoint path.
 
     `num` samples (None: endless); a generator trained on L > 1 frames gives L scans per sample.
     """
@@ -33,7 +46,7 @@ class GeneratedScans(IterableDataset):
     def __init__(
         self,
         mode: Mode,
-        nets: Sequence[Loaded],
+        nets: Sequence[Loaded | str | Path],
         num: int | None = None,
         steps: int = 32,
         seed: int = 0,
@@ -55,14 +68,15 @@ class GeneratedScans(IterableDataset):
                 f"GeneratedScans: need num >= 0, steps >= 1, batch_size >= 1; got {num}, {steps}, {batch_size}"
             )
         self.mode = mode
-        self.nets = list(nets)
+        self.nets = [_loaded(net, i) for i, net in enumerate(nets)]
         self.num = num
         self.steps = steps
         self.seed = seed
         self.batch_size = batch_size
         self.sampler = sampler
         self.stage1_steps = stage1_steps
-        self.frames = frames or self.nets[-1][1].frames
+        _, cfg = self.nets[-1]
+        self.frames = frames or cfg.frames
 
     def __iter__(self) -> Iterator[dict]:
         worker = get_worker_info()
@@ -79,7 +93,7 @@ class GeneratedScans(IterableDataset):
         generators = [torch.Generator().manual_seed(self.seed + i) for i in block]
         with torch.no_grad():
             x0 = self._sample(len(block), generators)  # (n, [L,] 2, H, W)
-        cfg = self.nets[-1][1]
+        _, cfg = self.nets[-1]
         clouds = to_points(x0, cfg.sensor, cfg.row_mode)  # n·L clouds, samples then frames
         for j, i in enumerate(block):
             for frame in range(self.frames):

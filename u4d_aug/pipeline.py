@@ -13,7 +13,7 @@ from __future__ import annotations
 import functools
 import math
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -41,16 +41,25 @@ from u4d_aug.sampling import (
 from u4d_aug.sampling import sample as sample_named
 from u4d_aug.stage import DiffusionTrainConfig, build_net, config_from_checkpoint
 from u4d_aug.validate import check_state_fits
-from u4d_aug.weights import is_exported, load_exported
+from u4d_aug.weights import check_finite_weight, is_exported, load_exported
 
 # u4d_aug.sampling.sample: DDIM, ancestral DDPM, DPM-Solver++(2M) and its SDE form; the last two also on grid="logsnr"
 Sampler = Literal["ddim", "ddpm", "dpmpp2m", "dpmpp2m-sde"]
-Loaded = tuple[RangeUNet, DiffusionTrainConfig]
+# what the samplers take: a `LoadedGenerator`, or any (net, config) pair such as (MeanStart(net, ...), config)
+Loaded = tuple[nn.Module, DiffusionTrainConfig]
 
 
-def load_generator(ckpt: str | Path, device: torch.device | str = "cpu") -> Loaded:
-    """(net with the EMA weights, in eval mode; its training config) from a checkpoint, exported weights
-    (`u4d_aug.weights`) or a run folder."""
+class LoadedGenerator(NamedTuple):
+    """A diffusion net with its EMA weights, in eval mode, and its training config (`load_generator`); unpacks as
+    `net, config = ...`."""
+
+    net: RangeUNet
+    config: DiffusionTrainConfig
+
+
+def load_generator(ckpt: str | Path, device: torch.device | str = "cpu") -> LoadedGenerator:
+    """LoadedGenerator(net with the EMA weights, in eval mode; its training config) from a checkpoint, exported
+    weights (`u4d_aug.weights`) or a run folder."""
     path = Path(ckpt)
     if path.is_dir():
         path = newest_checkpoint(path)
@@ -70,12 +79,17 @@ def load_generator(ckpt: str | Path, device: torch.device | str = "cpu") -> Load
         ema = EMA(net)
         ema.load_state_dict(shadow)
         ema.copy_to(net)
-    return net.requires_grad_(False).to(device).eval(), cfg
+        for name, tensor in net.state_dict().items():  # a diverged run's EMA would sample NaN scans
+            if tensor.is_floating_point():
+                check_finite_weight(tensor, name, f"{path} (ema)")
+    return LoadedGenerator(net.requires_grad_(False).to(device).eval(), cfg)
 
 
 class MeanStart(nn.Module):
     """A loaded net whose x̂0 is `mean` (C, H, 1) below log-SNR `below` (`sampling.mean_start`): the samplers' first
     steps start from the training scans' mean instead of an ε-net's x̂0 at α ≈ 0 (clamped noise)."""
+
+    mean: Tensor  # a buffer (C, H, 1)
 
     def __init__(self, net: nn.Module, mean: Tensor, below: float) -> None:
         super().__init__()
@@ -85,7 +99,7 @@ class MeanStart(nn.Module):
 
     def forward(
         self, x_t: Tensor, log_snr: Tensor, cond: Tensor | None = None, **kwargs
-    ) -> tuple[Tensor, Tensor | None]:
+    ) -> Tensor | tuple[Tensor, Any]:
         def denoise(x: Tensor, lam: Tensor, c: Tensor | None) -> tuple[Tensor, Tensor | None]:
             return self.net(x, lam, c, **kwargs)
 
@@ -94,7 +108,8 @@ class MeanStart(nn.Module):
 
 def _check_stage(loaded: Loaded, stage: str, role: str) -> None:
     """A net for `role`: a checkpoint of that stage, or a u4d net (both stages in one) for stage 1 or stage 2."""
-    got = loaded[1].diffusion.stage
+    _, cfg = loaded
+    got = cfg.diffusion.stage
     if got != stage and not (got == "u4d" and stage in ("stage1", "stage2")):
         raise InputError(f"{role}: expected a {stage} (or one-net u4d) checkpoint, got {got}")
 
@@ -130,7 +145,7 @@ def denoiser(
                 f"a u4d net samples stage 1 (task {STAGE1_TASK}) or stage 2 (task {STAGE2_TASK}), got {task}"
             )
         inputs["task"] = task
-    denoise = functools.partial(_with_inputs, inner, inputs) if inputs else inner
+    denoise: DenoiseFn = functools.partial(_with_inputs, inner, inputs) if inputs else inner
     if cfg.diffusion.parameterization == "v":
         denoise = functools.partial(_eps_of_v, denoise)
     if start is not None:
@@ -167,7 +182,7 @@ def _sample(
     return sample_named(sampler, denoise, shape, steps, generator, cond=cond, device=device, grid=grid)
 
 
-def _with_inputs(net: RangeUNet, inputs: dict, x_t: Tensor, log_snr: Tensor, cond: Tensor | None):
+def _with_inputs(net: nn.Module, inputs: dict, x_t: Tensor, log_snr: Tensor, cond: Tensor | None):
     """The denoise function of a net with per-sample inputs (`poses`, `task`): ε̂, mask logits of (x_t, log-SNR,
     cond); a u4d net's stage-1 task gets the empty condition."""
     if inputs.get("task") == STAGE1_TASK and cond is None:
@@ -225,9 +240,10 @@ def generate_stage1(
     `mask_fraction`: m_p keeps at most this share of each frame's pixels (`cap_mask`; None: the threshold alone).
     """
     _check_stage(stage1, "stage1", "stage 1")
-    shape = _batch_shape(n, frames or stage1[1].frames)
+    _, cfg = stage1
+    shape = _batch_shape(n, frames or cfg.frames)
     sample = _sample(stage1, shape, steps, generator, None, sampler, grid, motion, task=STAGE1_TASK)
-    m_u = mask_from_logits(sample.extra, stage1[1].diffusion.mask_pos_weight)  # (n, [L,] 1, H, W), last step
+    m_u = mask_from_logits(sample.extra, cfg.diffusion.mask_pos_weight)  # (n, [L,] 1, H, W), last step
     if mask_fraction is not None:
         m_u = cap_mask(m_u, sample.extra, mask_fraction)
     x0_u = torch.where(m_u.bool(), sample.x0, torch.full_like(sample.x0, -1.0))
@@ -286,11 +302,12 @@ def generate_u4d(
     Sequences have `frames` = L frames (None: stage 2's training L); stage 1 makes the same L frames. `motion`
     (n, L, 4) conditions whichever stages were trained with an ego-motion input.
     """
-    if (stage1[1].height, stage1[1].width) != (stage2[1].height, stage2[1].width):
+    (_, cfg1), (_, cfg2) = stage1, stage2
+    if (cfg1.height, cfg1.width) != (cfg2.height, cfg2.width):
         raise InputError("stage 1 and stage 2 checkpoints were trained on different image sizes")
-    frames = frames or stage2[1].frames
-    motion1 = motion if stage1[1].net.pose_dim else None
-    motion2 = motion if stage2[1].net.pose_dim else None
+    frames = frames or cfg2.frames
+    motion1 = motion if cfg1.net.pose_dim else None
+    motion2 = motion if cfg2.net.pose_dim else None
     first = generate_stage1(
         stage1,
         n,
@@ -344,8 +361,9 @@ def generate_u4d_propagated(
     first = generate_u4d(
         stage1, stage2, n, steps, generator, sampler, stage1_steps, frames, grid, motion, mask_fraction
     )
-    x0_u, m_u = _warp_first_frames(first["x0"], poses, stage2[1])  # (n, L, 2|1, H, W)
-    motion2 = motion if stage2[1].net.pose_dim else None
+    _, cfg2 = stage2
+    x0_u, m_u = _warp_first_frames(first["x0"], poses, cfg2)  # (n, L, 2|1, H, W)
+    motion2 = motion if cfg2.net.pose_dim else None
     second = complete(stage2, x0_u, m_u, steps, generator, sampler, grid=grid, motion=motion2, pin_known=pin_known)
     x0 = torch.where(m_u.bool(), x0_u.to(second["x0"].device), second["x0"])
     return {"x0": x0, "x0_u": x0_u, "m_u_pred": m_u}
@@ -364,7 +382,8 @@ def generate_baseline(
     """R2DM-style unconditional x0 (n, [L,] 2, H, W) (L = `frames`, None: the frames the net was trained with);
     `motion` (n, L, 4) for a net trained with an ego-motion input."""
     _check_stage(net, "baseline", "baseline")
-    shape = _batch_shape(n, frames or net[1].frames)
+    _, cfg = net
+    shape = _batch_shape(n, frames or cfg.frames)
     return {"x0": _sample(net, shape, steps, generator, None, sampler, grid, motion).x0}
 
 
@@ -386,7 +405,8 @@ def generate_baseline_propagated(
     poses = _propagation_poses(poses, n)
     frames = poses.shape[1]
     first = generate_baseline(net, n, steps, generator, sampler, frames, grid, motion)["x0"]  # (n, L, 2, H, W)
-    x0_u, m_u = _warp_first_frames(first, poses, net[1])  # (n, L, 2|1, H, W)
+    _, cfg = net
+    x0_u, m_u = _warp_first_frames(first, poses, cfg)  # (n, L, 2|1, H, W)
     x0 = inpaint(net, x0_u, m_u, steps, generator, sampler, grid, motion)["x0"]
     return {"x0": x0, "x0_u": x0_u, "m_u_pred": m_u}
 
@@ -405,7 +425,7 @@ def inpaint(
     (`replace_known`, RePaint-style without resampling) and x0_u exactly there; the single-stage counterpart of
     `complete`."""
     _check_stage(net, "baseline", "baseline")
-    cfg = net[1]
+    _, cfg = net
     if (
         x0_u.dim() not in (4, 5)
         or x0_u.shape[-3:] != (2, cfg.height, cfg.width)

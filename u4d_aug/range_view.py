@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from u4d_aug.data.sensors import Sensor
+from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.errors import InputError
 
 __all__ = [
@@ -86,13 +86,14 @@ def decode_depth(x: Tensor, max_depth: float) -> Tensor:
 
 
 def ray_angles(
-    sensor: Sensor,
+    sensor: Sensor | str,
     height: int | None = None,
     width: int | None = None,
     row_mode: RowMode = "beam",
     device: torch.device | str | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Ray angles at bin centres: elevation (H,) radians top row first, azimuth atan2(y, x) (W,) radians."""
+    sensor = _as_sensor(sensor)
     height = sensor.height if height is None else height
     width = sensor.width if width is None else width
     _check_row_mode(row_mode)
@@ -221,28 +222,43 @@ def _project_flat(
 
 
 def _as_points(points: Tensor | np.ndarray) -> Tensor:
-    return torch.as_tensor(points) if isinstance(points, np.ndarray) else points
+    """(N, >= 4) points as a tensor; anything else is an InputError naming `points`."""
+    points = torch.as_tensor(points) if isinstance(points, np.ndarray) else points
+    if not isinstance(points, Tensor) or points.ndim != 2 or points.shape[1] < 4:
+        got = tuple(points.shape) if isinstance(points, Tensor) else type(points).__name__
+        raise InputError(f"points: expected shape (N, 4) (x, y, z, intensity), got {got}")
+    return points
+
+
+def _as_sensor(sensor: Sensor | str) -> Sensor:
+    """A Sensor, or one named ('hdl64', 'hdl32', ...: `data.sensors.get_sensor`)."""
+    if isinstance(sensor, str):
+        return get_sensor(sensor)
+    if not isinstance(sensor, Sensor):
+        raise InputError(f"sensor: expected a Sensor or a sensor name such as 'hdl64', got {type(sensor).__name__}")
+    return sensor
 
 
 def project(
     points: Tensor | np.ndarray,
-    sensor: Sensor,
+    sensor: Sensor | str,
     height: int | None = None,
     width: int | None = None,
     row_mode: RowMode = "beam",
 ) -> Projection:
-    """Project one scan (N, 4) [x, y, z, intensity] to an (H, W) range image; nearest point wins a pixel."""
-    points = _as_points(points)
-    height = sensor.height if height is None else height
-    width = sensor.width if width is None else width
-    depth, reflectance, mask, pixel, winner = _project_flat(points, None, 1, sensor, height, width, row_mode)
-    offsets = torch.tensor([0, points.shape[0]], dtype=torch.int64, device=points.device)
+    """Project one scan (N, 4) [x, y, z, intensity] to an (H, W) range image; nearest point wins a pixel.
+    `sensor` may be given by name ('hdl64')."""
+    scan, spec = _as_points(points), _as_sensor(sensor)
+    height = spec.height if height is None else height
+    width = spec.width if width is None else width
+    depth, reflectance, mask, pixel, winner = _project_flat(scan, None, 1, spec, height, width, row_mode)
+    offsets = torch.tensor([0, scan.shape[0]], dtype=torch.int64, device=scan.device)
     return Projection(depth[0], reflectance[0], mask[0], pixel, winner[0], offsets)
 
 
 def project_batch(
     points: list[Tensor] | list[np.ndarray],
-    sensor: Sensor,
+    sensor: Sensor | str,
     height: int | None = None,
     width: int | None = None,
     row_mode: RowMode = "beam",
@@ -250,15 +266,15 @@ def project_batch(
     """Project B scans at once (concatenated with batch offsets) to (B, H, W); equals `project` per scan."""
     if len(points) == 0:
         raise InputError("project_batch needs at least one scan")
-    scans = [_as_points(p) for p in points]
-    height = sensor.height if height is None else height
-    width = sensor.width if width is None else width
+    scans, spec = [_as_points(p) for p in points], _as_sensor(sensor)
+    height = spec.height if height is None else height
+    width = spec.width if width is None else width
     device = scans[0].device
     counts = torch.tensor([s.shape[0] for s in scans], dtype=torch.int64, device=device)
     batch = torch.repeat_interleave(torch.arange(len(scans), device=device), counts)  # (N,)
     offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)])  # (B+1,)
     depth, reflectance, mask, pixel, winner = _project_flat(
-        torch.cat(scans), batch, len(scans), sensor, height, width, row_mode
+        torch.cat(scans), batch, len(scans), spec, height, width, row_mode
     )
     return Projection(depth, reflectance, mask, pixel, winner, offsets)
 
@@ -332,13 +348,13 @@ def scatter_to_image(values: Tensor, projection: Projection, fill: float | int =
 
 def roundtrip_stats(
     points: Tensor | np.ndarray,
-    sensor: Sensor,
+    sensor: Sensor | str,
     height: int | None = None,
     width: int | None = None,
     row_mode: RowMode = "beam",
 ) -> dict[str, float | int]:
     """Project -> encode -> unproject; 3D error of every winning point vs its pixel's reconstruction."""
-    points = _as_points(points).float()
+    points, sensor = _as_points(points).float(), _as_sensor(sensor)
     projection = project(points, sensor, height, width, row_mode)
     xyz_hat, valid = unproject(to_image(projection, sensor), sensor, row_mode, mask=projection.mask)
     shown = projection.winner[valid]  # (M,) winning point indices

@@ -124,7 +124,10 @@ def restore(
     hint = f"the config changed: {'; '.join(changed)}" if changed else ""
     check_state_fits(ckpt.get("model"), model.state_dict(), f"{start.path} (model)", hint)
     model.load_state_dict(ckpt["model"])
-    optimizer.load_state_dict(ckpt["optimizer"])
+    try:
+        optimizer.load_state_dict(ckpt["optimizer"])
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+        raise InputError(f"{start.path}: its 'optimizer' state does not fit this run's optimizer ({exc})") from None
     if ema is not None:
         if ckpt.get("ema") is None:
             raise InputError(f"{start.path}: has no EMA / teacher weights (its run had none, e.g. mode 'supervised')")

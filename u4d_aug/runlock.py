@@ -95,8 +95,12 @@ def _create(path: Path, holder: dict) -> bool:
         raise InputError(
             f"{path.parent}: cannot lock the output folder ({exc.strerror or type(exc).__name__})"
         ) from None
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-        f.write(json.dumps(holder) + "\n")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(json.dumps(holder) + "\n")
+    except OSError as exc:  # a full disk: no empty lock left behind, one line naming it
+        path.unlink(missing_ok=True)
+        raise InputError(f"{path}: cannot write the run lock ({exc.strerror or type(exc).__name__})") from None
     return True
 
 
@@ -113,9 +117,28 @@ def _take_over(path: Path, seen: dict, holder: dict) -> bool:
         os.close(folder_fd)  # releases the flock
 
 
+def check_links_inside(folder: Path) -> None:
+    """InputError naming the first symbolic link under `folder` that leads outside it (a run appends and writes
+    through links: a linked log or checkpoints/ folder would put its files elsewhere); links inside it are fine."""
+    root = folder.resolve()
+    for parent, dirs, files in os.walk(folder):  # does not descend into linked folders
+        for name in sorted(dirs + files):
+            link = Path(parent) / name
+            if not link.is_symlink():
+                continue
+            target = link.resolve()
+            if target != root and root not in target.parents:
+                raise InputError(
+                    f"{link}: a symbolic link to {target}, outside the output folder {folder}; remove it or choose "
+                    "another output folder (nothing is written through a link that leaves it)"
+                )
+
+
 def acquire(folder: str | os.PathLike, name: str = LOCK_NAME) -> Path:
-    """Create FOLDER/name for this process (creating the folder); InputError when a live run holds it."""
+    """Create FOLDER/name for this process (creating the folder); InputError when a live run holds it or a link
+    inside it leads out of it."""
     folder = make_folder(folder)
+    check_links_inside(folder)
     path = folder / name
     holder = this_process()
     for _ in range(3):  # the lock can vanish or change between our looks at it: look again

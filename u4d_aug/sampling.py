@@ -19,6 +19,8 @@ import torch
 from torch import Tensor
 
 from u4d_aug.diffusion import alpha_sigma, log_snr
+from u4d_aug.errors import InputError
+from u4d_aug.memory import check_fits
 from u4d_aug.progress import progress_bar
 
 DenoiseFn = Callable[[Tensor, Tensor, "Tensor | None"], "Tensor | tuple[Tensor, Any]"]
@@ -279,15 +281,26 @@ def _sample(
     return Sample(x, extra)
 
 
+GRID_BYTES_PER_STEP = 64  # a step's grid values as float64 tensors and python floats
+
+
 def _start(
     shape: tuple[int, ...], steps: int, generator: Generators, device: torch.device | str | None
 ) -> tuple[int, torch.device, Tensor]:
     """(batch B, device, x_1 ~ N(0, I) of `shape`) after checking steps >= 1 and one generator per element."""
-    if steps < 1:
-        raise ValueError(f"sampling steps must be >= 1, got {steps}")
+    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
+        raise InputError(f"steps: sampling steps must be an integer >= 1, got {steps!r}")
+    check_fits(GRID_BYTES_PER_STEP * steps, f"steps={steps} (the sampler's log-SNR grid)", "lower steps")
     batch = shape[0]
+    if not isinstance(batch, int) or batch < 1:
+        raise InputError(f"n: the number of samples must be an integer >= 1, got {batch!r}")
+    if isinstance(generator, (str, bytes)) or not (
+        isinstance(generator, torch.Generator)
+        or (isinstance(generator, Sequence) and all(isinstance(g, torch.Generator) for g in generator))
+    ):
+        raise InputError(f"generator: expected a torch.Generator or one per sample, got {type(generator).__name__}")
     if not isinstance(generator, torch.Generator) and len(generator) != batch:
-        raise ValueError(f"got {len(generator)} generators for a batch of {batch}")
+        raise InputError(f"generator: got {len(generator)} generators for a batch of {batch} (one per sample)")
     device = torch.device(device) if device is not None else _first(generator).device
     return batch, device, _randn(shape, generator, device)
 

@@ -177,4 +177,8 @@ def config_from_checkpoint(ckpt: dict, source: str) -> DiffusionTrainConfig:
     """The resolved DiffusionTrainConfig stored in a checkpoint."""
     if ckpt.get("kind") != CHECKPOINT_KIND:
         raise InputError(f"{source}: not a u4d train-diffusion checkpoint")
-    return config_from_dict(DiffusionTrainConfig, ckpt["config"], source=source)
+    config = ckpt.get("config")
+    if not isinstance(config, dict):
+        got = "none" if config is None else f"a {type(config).__name__}"
+        raise InputError(f"{source}: 'config' must be the run's resolved settings (a mapping), got {got}")
+    return config_from_dict(DiffusionTrainConfig, config, source=source)

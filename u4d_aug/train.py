@@ -31,6 +31,7 @@ from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, cleanup, ini
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.io import append_jsonl
+from u4d_aug.memory import check_net_fits
 from u4d_aug.nn.unet import RangeUNet
 from u4d_aug.progress import progress_bar
 from u4d_aug.run import LOG_NAME, Clock, Start, begin_run, open_run, restore, save_checkpoint
@@ -65,6 +66,7 @@ def train(cfg: DiffusionTrainConfig, resume: str | Path | None = None, progress:
 
     Rank 0 holds the run lock of OUT (`u4d_aug.runlock`) for the whole run: a second run on OUT is refused.
     """
+    check_net_fits(lambda: build_net(cfg, "meta"), "the net of net.*", "reduce net.base_channels or other net sizes")
     info: DistInfo = init_distributed(cfg.device)
     with run_lock(cfg.out, enabled=info.is_main):
         return train_locked(cfg, info, resume, progress)
@@ -244,8 +246,9 @@ def _save_sample_png(net: RangeUNet, cfg: DiffusionTrainConfig, images: RangeIma
     for index, frame in enumerate(frames):
         which = f", frame {index}" if len(frames) > 1 else ""
         title = f"{cfg.diffusion.stage} depth (EMA, DDPM {cfg.sample_steps}{which})"
-        draw_range_image(axes[index], frame[0], title)
-    draw_range_image(axes[-1], frames[0, 1], "reflectance" + (", frame 0" if len(frames) > 1 else ""))
+        draw_range_image(axes[index], frame[0], title, vmin=-1, vmax=1, unit="log-depth x0 [-1, 1]")
+    draw_range_image(axes[-1], frames[0, 1], "reflectance" + (", frame 0" if len(frames) > 1 else ""), vmin=-1,
+                     vmax=1, unit="intensity x0 [-1, 1]")  # fmt: skip
     save_figure(fig, path)
 
 

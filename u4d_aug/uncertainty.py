@@ -43,7 +43,33 @@ def load_probs(path: str | Path, num_points: int | None = None) -> np.ndarray:
     bad = int(np.count_nonzero(~np.isfinite(probs)))
     if bad:
         raise InputError(f"{path}: {bad} probabilities are NaN/inf; expected values in [0, 1]")
+    check_probabilities(probs, str(path))
     return probs
+
+
+# float16 files: each value within 1e-3 of [0, 1], each row's sum within 1e-2 of 1 (K rounding errors of 2^-11)
+VALUE_TOLERANCE, SUM_TOLERANCE = 1e-3, 1e-2
+
+
+def check_probabilities(probs: np.ndarray, source: str) -> None:
+    """InputError unless every value of the (N, K) array is in [0, 1] and every row sums to 1 (within the
+    tolerances): logits or scores passed as probabilities would give negative or meaningless entropies."""
+    values = probs.astype(np.float32, copy=False)
+    outside = int(np.count_nonzero((values < -VALUE_TOLERANCE) | (values > 1 + VALUE_TOLERANCE)))
+    if outside:
+        low, high = float(values.min()), float(values.max())
+        raise InputError(
+            f"{source}: {outside} values outside [0, 1] (min {low:.4g}, max {high:.4g}); expected class "
+            "probabilities (softmax), not logits"
+        )
+    sums = values.sum(axis=1)
+    off = np.abs(sums - 1.0) > SUM_TOLERANCE
+    if off.any():
+        worst = float(sums[np.argmax(np.abs(sums - 1.0))])
+        raise InputError(
+            f"{source}: {int(off.sum())} of {len(sums)} rows do not sum to 1 (e.g. {worst:.4g}); expected class "
+            "probabilities (softmax) per point"
+        )
 
 
 def entropy(probs: Tensor | np.ndarray) -> Tensor:
@@ -54,7 +80,10 @@ def entropy(probs: Tensor | np.ndarray) -> Tensor:
     p = torch.as_tensor(probs).float()  # float16 files: compute in float32
     if not bool(torch.isfinite(p).all()):
         raise InputError(f"probabilities hold {int((~torch.isfinite(p)).sum())} NaN/inf values; expected [0, 1]")
-    p = p.clamp(min=0.0)
+    outside = int(((p < -VALUE_TOLERANCE) | (p > 1 + VALUE_TOLERANCE)).sum())
+    if outside:
+        raise InputError(f"probabilities hold {outside} values outside [0, 1]; expected softmax outputs, not logits")
+    p = p.clamp(0.0, 1.0)
     return -torch.special.xlogy(p, p).sum(dim=-1)
 
 

@@ -89,6 +89,13 @@ def inference_weights(state: dict, kind: str, source: str) -> dict[str, Tensor]:
     return weights
 
 
+def check_finite_weight(tensor: Tensor, name: str, source: str) -> None:
+    """InputError when a floating weight holds NaN or inf (a diverged run): a net of them generates nothing."""
+    bad = int((~torch.isfinite(tensor)).sum())
+    if bad:
+        raise InputError(f"{source}: weight {name} has {bad} non-finite values (NaN/inf) of {tensor.numel()}")
+
+
 def half_state(model: dict[str, Tensor], source: str) -> dict[str, Tensor]:
     """Floating tensors cast to float16, others copied; a weight beyond float16's range is an error, not an inf."""
     limit = torch.finfo(torch.float16).max
@@ -98,6 +105,7 @@ def half_state(model: dict[str, Tensor], source: str) -> dict[str, Tensor]:
             raise InputError(f"{source}: weight {name} is a {type(tensor).__name__}, not a tensor")
         tensor = tensor.detach().cpu()
         if tensor.is_floating_point():
+            check_finite_weight(tensor, name, source)
             finite = tensor[torch.isfinite(tensor)]
             if finite.numel() and float(finite.abs().max()) > limit:
                 raise InputError(f"{source}: weight {name} exceeds the float16 range (|w| > {limit:g})")
@@ -166,6 +174,9 @@ def exported_model(state: dict, source: str) -> dict[str, Tensor]:
     model, config = state.get("model"), state.get("config")
     if not isinstance(model, dict) or not isinstance(config, dict):
         raise InputError(f"{source}: exported weights without 'model' and 'config'")
+    odd = [name for name, value in model.items() if not isinstance(value, Tensor)]
+    if odd:
+        raise InputError(f"{source}: 'model' entry {odd[0]!r} is a {type(model[odd[0]]).__name__}, not a tensor")
     digest = weights_digest(model, config)
     if digest != state.get("weights_hash"):
         raise InputError(
@@ -173,6 +184,9 @@ def exported_model(state: dict, source: str) -> dict[str, Tensor]:
         )
     if "int8" in state:
         model = dequantize_int8(model, state["int8"], source)
+    for name, tensor in model.items():
+        if isinstance(tensor, Tensor) and tensor.is_floating_point():
+            check_finite_weight(tensor, name, source)
     return float32_state(model)
 
 

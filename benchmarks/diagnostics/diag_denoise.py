@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise InputError(f"--nets {spec!r}: expected NAME=WEIGHTS[@stage1|@stage2]")
             path, _, role = path.partition("@")
             loaded = load_generator(path)
-            cfg = loaded[1]
+            cfg = loaded.config
             if (cfg.diffusion.stage == "u4d") != (role in ("stage1", "stage2")):
                 raise InputError(f"--nets {spec!r}: @stage1 or @stage2 names the task of a one-net u4d checkpoint")
             task = {"stage1": STAGE1_TASK, "stage2": STAGE2_TASK}.get(role)

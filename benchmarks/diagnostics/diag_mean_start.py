@@ -31,7 +31,7 @@ def main() -> int:
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    cfg = pipeline.load_generator("weights/u4d_stage2.pt")[1]
+    cfg = pipeline.load_generator("weights/u4d_stage2.pt").config
     mean = row_mean(dataclasses.replace(cfg, data_root=args.data_root), "x0")  # (2, H, 1)
     original = pipeline.sample_named
 

@@ -89,9 +89,13 @@ def test_a_bank_still_being_generated_cannot_be_used(tmp_path):
     bank = write_bank(tmp_path / "bank")
     arm = ArmConfig("mt+u4d", "semi", bank=bank)
     assert bank_problem(arm) is None  # a bank written by other tools has no manifest
-    (bank / "manifest.json").write_text(json.dumps({"mode": "u4d", "samples": [0, 1], "complete": False}))
+    (bank / "manifest.json").write_text(
+        json.dumps({"mode": "u4d", "samples": [{"index": 0}, {"index": 1}], "complete": False})
+    )
     assert "incomplete (2 scans so far)" in bank_problem(arm)
-    (bank / "manifest.json").write_text(json.dumps({"mode": "u4d", "samples": [0, 1], "complete": True}))
+    (bank / "manifest.json").write_text(
+        json.dumps({"mode": "u4d", "samples": [{"index": 0}, {"index": 1}], "complete": True})
+    )
     assert bank_problem(arm) is None
 
 

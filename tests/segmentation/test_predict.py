@@ -102,12 +102,14 @@ def test_predict_refuses_to_mix_checkpoints_and_drops_nan_points(trained, tmp_pa
     nan_root = tmp_path / "nan"
     points = read_kitti_scan(root / "sequences" / "00" / "velodyne" / "000000.bin").copy()
     points[5] = np.nan
+    points[6, :3] = 3e38  # finite, but a voxel grid would overflow: NaN probabilities if it were kept
+    points[7, 0] = 2e4  # 20 km: no sensor's return
     write_kitti_scan(nan_root / "sequences" / "00" / "velodyne" / "000000.bin", points)
-    with pytest.warns(UserWarning, match="dropped 1 of 3000 points with NaN/inf values"):
+    with pytest.warns(UserWarning, match=r"dropped 3 of 3000 points \(1 with NaN/inf values, 2 beyond 10000 m\)"):
         predict_root(ckpt, nan_root, tmp_path / "nan_probs", progress=False)
     kept = load_kitti_frame(nan_root / "sequences" / "00" / "velodyne" / "000000.bin").points
     probs = load_probs(probs_path(tmp_path / "nan_probs", "00", "000000"), len(kept)).astype(np.float32)
-    assert probs.shape == (len(points) - 1, 19) and np.isfinite(probs).all()
+    assert probs.shape == (len(points) - 3, 19) and np.isfinite(probs).all()
 
 
 def test_a_checkpoint_of_another_kind_is_refused_in_one_line(trained, tmp_path):

@@ -7,7 +7,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from u4d_aug.bank import BankLayout, named_banks, sequence_ids, write_sample
+from u4d_aug.bank import (
+    BankLayout,
+    named_banks,
+    read_manifest,
+    record_digests,
+    sequence_ids,
+    verify_samples,
+    write_manifest,
+    write_sample,
+)
 from u4d_aug.data.datasets import ScanDataset
 from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.errors import InputError
@@ -56,3 +65,45 @@ def test_named_banks_and_their_sequences(tmp_path: Path) -> None:
         named_banks([f"x={tmp_path}"], flag="--real")
     with pytest.raises(InputError, match="'a' is given twice"):
         named_banks([f"a={tmp_path / 'a'}", f"a={tmp_path / 'empty'}"])
+
+
+@pytest.mark.parametrize(
+    ("manifest", "message"),
+    [
+        ("[]", r"expected a json object \(a bank.s manifest\), got a list"),
+        ('{"samples": 5}', "'samples' must be a list, got int 5"),
+        ('{"frames": "two"}', "'frames' must be an integer, got str 'two'"),
+        ('{"frames": true}', "'frames' must be an integer"),
+        ('{"width": 0}', "'width' must be >= 1, got 0"),
+        ('{"export": []}', "'export' must be an object"),
+        ('{"samples": [{"index": 0}, {"seed": 1}]}', r"samples\[1\] must be an object with an integer 'index'"),
+        ('{"samples": [[0]]}', r"samples\[0\] must be an object"),
+        ('{"samples": [{"index": -1}]}', r"samples\[0\] must be an object with an integer 'index' >= 0"),
+        (b"\xff\xfe{", "not valid json"),
+    ],
+)
+def test_a_manifest_of_the_wrong_shape_is_one_line_naming_the_field(tmp_path, manifest, message):
+    path = tmp_path / "manifest.json"
+    path.write_bytes(manifest if isinstance(manifest, bytes) else manifest.encode())
+    with pytest.raises(InputError, match=rf"manifest.json: {message}"):
+        read_manifest(tmp_path)
+
+
+def test_a_good_manifest_reads_back(tmp_path):
+    record = {"mode": "baseline", "frames": 1, "samples": [{"index": 0, "sha256": {}}], "complete": True}
+    write_manifest(tmp_path, record)
+    assert read_manifest(tmp_path) == record and read_manifest(tmp_path / "none") is None
+
+
+def test_samples_without_recorded_digests_are_removed_recorded_ones_kept(tmp_path, caplog):
+    layout = BankLayout(tmp_path)
+    points = np.ones((3, 4), np.float32)
+    for index in range(3):
+        write_sample(layout, index, points * index)
+    digests = record_digests(layout, 0)
+    record_digests(layout, 1)  # recorded in its digest file only (the manifest was not written again)
+    manifest = {"samples": [{"index": 0, "sha256": digests}, {"index": 1}, {"index": 2}]}
+    with caplog.at_level("WARNING", logger="u4d_aug.bank"):
+        verified = verify_samples(layout, manifest)
+    assert set(verified) == {0, 1} and verified[0] == digests
+    assert "sample 2 has no recorded digests" in caplog.text and not layout.is_done(2)

@@ -109,3 +109,18 @@ def test_the_command_prints_kind_hash_and_step(untrained_checkpoints, tmp_path, 
     printed = capsys.readouterr().out
     digest = torch.load(out, weights_only=True)["hash"]
     assert printed.startswith(f"u4d-diffusion weights: {out} (") and f"hash {digest}, step 0" in printed
+
+
+def test_weights_that_would_not_load_back_are_refused_and_nothing_is_written(untrained_checkpoints, tmp_path):
+    state = torch.load(untrained_checkpoints["baseline"], weights_only=True)
+    name = next(iter(state["ema"]["params"]))
+    wrong = {**state, "ema": {**state["ema"], "params": {**state["ema"]["params"], name: torch.zeros(3, 5)}}}
+    torch.save(wrong, tmp_path / "wrong_shape.pt")
+    with pytest.raises(InputError, match=rf"wrong_shape.pt: its exported weights would not load back \(.*{name}"):
+        export_weights(tmp_path / "wrong_shape.pt", tmp_path / "out" / "w.pt", data_root="nowhere")
+    diverged = {**state, "ema": {**state["ema"], "params": {**state["ema"]["params"]}}}
+    diverged["ema"]["params"][name] = torch.full_like(state["ema"]["params"][name], float("nan"))
+    torch.save(diverged, tmp_path / "diverged.pt")
+    with pytest.raises(InputError, match=rf"diverged.pt: weight {name} has \d+ non-finite values"):
+        export_weights(tmp_path / "diverged.pt", tmp_path / "out" / "w.pt", data_root="nowhere")
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())  # no file, no temp file

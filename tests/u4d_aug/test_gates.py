@@ -63,7 +63,7 @@ def test_update_share_follows_the_branch_that_adds_to_the_residual(tmp_path):
     others = [share for i, share in enumerate(summary["mean_temporal_share"]) if i != mid]
     assert others == [0.5] * 4  # untrained blocks add nothing: neither branch leads
     assert set(summary["temporal_share_by_phase"]) == {"high noise", "middle", "low noise"}
-    assert not any(block.record_updates for block in loaded[0].most_blocks())  # switched off afterwards
+    assert not any(block.record_updates for block in loaded.net.most_blocks())  # switched off afterwards
 
 
 def test_cli_writes_figure_and_json(tmp_path, capsys):

@@ -63,3 +63,30 @@ def test_bad_bank_argument_is_a_usage_error(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["gen-report", str(tmp_path), "--bank", "no-equals-sign", "--png", str(tmp_path / "x.png")])
     assert "NAME=DIR" in capsys.readouterr().err
+
+
+def test_comparison_figure_names_units_of_every_panel(tmp_path, monkeypatch):
+    import matplotlib.pyplot as plt
+
+    from u4d_aug.data.sensors import get_sensor
+    from u4d_aug.gen_report import Geometry, plot_comparison
+
+    figures = []
+    monkeypatch.setattr("u4d_aug.viz.save_figure", lambda fig, path, dpi=110: figures.append(fig) or path)
+    geometry = Geometry(get_sensor("hdl64"), 16, 64, "linear")
+    rng = np.random.default_rng(0)
+    real = np.column_stack([rng.uniform(-20, 20, (300, 2)), rng.uniform(-2, 0, 300), rng.uniform(0, 1, 300)])
+    entropy = rng.uniform(0, np.log(19), (16, 64))
+    m_u = (entropy > 2.5).astype(np.float32)
+    stage1 = np.where(m_u > 0, rng.uniform(3, 40, (16, 64)), np.nan)
+    plot_comparison(tmp_path / "c.png", real, {"u4d": real[:200], "baseline": real[100:]}, geometry, (entropy, m_u),
+                    stage1)  # fmt: skip
+    axes = figures[0].axes
+    bars = [[child.get_ylabel() for child in ax.child_axes] for ax in axes]
+    assert (
+        bars == [["depth [m]"], ["H(p) [nats]"], ["depth [m]"], ["depth [m]"], ["depth [m]"]] + [["height z [m]"]] * 3
+    )
+    assert "P_u outlined" in axes[1].get_title() and "stage 1" in axes[2].get_title()
+    for bev, name in zip(axes[5:], ("real", "u4d", "baseline")):
+        assert bev.get_title().startswith(f"{name}: BEV") and "[m]" in bev.get_xlabel() and bev.get_aspect() == 1.0
+    plt.close(figures[0])

@@ -4,6 +4,7 @@ seed-per-sample, modes."""
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
@@ -102,6 +103,26 @@ def test_manifest_digests_find_a_sample_truncated_by_hand_and_it_is_generated_ag
     assert layout.scan_path(1).read_bytes() == whole and again["samples"][1]["sha256"] == digests
     assert layout.scan_path(0).stat().st_mtime_ns == first  # the intact sample is kept
     assert not list(bank.rglob("*.tmp")) and not (bank / ".lock").exists()
+
+
+def test_a_sample_written_without_its_digests_is_generated_again(untrained_checkpoints, tmp_path, caplog):
+    bank = tmp_path / "bank"
+    manifest = generate_bank(gen_config(untrained_checkpoints, "num=3", "mode=baseline"), bank, progress=False)
+    layout = BankLayout(bank)
+    assert json.loads(layout.digest_path(2).read_text()) == manifest["samples"][2]["sha256"]
+    whole = [layout.scan_path(i).read_bytes() for i in range(3)]
+    killed = {**manifest, "complete": False, "samples": [dict(entry) for entry in manifest["samples"]]}
+    for entry in killed["samples"][1:]:
+        del entry["sha256"]  # as a run killed before its manifest recorded samples 1 and 2
+    layout.manifest_path.write_text(json.dumps(killed))
+    layout.digest_path(1).unlink()  # sample 1: killed between its last file and its digests ...
+    layout.scan_path(1).write_bytes(whole[1][:160])  # ... and cut short on disk
+    kept = layout.scan_path(2).stat().st_mtime_ns  # sample 2: its digests were recorded, so it is kept
+    with caplog.at_level("WARNING", logger="u4d_aug.bank"):
+        again = generate_bank(gen_config(untrained_checkpoints, "num=3", "mode=baseline"), bank, progress=False)
+    assert "sample 1 has no recorded digests (cut short); generating it again" in caplog.text
+    assert [layout.scan_path(i).read_bytes() for i in range(3)] == whole and again["complete"]
+    assert layout.scan_path(2).stat().st_mtime_ns == kept and again["samples"] == manifest["samples"]
 
 
 def real_uncertainty(root: Path, probs_root: Path, frame: str, k: float = 0.1) -> tuple[np.ndarray, np.ndarray]:

@@ -15,6 +15,7 @@ from u4d_aug.data.sensors import hdl64
 from u4d_aug.errors import InputError
 from u4d_aug.nn.most import MoSTBlock
 from u4d_aug.pipeline import (
+    LoadedGenerator,
     cap_mask,
     complete,
     generate_baseline,
@@ -29,7 +30,9 @@ from u4d_aug.range_view import project, to_image
 
 
 def test_load_generator_uses_ema_weights(random_ema_checkpoints):
-    net, cfg = load_generator(random_ema_checkpoints["stage2"])
+    loaded = load_generator(random_ema_checkpoints["stage2"])
+    net, cfg = loaded  # unpacks as the (net, config) pair it once was
+    assert isinstance(loaded, LoadedGenerator) and loaded.net is net and loaded.config is cfg
     assert cfg.diffusion.stage == "stage2" and not net.training
     state = torch.load(random_ema_checkpoints["stage2"], weights_only=False)
     for name, param in net.named_parameters():
@@ -159,19 +162,19 @@ def nudge_frame_1(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def without_temporal_branch(loaded):
     """A copy whose MoST blocks have a zero temporal conv and constant gates: its frames never meet."""
-    net = copy.deepcopy(loaded[0])
+    net = copy.deepcopy(loaded.net)
     with torch.no_grad():
         for block in net.modules():
             if isinstance(block, MoSTBlock):
                 for layer in (block.temporal, block.gate[-1]):
                     layer.weight.zero_()
                 block.temporal.bias.zero_()
-    return net, loaded[1]
+    return LoadedGenerator(net, loaded.config)
 
 
 def test_sequence_generation_shapes_and_frame_mixing(sequence_checkpoints, random_ema_checkpoints, monkeypatch):
     stage1, stage2 = load_generator(sequence_checkpoints["stage1"]), load_generator(sequence_checkpoints["stage2"])
-    assert stage2[1].frames == 2 and stage2[0].most_names
+    assert stage2.config.frames == 2 and stage2.net.most_names
     a = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7))
     b = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7))
     assert a["x0"].shape == (2, 2, 2, 16, 64) and a["m_u_pred"].shape == (2, 2, 1, 16, 64)
@@ -192,7 +195,7 @@ def test_sequence_generation_shapes_and_frame_mixing(sequence_checkpoints, rando
     assert not torch.equal(nudged_alone["x0"][:, 1], c["x0"][:, 1])  # the nudge itself reached frame 1
     m = a["m_u_pred"].bool().expand_as(a["x0_u"])
     assert bool((a["x0_u"][~m] == -1).all())
-    clouds = to_points(a["x0"], hdl64(), stage2[1].row_mode)
+    clouds = to_points(a["x0"], hdl64(), stage2.config.row_mode)
     assert len(clouds) == 4 and all(c.shape[1] == 4 for c in clouds)  # sample 0 frames 0, 1, sample 1 ...
     assert generate_baseline(load_generator(sequence_checkpoints["baseline"]), 1, 2, torch.Generator())["x0"].shape == (
         1, 2, 2, 16, 64

@@ -43,7 +43,7 @@ def by_hand(stage1, stage2, pin_known: bool) -> dict[str, torch.Tensor]:
     """`generate_u4d_propagated` spelled out with the same draws: frame 0 by U4D, warped along the poses, completed."""
     generator = torch.Generator().manual_seed(SEED)
     first = generate_u4d(stage1, stage2, 1, STEPS, generator, frames=FRAMES)["x0"]  # (1, L, 2, H, W)
-    x0_u, m_u = warp_frame0(first[0, 0], straight_poses()[0], get_sensor(stage2[1].sensor), stage2[1].row_mode)
+    x0_u, m_u = warp_frame0(first[0, 0], straight_poses()[0], get_sensor(stage2.config.sensor), stage2.config.row_mode)
     x0_u, m_u = x0_u[None], m_u[None]  # (1, L, 2|1, H, W)
     filled = complete(stage2, x0_u, m_u, STEPS, generator, pin_known=pin_known)["x0"]
     return {"x0_u": x0_u, "m_u": m_u, "filled": filled, "x0": torch.where(m_u.bool(), x0_u, filled)}

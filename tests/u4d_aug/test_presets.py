@@ -127,6 +127,7 @@ def test_the_wheel_holds_the_presets(tmp_path):
     }
     assert shipped <= names
     assert "u4d_aug/presets.py" in names and not any(n.startswith("configs/") for n in names)
+    assert {"u4d_aug/py.typed", "segmentation/py.typed"} <= names  # PEP 561: type checkers read the inline types
 
 
 BANK_IN_A_LOADER = """

@@ -85,7 +85,7 @@ def test_propagated_baseline_sequences_inpaint_around_the_warped_pixels(tmp_path
     assert x0.shape == (1, 3, 2, 16, 64) and m_u.shape == (1, 3, 1, 16, 64)
     plain = generate_baseline(loaded, 1, 3, torch.Generator().manual_seed(0), "ddim", 3, motion=motion)["x0"]
     torch.testing.assert_close(x0[:, 0], plain[:, 0])  # frame 0 is the first pass's frame 0
-    expected_u, expected_m = warp_frame0(plain[0, 0], poses[0], hdl64(), loaded[1].row_mode)
+    expected_u, expected_m = warp_frame0(plain[0, 0], poses[0], hdl64(), loaded.config.row_mode)
     torch.testing.assert_close(m_u[0], expected_m)  # the known region is frame 0 moved along the poses
     known = m_u.bool().expand_as(x0)
     torch.testing.assert_close(x0[known], x0_u[known])  # kept as it is

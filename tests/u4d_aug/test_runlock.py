@@ -112,3 +112,23 @@ def test_a_file_in_place_of_the_folder_is_one_line(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(InputError, match="is a file; expected an output folder"), run_lock(tmp_path / "file"):
         pass
+
+
+def test_links_that_leave_the_folder_are_refused_links_inside_it_are_not(tmp_path):
+    outside = tmp_path / "outside"
+    (outside / "checkpoints").mkdir(parents=True)
+    (outside / "log.jsonl").write_text("kept\n")
+    out = tmp_path / "out"
+    (out / "inner").mkdir(parents=True)
+    (out / "alias").symlink_to(out / "inner", target_is_directory=True)  # stays inside: fine
+    with run_lock(out):
+        pass
+    (out / "inner" / "log.jsonl").symlink_to(outside / "log.jsonl")  # a nested file link that leaves
+    leaving = r"inner/log.jsonl: a symbolic link to .*outside.*outside the output folder"
+    with pytest.raises(InputError, match=leaving), run_lock(out):
+        pass
+    (out / "inner" / "log.jsonl").unlink()
+    (out / "checkpoints").symlink_to(outside / "checkpoints", target_is_directory=True)
+    with pytest.raises(InputError, match="checkpoints: a symbolic link"), run_lock(out):
+        pass
+    assert not (out / LOCK_NAME).exists() and (outside / "log.jsonl").read_text() == "kept\n"

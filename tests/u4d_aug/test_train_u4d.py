@@ -99,7 +99,7 @@ def test_u4d_stage_trains_checkpoints_and_samples_two_stages_from_one_net(tiny_w
     record = train(diffusion_config(tiny_world, out, "u4d", "diffusion.cond_noise=0.05"), progress=False)
     assert record["step"] == 4 and np.isfinite(record["loss"]) and np.isfinite(record["mask_bce"])
     loaded = load_generator(out)
-    assert loaded[1].diffusion.stage == "u4d"
+    assert loaded.config.diffusion.stage == "u4d"
     result = generate_u4d(loaded, loaded, 2, 2, torch.Generator().manual_seed(0), "ddpm")
     assert result["x0"].shape == (2, 2, 16, 64)
     outside = result["m_u_pred"].expand_as(result["x0_u"]) == 0

@@ -144,3 +144,21 @@ def test_probability_files_of_objects_truncated_or_wrong_dtype_are_one_line(tmp_
     with pytest.raises(InputError, match="ints.npy: expected an \\(N, K\\) float array"):
         load_probs(tmp_path / "ints.npy")
     assert load_probs(tmp_path / "ok.npy", 20).shape == (20, 3)
+
+
+def test_logits_or_unnormalised_scores_are_refused_a_float16_softmax_is_not(tmp_path):
+    rng = np.random.default_rng(3)
+    logits = rng.normal(0, 3, (40, 6))
+    softmax = np.exp(logits) / np.exp(logits).sum(axis=1, keepdims=True)
+    np.save(tmp_path / "softmax.npy", softmax.astype(np.float16))  # float16 rounding stays within the tolerances
+    assert load_probs(tmp_path / "softmax.npy", 40).shape == (40, 6)
+    np.save(tmp_path / "logits.npy", logits.astype(np.float16))
+    with pytest.raises(InputError, match=r"logits.npy: \d+ values outside \[0, 1\] \(min -"):
+        load_probs(tmp_path / "logits.npy", 40)
+    scores = softmax * 0.5
+    np.save(tmp_path / "scores.npy", np.clip(scores, 0, 1).astype(np.float32))
+    with pytest.raises(InputError, match=r"scores.npy: 40 of 40 rows do not sum to 1"):
+        load_probs(tmp_path / "scores.npy", 40)
+    with pytest.raises(InputError, match="values outside \\[0, 1\\]; expected softmax outputs, not logits"):
+        entropy(logits)  # the library function refuses them too: their entropy would come out negative
+    assert float(entropy(softmax).min()) >= 0.0

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from u4d_aug.data.labels import SEMANTICKITTI_IGNORE
+from u4d_aug.errors import InputError
 
 __all__ = ["collate_scans", "split_points"]
 
@@ -24,26 +25,17 @@ def collate_scans(items: Sequence[dict], ignore_index: int = SEMANTICKITTI_IGNOR
     batch = {points (N, 4) float32, labels (N,) int64 or None, batch_index (N,) int64, offsets (B+1,) int64,
     seq [B] str, frame [B] str}, N = sum N_b. labels is None when no scan has labels; when only some have
     (a labelled root with unlabelled frames, a bank mixed with real scans), the others' points get `ignore_index`.
+    A malformed item (no seq/frame, points not (N, 4), labels not one integer per point) is an InputError naming it.
     """
     if len(items) == 0:
-        raise ValueError("collate_scans needs at least one scan")
-    points = [torch.as_tensor(np.asarray(item["points"], dtype=np.float32)) for item in items]
-    for b, p in enumerate(points):
-        if p.ndim != 2 or p.shape[1] != 4:
-            raise ValueError(f"collate_scans: scan {b} has points of shape {tuple(p.shape)}, expected (N, 4)")
+        raise InputError("collate_scans: items is empty; expected at least one scan")
+    points = [_item_points(item, b) for b, item in enumerate(items)]
     counts = torch.tensor([len(p) for p in points], dtype=torch.int64)
     labels = None
     if any(item.get("labels") is not None for item in items):
         labels = torch.cat(
-            [
-                torch.full((len(p),), ignore_index, dtype=torch.int64)
-                if item.get("labels") is None
-                else torch.as_tensor(np.asarray(item["labels"]), dtype=torch.int64)
-                for item, p in zip(items, points)
-            ]
+            [_item_labels(item, b, len(p), ignore_index) for b, (item, p) in enumerate(zip(items, points))]
         )
-        if len(labels) != int(counts.sum()):
-            raise ValueError("collate_scans: a scan has a different number of labels than points")
     return {
         "points": torch.cat(points),  # (N, 4)
         "labels": labels,  # (N,) or None
@@ -52,6 +44,37 @@ def collate_scans(items: Sequence[dict], ignore_index: int = SEMANTICKITTI_IGNOR
         "seq": [str(item["seq"]) for item in items],
         "frame": [str(item["frame"]) for item in items],
     }
+
+
+def _item_points(item: object, b: int) -> torch.Tensor:
+    """items[b]'s (N_b, 4) float32 points, after checking it is a dict with the keys a batch needs."""
+    if not isinstance(item, dict):
+        raise InputError(f"collate_scans: items[{b}] is a {type(item).__name__}; expected a dict (points, seq, frame)")
+    missing = [key for key in ("points", "seq", "frame") if key not in item]
+    if missing:
+        raise InputError(f"collate_scans: items[{b}] has no {', '.join(missing)}; expected keys points, seq, frame")
+    points = np.asarray(item["points"])
+    if points.ndim != 2 or points.shape[1] != 4 or points.dtype.kind not in "fiu":
+        raise InputError(
+            f"collate_scans: items[{b}]['points'] has shape {points.shape} {points.dtype}; expected (N, 4) numbers"
+        )
+    return torch.as_tensor(points.astype(np.float32, copy=False))
+
+
+def _item_labels(item: dict, b: int, count: int, ignore_index: int) -> torch.Tensor:
+    """items[b]'s (N_b,) int64 labels (`ignore_index` without any): one integer per point, never truncated floats."""
+    if item.get("labels") is None:
+        return torch.full((count,), ignore_index, dtype=torch.int64)
+    labels = np.asarray(item["labels"])
+    if labels.dtype.kind not in "iu":
+        raise InputError(
+            f"collate_scans: items[{b}]['labels'] are {labels.dtype}; expected integer class ids (not truncated)"
+        )
+    if labels.shape != (count,):
+        raise InputError(
+            f"collate_scans: items[{b}]['labels'] has shape {labels.shape}; expected ({count},), one per point"
+        )
+    return torch.as_tensor(labels.astype(np.int64, copy=False))
 
 
 def split_points(batch: dict) -> list[torch.Tensor]:

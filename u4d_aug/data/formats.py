@@ -17,6 +17,7 @@ import numpy as np
 
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_open, atomic_write_text
+from u4d_aug.memory import check_fits, gib
 
 __all__ = [
     "KittiFrame",
@@ -75,6 +76,7 @@ def _read_records(path: PathLike, dtype: str, columns: int, what: str) -> np.nda
         raise InputError(f"{path}: {what} file not found")
     record = np.dtype(dtype).itemsize * columns
     size = path.stat().st_size
+    check_fits(size, f"{path} ({what}, {gib(size)})", "no LiDAR scan is this large: is it the right file?")
     if size % record:
         raise InputError(
             f"{path}: size {size} bytes is not a multiple of {record} ({what}: {columns} x {np.dtype(dtype).name})"
@@ -83,13 +85,26 @@ def _read_records(path: PathLike, dtype: str, columns: int, what: str) -> np.nda
     return data.reshape(-1, columns) if columns > 1 else data
 
 
-def _drop_nonfinite(path: PathLike, points: np.ndarray) -> np.ndarray:
-    """Boolean mask of finite rows; warns with the count when some rows hold NaN/inf."""
+def usable_rows(points: np.ndarray) -> np.ndarray:
+    """(N,) bool: rows whose values are all finite and whose x, y, z lie within MAX_COORDINATE m (a sensor's
+    plausible range; beyond it voxel grids overflow and nets return NaN)."""
     finite = np.isfinite(points).all(axis=1)
-    dropped = int(len(points) - finite.sum())
+    with np.errstate(invalid="ignore"):
+        return finite & (np.abs(points[:, :3]) <= MAX_COORDINATE).all(axis=1)
+
+
+def _drop_unusable(path: PathLike, points: np.ndarray) -> np.ndarray:
+    """Boolean mask of `usable_rows`; warns with the counts when some rows hold NaN/inf or lie beyond 10 km."""
+    usable = usable_rows(points)
+    dropped = int(len(points) - usable.sum())
     if dropped:
-        warnings.warn(f"{path}: dropped {dropped} of {len(points)} points with NaN/inf values", stacklevel=3)
-    return finite
+        nonfinite = int(len(points) - np.isfinite(points).all(axis=1).sum())
+        far = dropped - nonfinite
+        reasons = [f"{nonfinite} with NaN/inf values"] * bool(nonfinite) + [
+            f"{far} beyond {MAX_COORDINATE:g} m"
+        ] * bool(far)
+        warnings.warn(f"{path}: dropped {dropped} of {len(points)} points ({', '.join(reasons)})", stacklevel=3)
+    return usable
 
 
 def _format_floats(values: np.ndarray) -> str:
@@ -255,17 +270,18 @@ def write_kitti_label(path: PathLike, semantic: np.ndarray, instance: np.ndarray
 
 
 def load_kitti_frame(scan_path: PathLike, label_path: PathLike | None = None) -> KittiFrame:
-    """Scan (+ labels, one per point); NaN/inf rows are dropped with their labels, with a warning."""
+    """Scan (+ labels, one per point); NaN/inf rows and rows beyond 10 km are dropped with their labels, with a
+    warning."""
     raw = read_kitti_scan(scan_path)
     semantic = instance = None
     if label_path is not None:
         semantic, instance = read_kitti_label(label_path, num_points=len(raw))
-    finite = _drop_nonfinite(scan_path, raw)
+    finite = _drop_unusable(scan_path, raw)
     if not finite.all():
         if not finite.any():
-            raise InputError(f"{scan_path}: empty scan (all {len(raw)} points are NaN/inf)")
+            raise InputError(f"{scan_path}: empty scan (all {len(raw)} points are NaN/inf or beyond 10 km)")
         raw = raw[finite]
-        if semantic is not None:
+        if semantic is not None and instance is not None:  # read together
             semantic, instance = semantic[finite], instance[finite]
     return KittiFrame(points=raw, semantic=semantic, instance=instance)
 
@@ -370,7 +386,7 @@ def read_nuscenes_scan(path: PathLike, remove_close: float = 1.0) -> NuscenesSca
     raw = _read_records(path, "<f4", NUSCENES_COLUMNS, "nuScenes scan")
     if len(raw) == 0:
         raise InputError(f"{path}: empty scan (0 points)")
-    keep = _drop_nonfinite(path, raw)
+    keep = _drop_unusable(path, raw)
     if remove_close > 0:
         keep &= np.linalg.norm(raw[:, :3].astype(np.float64), axis=1) >= remove_close
     if not keep.any():

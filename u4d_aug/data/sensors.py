@@ -109,7 +109,8 @@ def fit_intensity_response(
         return np.log(np.clip(floor + gain * source**gamma, 1.0 / 255.0, 1.0)) - wanted
 
     fit = least_squares(residual, x0=[0.01, 1.0, 2.0], bounds=([0.0, 0.01, 0.1], [0.5, 10.0, 10.0]))
-    return tuple(float(v) for v in fit.x)
+    floor, gain, gamma = (float(v) for v in fit.x)
+    return floor, gain, gamma
 
 
 def measure_ring_elevations(points: np.ndarray, debounce: int = 500) -> np.ndarray:

@@ -10,6 +10,7 @@ from torch.utils.data import DataLoader
 from tests.tiny_worlds import write_toy_bank, write_toy_root
 from u4d_aug.data.collate import collate_scans, split_points
 from u4d_aug.data.datasets import ScanDataset
+from u4d_aug.errors import InputError
 
 
 def item(n: int, labels: bool, seq: str = "00", frame: str = "000000") -> dict:
@@ -40,6 +41,26 @@ def test_bad_items_are_refused():
         collate_scans([])
     with pytest.raises(ValueError, match=r"\(N, 4\)"):
         collate_scans([{"points": np.zeros((3, 3), np.float32), "labels": None, "seq": "00", "frame": "0"}])
+
+
+def _scan(n: int, labels=None, **drop) -> dict:
+    item = {"points": np.zeros((n, 4), np.float32), "labels": labels, "seq": "00", "frame": "000000"}
+    return {key: value for key, value in item.items() if key not in drop}
+
+
+def test_malformed_items_are_one_line_naming_the_item_and_field():
+    with pytest.raises(InputError, match=r"items\[1\] has no seq; expected keys points, seq, frame"):
+        collate_scans([_scan(2), _scan(2, seq=True)])
+    with pytest.raises(InputError, match=r"items\[0\] is a str; expected a dict"):
+        collate_scans(["scan.bin"])
+    # label counts that cancel across scans (3 + 1 for 2 + 2 points) are caught per scan
+    cancel = [_scan(2, np.zeros(3, np.int64)), _scan(2, np.zeros(1, np.int64))]
+    with pytest.raises(InputError, match=r"items\[0\]\['labels'\] has shape \(3,\); expected \(2,\), one per point"):
+        collate_scans(cancel)
+    with pytest.raises(InputError, match=r"items\[0\]\['labels'\] are float32; expected integer class ids"):
+        collate_scans([_scan(2, np.array([1.7, 2.2], np.float32))])  # never truncated to 1, 2
+    batch = collate_scans([_scan(2, np.array([1, 2], np.uint16)), _scan(1)])
+    assert batch["labels"].tolist() == [1, 2, 19] and batch["labels"].dtype == torch.int64
 
 
 def test_default_dataloader_over_a_bank(tmp_path):

@@ -234,10 +234,11 @@ def test_nonfinite_points_dropped_with_their_labels(tmp_path, rng):
     points[1, 0] = np.nan
     points[4, 2] = np.inf
     points[6, 3] = -np.inf
-    semantic = np.arange(8, dtype=np.uint16) + 10
+    points = np.concatenate([points, [[2e4, 0, 0, 0.5], [0, 0, -3e38, 0.5]]]).astype(np.float32)  # beyond 10 km
+    semantic = np.arange(10, dtype=np.uint16) + 10
     write_kitti_scan(tmp_path / "s.bin", points)
     write_kitti_label(tmp_path / "s.label", semantic, semantic + 100)
-    with pytest.warns(UserWarning, match="dropped 3 of 8 points with NaN/inf"):
+    with pytest.warns(UserWarning, match=r"dropped 5 of 10 points \(3 with NaN/inf values, 2 beyond 10000 m\)"):
         frame = load_kitti_frame(tmp_path / "s.bin", tmp_path / "s.label")
     keep = [0, 2, 3, 5, 7]
     np.testing.assert_array_equal(frame.points, points[keep])
@@ -248,8 +249,8 @@ def test_nonfinite_points_dropped_with_their_labels(tmp_path, rng):
     with pytest.warns(UserWarning):
         _raises_one_line("all 3 points are NaN/inf", load_kitti_frame, tmp_path / "nan.bin")
 
-    write_nuscenes_scan(tmp_path / "n.pcd.bin", np.where(np.isfinite(points), points, np.nan) + 2, np.arange(8))
-    with pytest.warns(UserWarning, match="dropped 3 of 8"):
+    write_nuscenes_scan(tmp_path / "n.pcd.bin", np.where(np.isfinite(points), points, np.nan) + 2, np.arange(10))
+    with pytest.warns(UserWarning, match=r"dropped 5 of 10 points \(3 with NaN/inf values, 2 beyond"):
         scan = read_nuscenes_scan(tmp_path / "n.pcd.bin", remove_close=0)
     np.testing.assert_array_equal(np.flatnonzero(scan.keep), keep)
     assert scan.ring.tolist() == keep

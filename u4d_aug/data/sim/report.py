@@ -294,15 +294,15 @@ def _rings(stats: dict) -> int:
 
 def plot_report(path: Path, report: dict, sim: dict, real: dict) -> Path:
     """Side-by-side PNG: range/elevation/ring/class histograms, then BEV and range image of one scan each."""
-    from u4d_aug.viz import draw_bev, label_colors, plt, save_figure
+    from u4d_aug.viz import add_colorbar, class_legend, draw_bev, draw_semantic_bev, plt, save_figure
 
     fig = plt.figure(figsize=(16, 18))
-    grid = fig.add_gridspec(4, 2, height_ratios=[1, 1, 2.2, 0.7])
+    grid = fig.add_gridspec(4, 2, height_ratios=[1, 1, 2.2, 0.7], hspace=0.45, wspace=0.3)  # room for labels
     ax = fig.add_subplot(grid[0, 0])
     for key, stats in (("sim", sim), ("real", real)):
         ax.step(RANGE_BINS[:-1], stats["range_hist"] / stats["range_hist"].sum(), where="post", label=key)
     ax.set_title(f"range histogram (1 m bins), JS distance {report['range_js']:.3f}", fontsize=10)
-    ax.set_xlabel("m")
+    ax.set_xlabel("range [m]")
     ax.legend()
     ax = fig.add_subplot(grid[0, 1])
     for key, stats in (("sim", sim), ("real", real)):
@@ -313,6 +313,7 @@ def plot_report(path: Path, report: dict, sim: dict, real: dict) -> Path:
             label=key,
         )
     ax.set_title(f"elevation histogram (0.5 deg), JS {report['elevation_js']:.3f}", fontsize=10)
+    ax.set_xlabel("elevation [deg]")
     ax.legend()
     ax = fig.add_subplot(grid[1, 0])
     for key in ("sim", "real"):
@@ -332,14 +333,23 @@ def plot_report(path: Path, report: dict, sim: dict, real: dict) -> Path:
     ax.set_yscale("log")
     ax.set_title("class share (train ids)", fontsize=10)
     ax.legend()
-    for k, (key, stats) in enumerate((("sim", sim), ("real", real))):
-        points, semantic = stats["example"]
-        colors = label_colors(map_semantickitti(semantic)) if semantic is not None else None
-        draw_bev(fig.add_subplot(grid[2, k]), points, colors, extent=40.0, title=f"{key}: BEV", point_size=0.3)
+    examples = {"sim": sim["example"], "real": real["example"]}
+    for k, (key, (points, semantic)) in enumerate(examples.items()):
+        bev = fig.add_subplot(grid[2, k])
+        if semantic is not None:
+            draw_semantic_bev(bev, points, map_semantickitti(semantic), title=f"{key}: BEV", legend=False,
+                              extent=40.0, point_size=0.3)  # fmt: skip
+        else:
+            draw_bev(bev, points, extent=40.0, title=f"{key}: BEV, coloured by height", point_size=0.3)
         ax = fig.add_subplot(grid[3, k])
-        ax.imshow(_range_image(points), cmap="turbo", aspect="auto", interpolation="nearest", vmin=0, vmax=40)
-        ax.set_title(f"{key}: range image (rings x 1024 azimuth bins)", fontsize=9)
+        image = ax.imshow(_range_image(points), cmap="turbo", aspect="auto", interpolation="nearest", vmin=0, vmax=40)
+        ax.set_title(f"{key}: range image (rings x 1024 azimuth bins; white: no return)", fontsize=9)
         ax.set_xticks([])
+        ax.set_ylabel("ring", fontsize=8)
+        add_colorbar(ax, image, "range [m]")
+    labelled = [map_semantickitti(semantic) for _, semantic in examples.values() if semantic is not None]
+    if labelled:  # one legend of both scans' classes, right of the last BEV (a left one would cover the right BEV)
+        class_legend(bev, np.concatenate(labelled))
     return save_figure(fig, path)
 
 

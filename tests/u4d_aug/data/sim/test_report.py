@@ -22,6 +22,7 @@ from u4d_aug.data.sim.report import (
     dataset_stats,
     frames_stats,
     place_spread,
+    plot_report,
     rings_from_storage,
     run_sim_report,
 )
@@ -148,3 +149,20 @@ def test_per_class_remission_and_edges_against_real_scans(tiny_world: Path, kitt
     assert png.is_file() and png.stat().st_size > 10_000
     same, _, _ = compare(tiny_world, tiny_world)
     assert same["intensity_js"]["mean"] == 0.0
+
+
+def test_report_figure_names_classes_and_units(tiny_world: Path, kitti_root: Path, tmp_path: Path, monkeypatch):
+    import matplotlib.pyplot as plt
+
+    figures = []
+    monkeypatch.setattr("u4d_aug.viz.save_figure", lambda fig, path, dpi=110: figures.append(fig) or path)
+    report, sim, real = compare(tiny_world, kitti_root, 2)
+    plot_report(tmp_path / "r.png", report, sim, real)
+    sim_bev, sim_range, real_bev, real_range = figures[0].axes[4:8]
+    assert sim_bev.get_legend() is None  # one legend for both BEVs, right of the last
+    names = [text.get_text() for text in real_bev.get_legend().get_texts()]
+    assert {"road", "car", "building"} <= set(names) and names[-1] == "ignore"
+    for ax in (sim_bev, real_bev):
+        assert ax.get_xlabel() == "x [m] (forward)" and ax.get_ylabel() == "y [m] (left)" and ax.get_aspect() == 1.0
+    assert [child.get_ylabel() for ax in (sim_range, real_range) for child in ax.child_axes] == ["range [m]"] * 2
+    plt.close(figures[0])
