@@ -1,4 +1,4 @@
-"""Issue 71: checkpoints and weights files that load safely but hold a missing or ill-typed key (config, optimizer,
+"""Checkpoints and weights files that load safely but hold a missing or ill-typed key (config, optimizer,
 ema, model, step, rng, class_names, trained) give one `error:` line and exit 2 in every loader, never a traceback.
 
 Each case replaces one key of a genuine file by a junk value (or drops it) and runs the commands that read it.
