@@ -241,11 +241,12 @@ def generate(method: str, args: argparse.Namespace, spec: SamplerSpec, seed: int
         overrides.append(f"sampler_grid={spec.grid}")
     if method == "u4d":
         overrides += [f"stage1={args.stage1}", f"stage2={args.stage2}", f"stage1_steps={spec.stage1_steps}"]
-        if args.mask_fraction is not None:
-            overrides.append(f"stage1_mask_fraction={args.mask_fraction}")
+        overrides.append(f"stage1_mask_fraction={'null' if args.mask_fraction is None else args.mask_fraction}")
     else:
         overrides.append(f"baseline={args.baseline}")
-    if args.mean_start_below is not None:  # the nets' training mean image as x0 at vanishing SNR
+    if args.mean_start_below is None:  # the nets' own x0 at every step (generate's default is the preset's start)
+        overrides.append("mean_start_below=null")
+    else:  # the nets' training mean image as x0 at vanishing SNR
         overrides.append(f"mean_start_below={args.mean_start_below}")
         overrides += [f"mean_data_root={args.mean_data_root}"] if args.mean_data_root else []
         overrides += [f"mean_probs_root={args.mean_probs_root}"] if args.mean_probs_root else []

@@ -56,6 +56,7 @@ from u4d_aug.errors import InputError
 from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json, atomic_write_text
 from u4d_aug.pipeline import Loaded, generate_baseline, generate_stage1, generate_u4d, load_generator
+from u4d_aug.sampling_settings import SamplingSettings
 from u4d_aug.stage import DiffusionTrainConfig, build_net
 
 REPO = Path(__file__).resolve().parents[1]
@@ -160,13 +161,18 @@ def forward_flops(net: nn.Module, batch: int, height: int, width: int, device: s
 def generation_tasks(nets: dict[str, Loaded], run: dict, batch: int) -> dict[str, Callable]:
     """name -> generation call at `batch` scans (U4D, then the baseline right after it, then stage 1 alone)."""
     stage1, stage2, baseline = nets["stage1"], nets["stage2"], nets["baseline"]
-    sampler, steps, stage1_steps = run["sampler"], run["steps"], run["stage1_steps"]
+    # the samplers' cost alone: no mask cap, no mean start (preset-built nets store no training mean)
+    settings = SamplingSettings(
+        sampler=run["sampler"],
+        steps=run["steps"],
+        stage1_steps=run["stage1_steps"],
+        stage1_mask_fraction=None,
+        mean_start_below=None,
+    )
     return {
-        "u4d": functools.partial(
-            generate_u4d, stage1, stage2, batch, steps, sampler=sampler, stage1_steps=stage1_steps
-        ),
-        "baseline": functools.partial(generate_baseline, baseline, batch, steps, sampler=sampler),
-        "stage1": functools.partial(generate_stage1, stage1, batch, stage1_steps, sampler=sampler),
+        "u4d": functools.partial(generate_u4d, stage1, stage2, batch, settings=settings),
+        "baseline": functools.partial(generate_baseline, baseline, batch, settings=settings),
+        "stage1": functools.partial(generate_stage1, stage1, batch, settings=settings),
     }
 
 

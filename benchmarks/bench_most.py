@@ -32,6 +32,7 @@ from u4d_aug.errors import InputError
 from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json, atomic_write_text
 from u4d_aug.pipeline import Loaded, generate_baseline
+from u4d_aug.sampling_settings import SamplingSettings
 from u4d_aug.train import DiffusionTrainConfig, build_net
 
 REPO = Path(__file__).resolve().parents[1]
@@ -62,11 +63,13 @@ def forward_call(loaded: Loaded, frames: int, variant: str) -> Callable[[], obje
 
 def sample_call(loaded: Loaded, frames: int, variant: str, steps: int, sampler: str) -> Callable[[], object]:
     """One sampled L-frame sequence, or L sampled single frames (one generator per sample)."""
+    # the sampler alone: every step from the net's own x̂0 (no mean start)
+    settings = SamplingSettings(sampler=sampler, steps=steps, stage1_steps=None, mean_start_below=None)
     if variant == "sequence":
-        return lambda: generate_baseline(loaded, 1, steps, torch.Generator().manual_seed(0), sampler, frames)
+        return lambda: generate_baseline(loaded, 1, torch.Generator().manual_seed(0), settings, frames)
     if variant in ("frames", "plain"):
         return lambda: generate_baseline(
-            loaded, frames, steps, [torch.Generator().manual_seed(i) for i in range(frames)], sampler, 1
+            loaded, frames, [torch.Generator().manual_seed(i) for i in range(frames)], settings, 1
         )
     raise ValueError(f"variant {variant!r} is not one of {VARIANTS}")
 

@@ -49,18 +49,23 @@ def real_images(root: Path, cfg, num: int) -> torch.Tensor:
 def run_setting(loaded, spec: str, num: int) -> dict:
     """Sample `num` images with one NAME:STEPS[:GRID] setting; its proxies and seconds per scan."""
     from u4d_aug.pipeline import generate_baseline, generate_stage1
+    from u4d_aug.sampling_settings import SamplingSettings
 
     parts = spec.split(":")
     if len(parts) not in (2, 3) or not parts[1].isdigit():
         raise InputError(f"--samplers {spec!r}: expected NAME:STEPS[:GRID], e.g. dpmpp2m-sde:20")
     name, steps, grid = parts[0], int(parts[1]), parts[2] if len(parts) == 3 else "time"
+    # the sampler alone: every step from the net's own x̂0 (no mean start), no stage-1 mask cap
+    settings = SamplingSettings(
+        sampler=name, grid=grid, steps=steps, stage1_steps=None, stage1_mask_fraction=None, mean_start_below=None
+    )
     generators = [torch.Generator().manual_seed(i) for i in range(num)]
     stage = loaded.config.diffusion.stage
     start = time.perf_counter()
     if stage == "baseline":
-        x0 = generate_baseline(loaded, num, steps, generators, name, grid=grid)["x0"]
+        x0 = generate_baseline(loaded, num, generators, settings)["x0"]
     elif stage == "stage1":
-        x0 = generate_stage1(loaded, num, steps, generators, name, grid=grid)["x0_u"]
+        x0 = generate_stage1(loaded, num, generators, settings)["x0_u"]
     else:
         raise InputError(f"bench_samplers: needs an unconditional net (baseline or stage1), got {stage}")
     seconds = (time.perf_counter() - start) / num

@@ -73,18 +73,24 @@ def test_the_library_api_raises_one_line_input_errors_naming_the_argument(untrai
     import numpy as np
     import torch
 
-    from u4d_aug import GeneratedScans, InputError, generate_baseline, load_generator, project
+    from u4d_aug import GeneratedScans, InputError, SamplingSettings, generate_baseline, load_generator, project
 
     points = np.random.default_rng(0).uniform(-20, 20, (200, 4)).astype(np.float32)
     assert project(points, "hdl64").depth.shape == project(points, u4d_aug.get_sensor("hdl64")).depth.shape
     net = load_generator(untrained_checkpoints["baseline"])
+    plain = SamplingSettings(steps=1, mean_start_below=None)  # a training checkpoint stores no training mean
     cases = [
         (lambda: project(points[:, :3], "hdl64"), r"points: expected shape \(N, 4\)"),
         (lambda: project(points, 64), "sensor: expected a Sensor or a sensor name"),
-        (lambda: generate_baseline(net, 0, 2, torch.Generator()), "n: the number of samples must be an integer >= 1"),
-        (lambda: generate_baseline(net, 1, 0, torch.Generator()), "steps: sampling steps must be an integer >= 1"),
-        (lambda: generate_baseline(net, 2, 1, [torch.Generator()]), "generator: got 1 generators for a batch of 2"),
-        (lambda: generate_baseline(net, 1, 1, "seed"), "generator: expected a torch.Generator"),
+        (
+            lambda: generate_baseline(net, 0, torch.Generator(), plain),
+            "n: the number of samples must be an integer >= 1",
+        ),
+        (lambda: SamplingSettings(steps=0), "steps: expected an integer >= 1"),
+        (lambda: generate_baseline(net, 1, torch.Generator(), 8), "settings: expected a SamplingSettings"),  # type: ignore[arg-type]
+        (lambda: generate_baseline(net, 1, torch.Generator()), "export-weights --data-root.* mean_start_below=None"),
+        (lambda: generate_baseline(net, 2, [torch.Generator()], plain), "generator: got 1 generators for a batch of 2"),
+        (lambda: generate_baseline(net, 1, "seed", plain), "generator: expected a torch.Generator"),
         (lambda: GeneratedScans("baseline", [3], num=1), r"nets\[0\] is a int; expected load_generator"),
         (lambda: GeneratedScans("baseline", [str(untrained_checkpoints["baseline"]) + "x"], num=1), "not found"),
     ]
@@ -92,5 +98,5 @@ def test_the_library_api_raises_one_line_input_errors_naming_the_argument(untrai
         with pytest.raises(InputError, match=message) as caught:
             call()
         assert "\n" not in str(caught.value)
-    scans = GeneratedScans("baseline", [str(untrained_checkpoints["baseline"])], num=1, steps=1)  # a path is loaded
+    scans = GeneratedScans("baseline", [str(untrained_checkpoints["baseline"])], num=1, settings=plain)  # path: loaded
     assert next(iter(scans))["points"].shape[1] == 4

@@ -19,6 +19,7 @@ from u4d_aug.ema import EMA
 from u4d_aug.generate import GenerateConfig
 from u4d_aug.io import atomic_torch_save
 from u4d_aug.metrics.extractors import ExtractorConfig
+from u4d_aug.sampling_settings import SamplingSettings
 from u4d_aug.stage import DiffusionTrainConfig, build_net, checkpoint_state
 from u4d_aug.train import split_stage_override
 
@@ -60,11 +61,24 @@ def extractor_config(root: Path, out: Path, seed: int = 0) -> ExtractorConfig:
     return load_config(ExtractorConfig, EXTRACTOR_TINY, [f"data.root={root}", f"out_dir={out}", f"train.seed={seed}"])
 
 
+# `u4d generate` sampling keys of plain sampling: one step count, no stage-1 mask cap, no mean start
+PLAIN_SAMPLING = ("stage1_steps=null", "stage1_mask_fraction=null", "mean_start_below=null")
+
+
 def gen_config(checkpoints: dict[str, Path], *overrides: str) -> GenerateConfig:
-    """A `u4d generate` config of the three stage checkpoints: 2 steps on the CPU, seed 100, + overrides."""
+    """A `u4d generate` config of the three stage checkpoints: DDPM at 2 steps (`PLAIN_SAMPLING`) on the CPU, seed
+    100, + overrides."""
     base = [f"stage1={checkpoints['stage1']}", f"stage2={checkpoints['stage2']}"]
-    base += [f"baseline={checkpoints['baseline']}", "steps=2", "device=cpu", "seed=100"]
+    base += [f"baseline={checkpoints['baseline']}", "sampler=ddpm", "steps=2", *PLAIN_SAMPLING]
+    base += ["device=cpu", "seed=100"]
     return load_config(GenerateConfig, None, [*base, *overrides])
+
+
+def plain_settings(steps: int, sampler: str = "ddim", **options) -> SamplingSettings:
+    """`sampler` at `steps` for every stage, no stage-1 mask cap, no mean start (nets without a stored mean), + options
+    (SamplingSettings fields)."""
+    fields = {"stage1_steps": None, "stage1_mask_fraction": None, "mean_start_below": None, **options}
+    return SamplingSettings(sampler=sampler, steps=steps, **fields)
 
 
 def save_checkpoint(

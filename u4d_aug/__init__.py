@@ -52,6 +52,7 @@ _EXPORTS: dict[str, str] = {
     "complete": "u4d_aug.pipeline",
     "to_points": "u4d_aug.pipeline",
     "GeneratedScans": "u4d_aug.generated",
+    "SamplingSettings": "u4d_aug.sampling_settings",
     # datasets, banks and batching
     "ScanDataset": "u4d_aug.data.datasets",
     "SequenceDataset": "u4d_aug.data.datasets",
@@ -120,6 +121,7 @@ if TYPE_CHECKING:
         to_points as to_points,
     )
     from u4d_aug.generated import GeneratedScans as GeneratedScans
+    from u4d_aug.sampling_settings import SamplingSettings as SamplingSettings
     from u4d_aug.data.datasets import (
         ScanDataset as ScanDataset,
         SequenceDataset as SequenceDataset,

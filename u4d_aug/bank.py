@@ -7,8 +7,12 @@ BANK/sequences/00/stage1/NNNNNN.npy     (2, H, W) float16 x0_u in [-1, 1]: stage
                                         that stage 2 completed (complete mode)
 BANK/sequences/00/empty/NNNNNN         marker of a sample with no return at all (it gets no .bin: SemanticKITTI
                                         readers reject empty scans, and consumers should not see one)
+BANK/sequences/00/labels/NNNNNN.label  all-ignore labels (0 = "unlabeled"), one per point (`u4d_aug.export_bank`)
+BANK/sequences/00/{calib,poses,times}.txt  identity Tr and poses, times 0.1 s apart, one line per frame number
+                                        (`write_sequence_files`; a sequence with its own poses keeps them)
 BANK/manifest.json                      config, per-sample seeds and file sha256[:16], checkpoint sha256[:16], empty
                                         samples, completion
+BANK/config.yaml, BANK/log.jsonl        the resolved config of the last run, one record per finished block
 The .npy side files are written before the .bin (or marker), so its presence means the sample is complete; the
 digests of a finished sample's files let a resumed run find a sample changed or truncated since (`changed_files`).
 
@@ -16,21 +20,37 @@ Sequence banks (generators trained on L > 1 frames) hold one sequence per sample
 BANK/sequences/NN/ (NN = i as %02d) with the same side folders and frames 000000 .. L-1 in velodyne/, so any
 SemanticKITTI reader sees L consecutive scans. Completion-mode sequences also get poses.txt (the real frames'
 poses relative to the first) and calib.txt with an identity Tr, which TTCE/CTC (`u4d evaluate`) read; so do
-sequences of nets with an ego-motion input (the motion they were conditioned on); other generated sequences have
-no poses. Poses are written before the frames, and a sample is complete when all L frames are.
+sequences of nets with an ego-motion input (the motion they were conditioned on). Poses are written before the
+frames, and a sample is complete when all L frames are.
+
+Once a run's samples are written, every sequence folder without poses of its own (single-frame banks, generated
+sequences without an ego motion) gets identity placeholders so that SemanticKITTI readers find the files they
+expect; the manifest's "placeholder_poses" says so (they are no ground truth for temporal metrics). Labels, times.txt
+and the placeholders are written after the samples' digests are recorded (`record_digests`), outside them, so a
+resumed run still finds its finished samples intact.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from u4d_aug.data.formats import label_path_for, write_calib, write_kitti_scan, write_poses
+from u4d_aug.data.formats import (
+    label_path_for,
+    read_calib,
+    read_poses,
+    read_times,
+    write_calib,
+    write_kitti_scan,
+    write_poses,
+    write_times,
+)
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_save_npy, atomic_write_bytes, atomic_write_json, file_sha256
 
@@ -39,6 +59,8 @@ logger = logging.getLogger(__name__)
 BANK_SEQUENCE = "00"
 MANIFEST = "manifest.json"
 DIGESTS = "digests"
+FRAME_SECONDS = 0.1  # KITTI's 10 Hz scan period: frame f of a bank sequence is at f * 0.1 s in its times.txt
+CALIB_KEYS = ("P0", "P1", "P2", "P3", "Tr")  # the matrices of a KITTI odometry calib.txt
 
 
 def sequence_name(index: int) -> str:
@@ -218,9 +240,59 @@ def write_sequence_poses(layout: BankLayout, index: int, poses: np.ndarray) -> N
     poses = np.asarray(poses, dtype=np.float64)
     if layout.frames == 1 or poses.shape != (layout.frames, 4, 4):
         raise ValueError(f"write_sequence_poses: expected ({layout.frames}, 4, 4) poses of a sequence bank")
-    identity = np.eye(4)[:3]  # (3, 4)
-    write_calib(layout.calib_path(index), {key: identity for key in ("P0", "P1", "P2", "P3", "Tr")})
+    write_calib(layout.calib_path(index), identity_calib())
     write_poses(layout.poses_path(index), poses)  # with Tr = I the LiDAR poses are the cam0 poses
+
+
+def identity_calib() -> dict[str, np.ndarray]:
+    """calib.txt of a bank sequence: P0-P3 = [I | 0] and Tr = I (the LiDAR frame is the camera frame)."""
+    return {key: np.eye(4)[:3] for key in CALIB_KEYS}
+
+
+def has_own_poses(manifest: dict[str, Any]) -> bool:
+    """Whether a bank's sequences carry poses of their own: completion-mode and ego-motion sequence banks."""
+    return manifest.get("frames", 1) > 1 and (manifest.get("mode") == "complete" or "motion" in manifest)
+
+
+def _holds(path: Path, reader: Callable[[Path], Any], expected: Any) -> bool:
+    """Whether `path` reads back (with `reader`) as `expected`, so that writing it again would change nothing."""
+    if not path.is_file():
+        return False
+    try:
+        found = reader(path)
+    except InputError:
+        return False
+    if isinstance(expected, dict):
+        return found.keys() == expected.keys() and all(np.array_equal(found[k], expected[k]) for k in expected)
+    return bool(np.array_equal(found, expected))
+
+
+def write_sequence_files(folder: Path, frames: int, own_poses: bool) -> None:
+    """calib.txt, poses.txt and times.txt of a bank sequence of frame numbers 0..frames-1 (KITTI odometry layout,
+    one line per frame number): times f * 0.1 s; with own_poses the sequence's calib and poses are kept, else they
+    are identity placeholders. Files that already hold this are not written again."""
+    times = np.round(np.arange(frames) * FRAME_SECONDS, 6)  # 0.1, 0.2, 0.3 exactly as text
+    if not _holds(folder / "times.txt", read_times, times):
+        write_times(folder / "times.txt", times)
+    if own_poses:
+        return
+    if not _holds(folder / "calib.txt", read_calib, identity_calib()):
+        write_calib(folder / "calib.txt", identity_calib())
+    if not _holds(folder / "poses.txt", read_poses, np.tile(np.eye(4), (frames, 1, 1))):
+        write_poses(folder / "poses.txt", np.tile(np.eye(4), (frames, 1, 1)))  # (frames, 4, 4)
+
+
+def write_bank_sequence_files(layout: BankLayout, count: int, own_poses: bool) -> None:
+    """`write_sequence_files` of every sequence of a bank's first `count` samples: the one sequence of a
+    single-frame bank (a line per sample index, empty samples too) and each finished sample's sequence of a sequence
+    bank (a sample removed to be generated again takes its files with it: `remove_sample`)."""
+    if layout.frames == 1:
+        if count > 0 and layout.sequence_dir().is_dir():
+            write_sequence_files(layout.sequence_dir(), count, own_poses)
+        return
+    for index in range(count):
+        if layout.is_done(index):
+            write_sequence_files(layout.sequence_dir(index), layout.frames, own_poses)
 
 
 def read_manifest(root: str | Path) -> dict[str, Any] | None:

@@ -10,6 +10,7 @@ import sys
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +27,10 @@ from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_save_npy, atomic_write_text, check_output_file, dumps_json
 from u4d_aug.presets import configs_root
 from u4d_aug.runlock import run_lock
+from u4d_aug.weights_store import split_weights_dir
+
+if TYPE_CHECKING:
+    from u4d_aug.data.datasets import NuscenesScanDataset, ScanDataset
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -33,6 +38,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     argv, level = split_verbosity(argv)  # --quiet / --verbose anywhere
     configure_logging(level)
+    try:
+        argv = split_weights_dir(argv)  # --weights-dir anywhere: where the shipped nets are (u4d_aug.weights_store)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     parser = build_parser()
     if argv and argv[0] in dict(DELEGATED):
         # The implementing module parses everything after the command name (incl. its own --help).
@@ -74,8 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--format",
         choices=["semantickitti", "nuscenes"],
-        default="semantickitti",
-        help="layout of ROOT: semantickitti (sequences/XX/velodyne) or nuscenes (v1.0 tables; scenes, keyframes)",
+        default=None,
+        help="layout of ROOT: semantickitti (sequences/XX/velodyne) or nuscenes (v1.0 tables; scenes, keyframes); "
+        "default: detected (sequences/: semantickitti; a v1.0-* folder or samples/LIDAR_TOP/: nuscenes)",
     )
     p.add_argument("--nuscenes-version", default="v1.0-trainval", help="--format nuscenes: the table folder")
     p.add_argument("--json", action="store_true", help="print json instead of a table")
@@ -105,6 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="real SemanticKITTI root for the realism report (default: ../shared/data/real/semantickitti when present)",
     )
+    p.add_argument("--no-progress", action="store_true", help="no progress bars (passed on to every step)")
     p.set_defaults(func=run_demo)
 
     for name, help_text in DELEGATED:
@@ -137,8 +149,9 @@ DELEGATED = (
     ("gates", "MoST gate analysis: mean spatial / temporal gate per block over the sampling of a sequence net"),
     ("evaluate", "generation metrics of a bank vs real scans: FRD, FPD, BEV JSD/MMD (Table 1), TTCE/CTC (Table 2)"),
     ("experiment", "sup-only / LaserMix / +R2DM bank / +U4D bank comparison: mIoU and ECE over seeds"),
-    ("export", "make a bank readable by other codebases: all-ignore .label files, mmdetection3d info .pkl"),
+    ("export", "a bank as another codebase reads it: --layout semantickitti|mmdet3d|pointcept [--out DIR]"),
     ("bank-real", "a bank of real scans of unused places, through the generators' range image (the ceiling arm)"),
+    ("weights", "where the shipped nets are (list), or copy them from a checkout into the user cache (install)"),
 )
 
 
@@ -216,6 +229,10 @@ def _delegated_command(name: str) -> tuple[Callable[[argparse.ArgumentParser], N
         from u4d_aug import real_bank
 
         return real_bank.add_bank_real_arguments, real_bank.run_bank_real
+    elif name == "weights":
+        from u4d_aug import weights_install
+
+        return weights_install.add_weights_arguments, weights_install.run_weights
     raise ValueError(f"unknown command {name!r}; allowed: {', '.join(n for n, _ in DELEGATED)}")
 
 
@@ -224,7 +241,7 @@ EXAMPLES = {
     "info": "u4d info data/sim --json",
     "show": "u4d show data/sim/sequences/00/velodyne/000000.bin --png scan.png --ply scan.ply",
     "demo": "u4d demo --out outputs/demo",
-    "simulate": "u4d simulate --out data/sim --sequences 2 --frames 20 --seed 0 agents.cars_per_100m=3",
+    "simulate": "u4d simulate sim/seg_rich --out data/sim --sequences 2 --frames 20 --seed 0 agents.cars_per_100m=3",
     "sim-report": "u4d sim-report data/sim --real ../shared/data/real/semantickitti --png sim_vs_real.png",
     "seg-train": "u4d seg-train seg/cpu_minkunet data.root=data/sim --out runs/seg optim.steps=100",
     "seg-eval": "u4d seg-eval runs/seg/model.pt data/sim --sequences 02 --png reliability.png",
@@ -241,6 +258,7 @@ EXAMPLES = {
     "experiment": "u4d experiment experiment/downstream_10pct --arms sup-only 'seeds=[0]'",
     "export": "u4d export banks/u4d --labels --mmdet3d-infos",
     "bank-real": "u4d bank-real data/sim_seg --sequences 100-163 --out banks/real_hdl64 --generator runs/u4d_stage2",
+    "weights": "u4d weights install ~/src/u4d-aug",
 }
 
 
@@ -266,48 +284,70 @@ def run_delegated(args: argparse.Namespace) -> int:
 
 def run_info(args: argparse.Namespace) -> int:
     """`u4d info ROOT`: what a dataset root holds (nuScenes: the keyframes of each scene)."""
-    from u4d_aug.data.datasets import open_scans
+    from u4d_aug.data.datasets import detect_format, open_scans
 
     root = args.root
-    dataset = open_scans(root, None, False, args.format, args.nuscenes_version)
+    data_format = args.format or detect_format(root)
+    dataset = open_scans(root, None, False, data_format, args.nuscenes_version)
+    summary = dataset_summary(dataset, root, data_format)
+    if args.json:
+        print(dumps_json(summary, indent=2))
+        return 0
+    print(f"root: {root} ({data_format})")
+    for s in summary["sequences"]:
+        all_ignore = f", {s['all_ignore_frames']} all-ignore" if s["all_ignore_frames"] else ""
+        print(f"  sequence {s['sequence']}: {s['frames']} frames, {s['labeled_frames']} labeled{all_ignore}")
+    label_files = summary["labeled_frames"] + summary["all_ignore_frames"]
+    apart = " (not counted as labeled)" if summary["all_ignore_frames"] else ""
+    print(f"labels: {label_files} scans, {summary['all_ignore_frames']} of them all-ignore{apart}")
+    pps = summary["points_per_scan"]
+    print(f"points/scan: mean {pps['mean']:.0f}, min {pps['min']}, max {pps['max']}")
+    counts = list(summary["class_histogram"].items())
+    total = sum(count for _, count in counts)
+    if total:
+        print("class histogram (labeled frames, train ids):")
+        width = max(14, *(len(name) for name, _ in counts))
+        for i, (name, count) in enumerate(counts):
+            print(f"  {i:2d} {name:<{width}s} {count:>10d}  {100.0 * count / total:5.1f}%")
+    return 0
+
+
+def dataset_summary(dataset: ScanDataset | NuscenesScanDataset, root: Path, data_format: str) -> dict:
+    """Frames, labeled frames (scans whose labels are all ignore counted apart), points per scan and the class
+    histogram of the labeled frames, per sequence and in all."""
     names = dataset.label_set.classes
-    per_sequence = {seq: {"sequence": seq, "frames": 0, "labeled_frames": 0} for seq in dataset.sequences}
+    ignore = dataset.label_set.ignore_index
+    per_sequence = {
+        seq: {"sequence": seq, "frames": 0, "labeled_frames": 0, "all_ignore_frames": 0} for seq in dataset.sequences
+    }
     counts = np.zeros(len(names) + 1, dtype=np.int64)
     num_points = []
     for index in range(len(dataset)):
         item = dataset[index]
         num_points.append(len(item["points"]))
-        per_sequence[item["seq"]]["frames"] += 1
-        if item["labels"] is not None:
-            per_sequence[item["seq"]]["labeled_frames"] += 1
+        sequence = per_sequence[item["seq"]]
+        sequence["frames"] += 1
+        if item["labels"] is None:
+            continue
+        elif np.all(item["labels"] == ignore):  # a label file of unlabeled points (an exported bank's): no labels
+            sequence["all_ignore_frames"] += 1
+        else:
+            sequence["labeled_frames"] += 1
             counts += np.bincount(item["labels"], minlength=len(counts))[: len(counts)]
-    per_sequence = list(per_sequence.values())
+    sequences = list(per_sequence.values())
     pts = np.asarray(num_points) if num_points else np.zeros(1)
     classes = {name: int(counts[i]) for i, name in enumerate(names)}
     classes["ignore"] = int(counts[len(names)])
-    summary = {
+    return {
         "root": str(root),
-        "sequences": per_sequence,
-        "frames": int(sum(s["frames"] for s in per_sequence)),
-        "labeled_frames": int(sum(s["labeled_frames"] for s in per_sequence)),
+        "format": data_format,
+        "sequences": sequences,
+        "frames": int(sum(s["frames"] for s in sequences)),
+        "labeled_frames": int(sum(s["labeled_frames"] for s in sequences)),
+        "all_ignore_frames": int(sum(s["all_ignore_frames"] for s in sequences)),
         "points_per_scan": {"mean": float(pts.mean()), "min": int(pts.min()), "max": int(pts.max())},
         "class_histogram": classes,
     }
-    if args.json:
-        print(dumps_json(summary, indent=2))
-        return 0
-    print(f"root: {root}")
-    for s in per_sequence:
-        print(f"  sequence {s['sequence']}: {s['frames']} frames, {s['labeled_frames']} labeled")
-    pps = summary["points_per_scan"]
-    print(f"points/scan: mean {pps['mean']:.0f}, min {pps['min']}, max {pps['max']}")
-    total = max(int(counts.sum()), 1)
-    if counts.sum():
-        print("class histogram (labeled frames, train ids):")
-        width = max(14, *(len(name) for name in names))
-        for i, name in enumerate([*names, "ignore"]):
-            print(f"  {i:2d} {name:<{width}s} {counts[i]:>10d}  {100.0 * counts[i] / total:5.1f}%")
-    return 0
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -320,6 +360,9 @@ def run_info(args: argparse.Namespace) -> int:
 
 # The shipped presets (u4d_aug.presets): configs/ of the checkout, or the package data of an installed wheel.
 CONFIGS_DIR = configs_root()
+# The commands whose work draws progress bars (tqdm): each takes --no-progress, which `u4d demo` passes on.
+PROGRESS_COMMANDS = ("simulate", "seg-train", "seg-eval", "seg-predict", "train-diffusion", "generate",
+                     "train-extractor", "evaluate", "experiment", "bank-real")  # fmt: skip
 
 
 def run_demo(args: argparse.Namespace) -> int:
@@ -351,6 +394,8 @@ def run_demo(args: argparse.Namespace) -> int:
         atomic_save_npy(args.out / "motion_4d.npy", sequence_motion())
         for number, step in enumerate(steps, start=1):
             command = _resume_if_started(step.command)
+            if args.no_progress and command[0] in PROGRESS_COMMANDS and "--no-progress" not in command:
+                command = [*command, "--no-progress"]
             print(f"\n[{number}/{len(steps)}] {step.title}\n$ u4d {' '.join(command)}", flush=True)
             start = time.perf_counter()
             status = main([*verbosity, *command])

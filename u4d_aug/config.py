@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import difflib
 import math
 import re
 import types
@@ -24,7 +25,7 @@ import yaml
 
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_write_text
-from u4d_aug.presets import configs_root, resolve_config_path
+from u4d_aug.presets import closest_presets, configs_root, did_you_mean, resolve_config_path
 
 _FLOAT_WITHOUT_DOT = re.compile(r"[-+]?\d+[eE][-+]?\d+")
 
@@ -48,7 +49,8 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     path = resolve_config_path(path)
     if not path.is_file():
         raise InputError(
-            f"{path}: config file not found, nor a preset of that name under {configs_root()} (e.g. seg/tiny)"
+            f"{path}: config file not found, nor a preset of that name under {configs_root()}"
+            + (did_you_mean(closest_presets(path)) or " (e.g. seg/tiny)")
         )
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
@@ -97,7 +99,8 @@ def config_from_dict(cls: type[T], data: Mapping[str, Any] | None, source: str =
         raise InputError(f"{source}: config key '{prefix}{removed[0]}' was removed ({why}); delete it from the config")
     if unknown:
         key = prefix + str(unknown[0])
-        raise InputError(f"{source}: unknown config key '{key}'; valid keys here: {', '.join(sorted(fields))}")
+        hint = did_you_mean(closest_keys(cls, key, prefix))
+        raise InputError(f"{source}: unknown config key '{key}'{hint}; valid keys here: {', '.join(sorted(fields))}")
     hints = typing.get_type_hints(cls)
     kwargs = {}
     for name, value in data.items():
@@ -108,6 +111,34 @@ def config_from_dict(cls: type[T], data: Mapping[str, Any] | None, source: str =
         if isinstance(exc, InputError):
             raise
         raise InputError(f"{source}: invalid value under '{prefix.rstrip('.') or cls.__name__}': {exc}") from None
+
+
+def config_keys(cls: type, prefix: str = "") -> list[str]:
+    """Every dotted key of dataclass `cls`, those of its nested configs included ('optim', 'optim.lr', ...)."""
+    hints = typing.get_type_hints(cls)
+    keys = []
+    for field in dataclasses.fields(cls):
+        if not field.init:
+            continue
+        keys.append(prefix + field.name)
+        if isinstance(hints[field.name], type) and dataclasses.is_dataclass(hints[field.name]):
+            keys += config_keys(hints[field.name], f"{prefix}{field.name}.")
+    return keys
+
+
+def closest_keys(cls: type, key: str, prefix: str = "", count: int = 3) -> list[str]:
+    """The dotted keys of `cls` (under `prefix`) nearest to the unknown `key`: those with its last part (`lr` ->
+    'optim.lr'), else the nearest by the whole key or by its last part, best first."""
+    keys = config_keys(cls, prefix)
+    by_last: dict[str, list[str]] = {}
+    for name in keys:
+        by_last.setdefault(name.rpartition(".")[2], []).append(name)
+    if key.rpartition(".")[2] in by_last:
+        return by_last[key.rpartition(".")[2]][:count]
+    close = difflib.get_close_matches(key, keys, n=count, cutoff=0.75)
+    for last in difflib.get_close_matches(key.rpartition(".")[2], list(by_last), n=count, cutoff=0.75):
+        close += by_last[last]
+    return list(dict.fromkeys(close))[:count]
 
 
 def removed_keys(cls: type) -> dict[str, tuple[Any, str]]:

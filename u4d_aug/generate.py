@@ -10,14 +10,17 @@ x0_u of window i of L real frames and keeps those frames' relative poses. A sequ
 motion (net.pose_dim > 0) gets, for sample i, the motion of an L-frame window of its training sequences' poses.txt
 (window drawn with seed + i) or of `motion_file`; the bank sequence's poses.txt holds the poses of that motion
 (`u4d_aug.trajectory.poses_from_motion`), so TTCE/CTC (`u4d evaluate`) can score it. Completion mode conditions on
-the real frames' own motion.
+the real frames' own motion. The bank also gets config.yaml (the run's resolved config), log.jsonl (a line per
+finished block), identity calib/poses and times.txt where its sequences have no poses of their own, and unless
+labels=false the all-ignore labels of `u4d export --layout semantickitti` (a bank is a training set).
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -29,18 +32,20 @@ from u4d_aug.bank import (
     BankLayout,
     check_compatible,
     file_sha256,
+    has_own_poses,
     read_manifest,
     record_digests,
     recorded_digests,
     sample_digests,
     sequence_name,
     verify_samples,
+    write_bank_sequence_files,
     write_manifest,
     write_sample,
     write_sequence_poses,
 )
-from u4d_aug.batches import net_row_mean, row_mean_key
-from u4d_aug.config import config_to_dict, load_config
+from u4d_aug.batches import net_row_mean
+from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.beams import check_beams
 from u4d_aug.data.datasets import (
     NuscenesScanDataset,
@@ -55,7 +60,7 @@ from u4d_aug.data.sensors import get_sensor
 from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, shard
 from u4d_aug.errors import InputError
 from u4d_aug.export_bank import export_bank
-from u4d_aug.io import load_checkpoint, remove_temp_files
+from u4d_aug.io import append_jsonl, load_checkpoint, remove_temp_files
 from u4d_aug.memory import check_fits
 from u4d_aug.outfolder import check_output_folder
 from u4d_aug.pipeline import (
@@ -68,15 +73,18 @@ from u4d_aug.pipeline import (
     generate_u4d,
     generate_u4d_propagated,
     load_generator,
+    stored_mean,
     to_points,
 )
 from u4d_aug.progress import progress_bar
+from u4d_aug.run import CONFIG_NAME, LOG_NAME
 from u4d_aug.runlock import run_lock
 from u4d_aug.sampling import Grid, check_grid
+from u4d_aug.sampling_settings import DEFAULT_SAMPLING, SamplingSettings
 from u4d_aug.stage import DiffusionTrainConfig
 from u4d_aug.trajectory import POSE_DIM, poses_from_motion, relative_motion
 from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
-from u4d_aug.weights import SHIPPED_DIR, stored_row_mean
+from u4d_aug.weights_store import missing_hint, resolve_weights
 
 logger = logging.getLogger(__name__)
 
@@ -101,21 +109,22 @@ class GenerateConfig:
     baseline: str = ""  # baseline mode
     # ddpm: ancestral, as R2DM; ddim: DDIM at few steps keeps x_1 noise with briefly trained nets; dpmpp2m:
     # DPM-Solver++(2M), deterministic 2nd order, the same t grid and one net call per step; dpmpp2m-sde: its
-    # stochastic (SDE, η = 1) form, which like ddpm adds fresh noise at every step
-    sampler: Sampler = "ddpm"
-    sampler_grid: Grid = "time"  # "logsnr": steps uniform in log-SNR (dpmpp2m and dpmpp2m-sde only)
-    steps: int = 32
-    stage1_steps: int | None = None  # None = steps; the uncertain region allows fewer
+    # stochastic (SDE, η = 1) form, which like ddpm adds fresh noise at every step. The six sampling keys make
+    # `sampling()`, with SamplingSettings' defaults (those of configs/u4d/generate_hdl64.yaml)
+    sampler: Sampler = DEFAULT_SAMPLING.sampler
+    sampler_grid: Grid = DEFAULT_SAMPLING.grid  # "logsnr": steps uniform in log-SNR (dpmpp2m and dpmpp2m-sde only)
+    steps: int = DEFAULT_SAMPLING.steps
+    stage1_steps: int | None = DEFAULT_SAMPLING.stage1_steps  # None = steps; the uncertain region allows fewer
     # u4d mode: stage 1's mask keeps at most this share of the pixels, those its head is surest of (the share
     # P_u covers in training range images); null = every pixel over the head's calibrated threshold
-    stage1_mask_fraction: float | None = None
+    stage1_mask_fraction: float | None = DEFAULT_SAMPLING.stage1_mask_fraction
     # below this log-SNR the samplers take each net's training mean image (per row; x0_u's for stage 1) as the x0
     # estimate instead of the net's own, which divides by α ≈ 0 there
     # (benchmarks/results/generation/mean_start_diagnostic.md);
     # null = the net's own at every step. The mean: read from mean_data_root / mean_probs_root when set, else the
     # one `u4d export-weights` stored in the weights file (the shipped nets have it), else read from the training
     # scans the nets' configs name
-    mean_start_below: float | None = None
+    mean_start_below: float | None = DEFAULT_SAMPLING.mean_start_below
     mean_data_root: str = ""
     mean_probs_root: str = ""
     num: int = 64
@@ -143,10 +152,11 @@ class GenerateConfig:
     # baseline's inpainting always is (a no-op in baseline mode); it joins the fill to them
     # (benchmarks/results/temporal/propagation_fill_pinned_*.md)
     propagate_pin: bool = False
-    # for other codebases (`u4d export`, done once every sample is written): all-ignore .label files (value 0)
-    # beside the scans, and mmdetection3d's semantickitti_infos_train.pkl in the bank
-    labels: bool = False
-    mmdet3d_infos: bool = False
+    # for other codebases (`u4d export` in place, done once every sample is written): all-ignore .label files
+    # (value 0 = "unlabeled", which SemanticKITTI readers map to their ignore index; without them Pointcept reads
+    # every point as class 0) beside the scans, and mmdetection3d's semantickitti_infos_train.pkl in the bank
+    labels: bool = True
+    mmdet3d_infos: bool = False  # needs labels
 
     def __post_init__(self) -> None:
         if self.num < 0 or self.steps < 1 or (self.stage1_steps is not None and self.stage1_steps < 1):
@@ -162,6 +172,18 @@ class GenerateConfig:
             check_grid(self.sampler, self.sampler_grid)
         except ValueError as exc:
             raise InputError(f"sampler_grid: {exc}") from None
+        self.sampling()  # the rest of the sampling keys' checks
+
+    def sampling(self) -> SamplingSettings:
+        """The `SamplingSettings` of the sampling keys, as the pipeline's generate functions read them."""
+        return SamplingSettings(
+            sampler=self.sampler,
+            grid=self.sampler_grid,
+            steps=self.steps,
+            stage1_steps=self.stage1_steps,
+            stage1_mask_fraction=self.stage1_mask_fraction,
+            mean_start_below=self.mean_start_below,
+        )
 
 
 def _checkpoint_paths(cfg: GenerateConfig) -> dict[str, Path]:
@@ -175,17 +197,14 @@ def _checkpoint_paths(cfg: GenerateConfig) -> dict[str, Path]:
         value = cfg.net or getattr(cfg, name)
         if not value:
             raise InputError(f"{name}: mode {cfg.mode} needs the {name} checkpoint path")
-        path = Path(value)
+        path = resolve_weights(value)  # `weights/NAME.pt`: the installed shipped net (u4d_aug.weights_store)
         if path.is_dir():
             found = sorted((path / "checkpoints").glob("step_*.pt"))
             if not found:
                 raise InputError(f"{path}: no checkpoints/step_*.pt in this run folder")
             path = found[-1]
         if not path.is_file():
-            hint = ""
-            if not path.is_absolute() and (SHIPPED_DIR.parent / path).is_file():  # a repository path, another folder
-                hint = f" (relative to {Path.cwd()}; run from {SHIPPED_DIR.parent} or name {SHIPPED_DIR.parent / path})"
-            raise InputError(f"{path}: {name} checkpoint not found{hint}")
+            raise InputError(f"{path}: {name} checkpoint not found{missing_hint(path)}")
         paths[name] = path
     return paths
 
@@ -201,13 +220,15 @@ def generate_bank(cfg: GenerateConfig, out: str | Path, progress: bool = True) -
     Rank 0 holds the bank's run lock (`u4d_aug.runlock`), removes temp files of killed writes and checks the finished
     samples against the digests of the manifest (a changed one is generated again) before any rank writes.
     """
+    if cfg.mmdet3d_infos and not cfg.labels:
+        raise InputError("mmdet3d_infos: mmdetection3d's info file names a label file per scan; it needs labels=true")
     paths = _checkpoint_paths(cfg)  # a missing net is one error line, before the bank folder exists
     check_output_folder(out, "a generated bank", is_generated_manifest)  # never into a dataset or another output
     info = init_distributed(cfg.device)
     with run_lock(out, enabled=info.is_main):
         manifest = generate_locked(cfg, paths, Path(out), info, progress)
-    if info.is_main and (cfg.labels or cfg.mmdet3d_infos):
-        manifest = {**manifest, "export": export_bank(out, cfg.labels, cfg.mmdet3d_infos)}
+    if info.is_main and cfg.labels:  # the bank in place: labels, calib/poses/times (and the mmdetection3d info file)
+        manifest = {**manifest, "export": export_bank(out, "mmdet3d" if cfg.mmdet3d_infos else "semantickitti")}
     return manifest
 
 
@@ -230,11 +251,21 @@ def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info
     manifest = _new_manifest(run, identity, config, paths, mean_sources, motion_sources, old)
     if info.is_main:
         _check_finished_samples(layout, old, manifest)
+        save_config(cfg, out / CONFIG_NAME)  # the resolved config of this run, as every run folder holds it
+        done = sum("sha256" in entry for entry in manifest["samples"][: cfg.num])
+        record = {"event": "start", "num": cfg.num, "samples_done": done, "world_size": info.world_size}
+        append_jsonl(out / LOG_NAME, record)
     barrier()  # the other ranks look at the samples once rank 0 has checked them
     _generate_blocks(run, info, progress)
     barrier()
     if info.is_main:
+        own_poses = has_own_poses(manifest)  # else identity placeholders, after the samples' digests
+        write_bank_sequence_files(layout, len(manifest["samples"]), own_poses)
+        manifest["placeholder_poses"] = not own_poses
         _finish_manifest(manifest, layout, cfg.num, frames)
+        done = sum(map(layout.is_done, range(cfg.num)))
+        record = {"event": "finish", "samples_done": done, "complete": manifest["complete"]}
+        append_jsonl(out / LOG_NAME, {**record, "seconds": time.perf_counter() - run.started})
     return manifest
 
 
@@ -250,6 +281,9 @@ class _Generation:
     motions: np.ndarray | None  # (num, L, 4) ego motion of each sample (u4d and baseline modes), else None
     layout: BankLayout
     scans: Scans | Windows | None  # completion mode: the real scans (or L-frame windows) x0_u is taken from
+    started: float = field(default_factory=time.perf_counter)  # wall clock of this run (log.jsonl)
+    last_block: float = field(default_factory=time.perf_counter)  # when this rank's previous block was written
+    written: int = 0  # samples this rank has written in this run
 
 
 def _bank_identity(cfg: GenerateConfig, hashes: dict[str, str], config: dict) -> dict:
@@ -446,30 +480,14 @@ def _generate_u4d(
             run.nets["stage1"],
             run.nets["stage2"],
             n,
-            cfg.steps,
             generators,
             _block_poses(run, block),
-            cfg.sampler,
-            cfg.stage1_steps,
-            grid=cfg.sampler_grid,
+            cfg.sampling(),
             motion=motion,
-            mask_fraction=cfg.stage1_mask_fraction,
             pin_known=cfg.propagate_pin,
         )
     else:
-        result = generate_u4d(
-            run.nets["stage1"],
-            run.nets["stage2"],
-            n,
-            cfg.steps,
-            generators,
-            cfg.sampler,
-            cfg.stage1_steps,
-            run.frames,
-            grid=cfg.sampler_grid,
-            motion=motion,
-            mask_fraction=cfg.stage1_mask_fraction,
-        )
+        result = generate_u4d(run.nets["stage1"], run.nets["stage2"], n, generators, cfg.sampling(), run.frames, motion)
     return result["x0"], (_per_sample(result["m_u_pred"], n)[:, :, 0], None, _per_sample(result["x0_u"], n))
 
 
@@ -482,13 +500,9 @@ def _generate_baseline(
     net = run.nets["baseline"]
     if cfg.propagate:
         poses = _block_poses(run, block)
-        result = generate_baseline_propagated(
-            net, n, cfg.steps, generators, poses, cfg.sampler, grid=cfg.sampler_grid, motion=motion
-        )
+        result = generate_baseline_propagated(net, n, generators, poses, cfg.sampling(), motion=motion)
     else:
-        result = generate_baseline(
-            net, n, cfg.steps, generators, cfg.sampler, run.frames, grid=cfg.sampler_grid, motion=motion
-        )
+        result = generate_baseline(net, n, generators, cfg.sampling(), run.frames, motion=motion)
     return result["x0"], (None, None, None)
 
 
@@ -509,9 +523,7 @@ def _complete_block(run: _Generation, block: list[int], generators: list[torch.G
     motion = None
     if run.posed:  # the real frames' own motion, (n, L, 4)
         motion = torch.from_numpy(np.stack([relative_motion(part[3]) for part in parts]))
-    result = complete(
-        run.nets["stage2"], x0_u, m_u, cfg.steps, generators, cfg.sampler, grid=cfg.sampler_grid, motion=motion
-    )
+    result = complete(run.nets["stage2"], x0_u, m_u, generators, cfg.sampling(), motion=motion)
     return result["x0"], (_per_sample(m_u, n)[:, :, 0], entropy_image.numpy(), _per_sample(x0_u, n))
 
 
@@ -524,6 +536,12 @@ def _write_block(run: _Generation, block: list[int], clouds: list[np.ndarray], s
             images = [None if part is None else part[j, frame] for part in side]
             write_sample(run.layout, i, clouds[j * run.frames + frame], *images, frame=frame)
         record_digests(run.layout, i)  # a sample without this record is generated again on resume
+        run.written += 1
+    now = time.perf_counter()
+    seconds = now - run.last_block  # sampling and writing of the block
+    record = {"event": "block", "block": [block[0], block[-1]], "samples_done": run.written, "seconds": seconds}
+    append_jsonl(run.layout.root / LOG_NAME, record)  # one line per block (each rank appends its own)
+    run.last_block = now
 
 
 def _finish_manifest(manifest: dict, layout: BankLayout, num: int, frames: int) -> None:
@@ -569,16 +587,9 @@ def training_mean(net_cfg: DiffusionTrainConfig, name: str, cfg: GenerateConfig,
     mean_data_root when set, else the one stored in its weights file `path` (`u4d export-weights`), else read from
     the training scans its config names; an InputError naming the keys to set when none of these is there."""
     if not cfg.mean_data_root and not Path(path).is_dir():
-        stored = stored_row_mean(load_checkpoint(Path(path), "diffusion checkpoint"), str(path), name)
+        stored = stored_mean(load_checkpoint(Path(path), "diffusion checkpoint"), net_cfg, name, str(path))
         if stored is not None:
-            mean, source = stored
-            key = row_mean_key(net_cfg, name)
-            if source.get("key") != key or mean.shape[1] != net_cfg.height:
-                raise InputError(
-                    f"{path}: row_mean: expected the {key} mean of {net_cfg.height} rows, got {source.get('key')} "
-                    f"of shape {tuple(mean.shape)}"
-                )
-            return mean, {**source, "stored_in": str(path)}
+            return stored[0], {**stored[1], "stored_in": str(path)}
     try:
         return net_row_mean(net_cfg, cfg.mean_data_root, cfg.mean_probs_root, name)
     except (InputError, OSError) as exc:
@@ -720,7 +731,11 @@ def add_generate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=None, help="sampling steps")
     parser.add_argument("--seed", type=int, default=None, help="base seed: sample i uses seed + i")
     parser.add_argument(
-        "--labels", action="store_true", help="also write all-ignore labels/NNNNNN.label (as `u4d export --labels`)"
+        "--labels",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="all-ignore labels/NNNNNN.label (0 = unlabeled) beside every scan, as `u4d export --layout "
+        "semantickitti` (default: on; --no-labels: none)",
     )
     parser.add_argument(
         "--mmdet3d-infos", action="store_true", help="also write mmdetection3d's semantickitti_infos_train.pkl"
@@ -734,9 +749,10 @@ def run_generate(args: argparse.Namespace) -> int:
     for key in ("num", "mode", "steps", "seed"):
         if getattr(args, key) is not None:
             overrides.append(f"{key}={getattr(args, key)}")
-    for key in ("labels", "mmdet3d_infos"):
-        if getattr(args, key):
-            overrides.append(f"{key}=true")
+    if args.labels is not None:  # --labels / --no-labels
+        overrides.append(f"labels={str(args.labels).lower()}")
+    if args.mmdet3d_infos:
+        overrides.append("mmdet3d_infos=true")
     cfg = load_config(GenerateConfig, args.config, overrides)
     try:
         generate_bank(cfg, args.out, progress=not args.no_progress)

@@ -1,9 +1,10 @@
 """Scans generated on the fly for a training loop: an iterable of `ScanDataset`-like items, no bank on disk.
 
 Sample i is drawn with its own generator seeded `seed + i` in fixed blocks of `batch_size` consecutive samples,
-as `u4d generate` does, so the stream yields the scans a bank of the same settings holds, in the same order
-(`seq`/`frame` name the files that bank would have). Samples with no return at all are skipped, as a bank skips
-them. Under a `DataLoader` with several workers, worker w takes blocks w, w + W, ... (no duplicates).
+as `u4d generate` does, and sampled with the same `SamplingSettings` (`GenerateConfig.sampling()`), so the stream
+yields the scans a bank of the same settings, seed and batch_size holds, in the same order (`seq`/`frame` name the
+files that bank would have). Samples with no return at all are skipped, as a bank skips them. Under a `DataLoader`
+with several workers, worker w takes blocks w, w + W, ... (no duplicates).
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ from torch.utils.data import IterableDataset, get_worker_info
 
 from u4d_aug.bank import BANK_SEQUENCE, sequence_name
 from u4d_aug.errors import InputError
-from u4d_aug.pipeline import Loaded, Sampler, generate_baseline, generate_u4d, load_generator, to_points
+from u4d_aug.pipeline import Loaded, generate_baseline, generate_u4d, load_generator, to_points
+from u4d_aug.sampling_settings import DEFAULT_SAMPLING, SamplingSettings
 
 __all__ = ["GeneratedScans"]
 
@@ -40,7 +42,9 @@ class GeneratedScans(IterableDataset):
     """U4D (nets = [stage 1, stage 2]) or baseline (nets = [net]) scans: {points, labels None, seq, frame}; a net is
     `load_generator(...)`'s result or a checkpoint path.
 
-    `num` samples (None: endless); a generator trained on L > 1 frames gives L scans per sample.
+    `num` samples (None: endless); a generator trained on L > 1 frames gives L scans per sample. `settings` as
+    `u4d generate` reads them (default: configs/u4d/generate_hdl64.yaml's, whose mean start needs nets exported
+    with their training means, `u4d export-weights --data-root`).
     """
 
     def __init__(
@@ -48,11 +52,9 @@ class GeneratedScans(IterableDataset):
         mode: Mode,
         nets: Sequence[Loaded | str | Path],
         num: int | None = None,
-        steps: int = 32,
         seed: int = 0,
         batch_size: int = 1,
-        sampler: Sampler = "ddpm",
-        stage1_steps: int | None = None,
+        settings: SamplingSettings = DEFAULT_SAMPLING,
         frames: int | None = None,
     ) -> None:
         if mode == "u4d":
@@ -63,18 +65,14 @@ class GeneratedScans(IterableDataset):
             raise InputError(f"GeneratedScans: mode {mode!r} is not one of 'u4d', 'baseline'")
         if len(nets) != needed:
             raise InputError(f"GeneratedScans: mode {mode} takes {needed} loaded net(s), got {len(nets)}")
-        if (num is not None and num < 0) or steps < 1 or batch_size < 1:
-            raise InputError(
-                f"GeneratedScans: need num >= 0, steps >= 1, batch_size >= 1; got {num}, {steps}, {batch_size}"
-            )
+        if (num is not None and num < 0) or batch_size < 1:
+            raise InputError(f"GeneratedScans: need num >= 0, batch_size >= 1; got {num}, {batch_size}")
         self.mode = mode
         self.nets = [_loaded(net, i) for i, net in enumerate(nets)]
         self.num = num
-        self.steps = steps
         self.seed = seed
         self.batch_size = batch_size
-        self.sampler = sampler
-        self.stage1_steps = stage1_steps
+        self.settings = settings
         _, cfg = self.nets[-1]
         self.frames = frames or cfg.frames
 
@@ -109,9 +107,7 @@ class GeneratedScans(IterableDataset):
     def _sample(self, n: int, generators: list[torch.Generator]) -> torch.Tensor:
         if self.mode == "u4d":
             stage1, stage2 = self.nets
-            result = generate_u4d(
-                stage1, stage2, n, self.steps, generators, self.sampler, self.stage1_steps, self.frames
-            )
+            result = generate_u4d(stage1, stage2, n, generators, self.settings, self.frames)
         else:
-            result = generate_baseline(self.nets[0], n, self.steps, generators, self.sampler, self.frames)
+            result = generate_baseline(self.nets[0], n, generators, self.settings, self.frames)
         return result["x0"]

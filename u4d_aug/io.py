@@ -227,9 +227,11 @@ def load_checkpoint(path: str | os.PathLike, what: str) -> dict:
     """
     import torch
 
-    path = Path(path)
+    from u4d_aug.weights_store import missing_hint, resolve_weights
+
+    path = resolve_weights(path)  # `weights/NAME.pt` of a shipped net: wherever `u4d weights install` put it
     if not path.is_file():
-        raise InputError(f"{path}: {what} not found")
+        raise InputError(f"{path}: {what} not found{missing_hint(path)}")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:

@@ -6,6 +6,8 @@ The baseline is R2DM's single unconditional stage. Nets are loaded with their EM
 A net trained with `frames` = L > 1 generates L-frame sequences at once: tensors (n, L, C, H, W) instead of
 (n, C, H, W) (its MoST blocks, if any, mix the frames). `frames=` asks for another length: the temporal convs
 slide along L, so any L works, and a single-frame net then makes L independent frames.
+Every sampling function reads one `SamplingSettings` (sampler, steps, stage-1 options, mean start), the settings
+`u4d generate` builds from its config, so the API makes the scans the CLI makes.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from u4d_aug.batches import row_mean_key
 from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.diffusion import STAGE1_TASK, STAGE2_TASK, empty_condition, eps_from_v, stage_cond
 from u4d_aug.ema import EMA
@@ -28,20 +31,12 @@ from u4d_aug.nn.unet import RangeUNet
 from u4d_aug.propagate import warp_frame0
 from u4d_aug.range_view import RowMode, unproject
 from u4d_aug.run import newest_checkpoint
-from u4d_aug.sampling import (
-    SAMPLER_NAMES,
-    DenoiseFn,
-    Generators,
-    Grid,
-    Sample,
-    check_grid,
-    mean_start,
-    replace_known,
-)
+from u4d_aug.sampling import DenoiseFn, Generators, Sample, mean_start, replace_known
 from u4d_aug.sampling import sample as sample_named
+from u4d_aug.sampling_settings import DEFAULT_SAMPLING, SamplingSettings
 from u4d_aug.stage import DiffusionTrainConfig, build_net, config_from_checkpoint
 from u4d_aug.validate import check_state_fits
-from u4d_aug.weights import check_finite_weight, is_exported, load_exported
+from u4d_aug.weights import check_finite_weight, is_exported, load_exported, stored_row_mean
 
 # u4d_aug.sampling.sample: DDIM, ancestral DDPM, DPM-Solver++(2M) and its SDE form; the last two also on grid="logsnr"
 Sampler = Literal["ddim", "ddpm", "dpmpp2m", "dpmpp2m-sde"]
@@ -51,7 +46,8 @@ Loaded = tuple[nn.Module, DiffusionTrainConfig]
 
 class LoadedGenerator(NamedTuple):
     """A diffusion net with its EMA weights, in eval mode, and its training config (`load_generator`); unpacks as
-    `net, config = ...`."""
+    `net, config = ...`. A net from exported weights also holds the training means they store (`stored_mean`) as
+    buffers `row_mean_<role>`, which the mean start (`SamplingSettings.mean_start_below`) starts from."""
 
     net: RangeUNet
     config: DiffusionTrainConfig
@@ -68,6 +64,10 @@ def load_generator(ckpt: str | Path, device: torch.device | str = "cpu") -> Load
     net = build_net(cfg, "cpu")
     if is_exported(state):  # `u4d export-weights`: the EMA weights in float16
         load_exported(net, state, str(path))
+        for role in _roles(cfg):
+            stored = stored_mean(state, cfg, role, str(path))
+            if stored is not None:  # non-persistent: the net's state_dict stays that of its config
+                net.register_buffer(f"row_mean_{role}", stored[0], persistent=False)
     else:
         shadow = state.get("ema")
         if not isinstance(shadow, dict):
@@ -83,6 +83,29 @@ def load_generator(ckpt: str | Path, device: torch.device | str = "cpu") -> Load
             if tensor.is_floating_point():
                 check_finite_weight(tensor, name, f"{path} (ema)")
     return LoadedGenerator(net.requires_grad_(False).to(device).eval(), cfg)
+
+
+def _roles(cfg: DiffusionTrainConfig) -> tuple[str, ...]:
+    """The roles a net of `cfg` samples in: its stage, or stage 1 and stage 2 for a one-net u4d."""
+    return ("stage1", "stage2") if cfg.diffusion.stage == "u4d" else (cfg.diffusion.stage,)
+
+
+def stored_mean(state: dict, cfg: DiffusionTrainConfig, role: str, source: str) -> tuple[Tensor, dict] | None:
+    """(C, H, 1) per-row training mean that exported weights store for a net's `role` (`weights.stored_row_mean`)
+    and where it came from, or None without one; an InputError when it is the mean of other images or rows."""
+    if cfg.diffusion.stage == "u4d" and role == "stage1" and "row_mean_stage1" not in state:
+        return None  # a one-net file's `row_mean` is its x0 mean; its stage-1 mean could not be read at export
+    stored = stored_row_mean(state, source, role)
+    if stored is None:
+        return None
+    mean, info = stored
+    key = row_mean_key(cfg, role)
+    if info.get("key") != key or mean.shape[1] != cfg.height:
+        raise InputError(
+            f"{source}: row_mean: expected the {key} mean of {cfg.height} rows, got {info.get('key')} "
+            f"of shape {tuple(mean.shape)}"
+        )
+    return mean, info
 
 
 class MeanStart(nn.Module):
@@ -104,6 +127,29 @@ class MeanStart(nn.Module):
             return self.net(x, lam, c, **kwargs)
 
         return mean_start(denoise, self.mean, self.below)(x_t, log_snr, cond)
+
+
+def with_mean_start(loaded: Loaded, role: str, settings: SamplingSettings) -> Loaded:
+    """`loaded` in a `MeanStart` of the training mean its weights file stores for `role` (the net's buffer
+    `row_mean_<role>`, `load_generator`) when settings.mean_start_below is set; as it is when that is None or its
+    net is already in a MeanStart; an InputError naming the way out for a net without a stored mean."""
+    if not isinstance(settings, SamplingSettings):
+        raise InputError(
+            f"settings: expected a SamplingSettings (sampler, steps, ...: u4d_aug.SamplingSettings(steps=8)), "
+            f"got {type(settings).__name__}"
+        )
+    net, cfg = loaded
+    below = settings.mean_start_below
+    if below is None or isinstance(net, MeanStart):
+        return loaded
+    mean = dict(net.named_buffers(recurse=False)).get(f"row_mean_{role}")
+    if mean is None:
+        raise InputError(
+            f"mean_start_below={below}: this {cfg.diffusion.stage} net has no stored training mean for {role} (only "
+            "weights written by `u4d export-weights --data-root` hold one); export it that way or set "
+            "mean_start_below=None"
+        )
+    return MeanStart(net, mean, below), cfg
 
 
 def _check_stage(loaded: Loaded, stage: str, role: str) -> None:
@@ -159,27 +205,22 @@ def _sample(
     steps: int,
     generator: Generators,
     cond: Tensor | None,
-    sampler: Sampler,
-    grid: Grid = "time",
+    settings: SamplingSettings,
     motion: Tensor | None = None,
     known: tuple[Tensor, Tensor] | None = None,
     task: int | None = None,
 ) -> Sample:
-    """`sampler` on the loaded net (`denoiser`); `known` (x0 (*batch, C, H, W), mask (*batch, 1, H, W)) pins x̂0
-    where mask is 1 (`replace_known`); `task`: which stage a u4d net runs."""
+    """The settings' sampler and grid at `steps` on the loaded net (`denoiser`); `known` (x0 (*batch, C, H, W), mask
+    (*batch, 1, H, W)) pins x̂0 where mask is 1 (`replace_known`); `task`: which stage a u4d net runs."""
     net, cfg = loaded
     device = next(net.parameters()).device
     shape = (*batch_shape, cfg.net.in_channels, cfg.height, cfg.width)
     denoise = denoiser(loaded, batch_shape, motion, task)
     if known is not None:
         denoise = replace_known(denoise, known[0].to(device), known[1].to(device))
-    if sampler not in SAMPLER_NAMES:
-        raise InputError(f"sampler {sampler!r} is not one of {', '.join(repr(n) for n in SAMPLER_NAMES)}")
-    try:
-        check_grid(sampler, grid)
-    except ValueError as exc:
-        raise InputError(str(exc)) from None
-    return sample_named(sampler, denoise, shape, steps, generator, cond=cond, device=device, grid=grid)
+    return sample_named(
+        settings.sampler, denoise, shape, steps, generator, cond=cond, device=device, grid=settings.grid
+    )
 
 
 def _with_inputs(net: nn.Module, inputs: dict, x_t: Tensor, log_snr: Tensor, cond: Tensor | None):
@@ -225,27 +266,27 @@ def cap_mask(m_u: Tensor, logits: Tensor, fraction: float) -> Tensor:
 def generate_stage1(
     stage1: Loaded,
     n: int,
-    steps: int,
     generator: Generators,
-    sampler: Sampler = "ddim",
+    settings: SamplingSettings = DEFAULT_SAMPLING,
     frames: int | None = None,
-    grid: Grid = "time",
     motion: Tensor | None = None,
-    mask_fraction: float | None = None,
 ) -> dict[str, Tensor]:
     """x0_u (n, [L,] 2, H, W) from stage 1: pixels of the predicted mask m_p (`mask_from_logits`) keep x̂0, others −1.
 
-    `frames` = L (None: the L stage 1 was trained with; a single-frame net makes L independent frames).
-    `motion` (n, L, 4): the ego motion of each frame, for nets trained with it (net.pose_dim).
-    `mask_fraction`: m_p keeps at most this share of each frame's pixels (`cap_mask`; None: the threshold alone).
+    Sampled at settings.stage1_steps (None: steps), from the stored mean with settings.mean_start_below
+    (`with_mean_start`); m_p keeps at most settings.stage1_mask_fraction of each frame's pixels (`cap_mask`; None:
+    the threshold alone). `frames` = L (None: the L stage 1 was trained with; a single-frame net makes L independent
+    frames). `motion` (n, L, 4): the ego motion of each frame, for nets trained with it (net.pose_dim).
     """
     _check_stage(stage1, "stage1", "stage 1")
+    stage1 = with_mean_start(stage1, "stage1", settings)
     _, cfg = stage1
     shape = _batch_shape(n, frames or cfg.frames)
-    sample = _sample(stage1, shape, steps, generator, None, sampler, grid, motion, task=STAGE1_TASK)
+    steps = settings.stage1_steps or settings.steps
+    sample = _sample(stage1, shape, steps, generator, None, settings, motion, task=STAGE1_TASK)
     m_u = mask_from_logits(sample.extra, cfg.diffusion.mask_pos_weight)  # (n, [L,] 1, H, W), last step
-    if mask_fraction is not None:
-        m_u = cap_mask(m_u, sample.extra, mask_fraction)
+    if settings.stage1_mask_fraction is not None:
+        m_u = cap_mask(m_u, sample.extra, settings.stage1_mask_fraction)
     x0_u = torch.where(m_u.bool(), sample.x0, torch.full_like(sample.x0, -1.0))
     return {"x0_u": x0_u, "m_u_pred": m_u}
 
@@ -254,18 +295,18 @@ def complete(
     stage2: Loaded,
     x0_u: Tensor,
     m_u: Tensor,
-    steps: int,
     generator: Generators,
-    sampler: Sampler = "ddim",
-    grid: Grid = "time",
+    settings: SamplingSettings = DEFAULT_SAMPLING,
     motion: Tensor | None = None,
     pin_known: bool = False,
 ) -> dict[str, Tensor]:
     """Stage 2: x0 (B, [L,] 2, H, W) ~ p(x0 | x0_u (B, [L,] 2, H, W), m_u (B, [L,] 1, H, W)), e.g. from real scans.
 
-    `motion` (B, L, 4): the ego motion of each frame, for nets trained with it (net.pose_dim). `pin_known`: x̂0 is
-    also pinned to x0_u where m_u is 1 at every step (`replace_known`, as the baseline's `inpaint`)."""
+    Sampled at settings.steps, from the stored mean with settings.mean_start_below (`with_mean_start`). `motion`
+    (B, L, 4): the ego motion of each frame, for nets trained with it (net.pose_dim). `pin_known`: x̂0 is also pinned
+    to x0_u where m_u is 1 at every step (`replace_known`, as the baseline's `inpaint`)."""
     _check_stage(stage2, "stage2", "stage 2")
+    stage2 = with_mean_start(stage2, "stage2", settings)
     net, cfg = stage2
     if (
         x0_u.dim() not in (4, 5)
@@ -279,7 +320,8 @@ def complete(
     device = next(net.parameters()).device
     cond = stage_cond(x0_u.to(device), m_u.to(device))  # (B, [L,] 3, H, W)
     known = (x0_u, m_u) if pin_known else None
-    sample = _sample(stage2, tuple(x0_u.shape[:-3]), steps, generator, cond, sampler, grid, motion, known, STAGE2_TASK)
+    batch_shape = tuple(x0_u.shape[:-3])
+    sample = _sample(stage2, batch_shape, settings.steps, generator, cond, settings, motion, known, STAGE2_TASK)
     return {"x0": sample.x0, "x0_u": x0_u, "m_u": m_u}
 
 
@@ -287,17 +329,14 @@ def generate_u4d(
     stage1: Loaded,
     stage2: Loaded,
     n: int,
-    steps: int,
     generator: Generators,
-    sampler: Sampler = "ddim",
-    stage1_steps: int | None = None,
+    settings: SamplingSettings = DEFAULT_SAMPLING,
     frames: int | None = None,
-    grid: Grid = "time",
     motion: Tensor | None = None,
-    mask_fraction: float | None = None,
 ) -> dict[str, Tensor]:
-    """Hard-to-easy: x0_u ~ stage 1 (mask from its head, at most `mask_fraction` of the pixels), then x0 ~ stage 2
-    given it -> dict(x0, x0_u, m_u_pred).
+    """Hard-to-easy: x0_u ~ stage 1 (mask from its head, at most settings.stage1_mask_fraction of the pixels), then
+    x0 ~ stage 2 given it -> dict(x0, x0_u, m_u_pred); `settings` as `u4d generate` reads them (the defaults: those of
+    configs/u4d/generate_hdl64.yaml, with the mean start of the nets' stored training means).
 
     Sequences have `frames` = L frames (None: stage 2's training L); stage 1 makes the same L frames. `motion`
     (n, L, 4) conditions whichever stages were trained with an ego-motion input.
@@ -308,18 +347,8 @@ def generate_u4d(
     frames = frames or cfg2.frames
     motion1 = motion if cfg1.net.pose_dim else None
     motion2 = motion if cfg2.net.pose_dim else None
-    first = generate_stage1(
-        stage1,
-        n,
-        stage1_steps or steps,
-        generator,
-        sampler,
-        frames=frames,
-        grid=grid,
-        motion=motion1,
-        mask_fraction=mask_fraction,
-    )
-    second = complete(stage2, first["x0_u"], first["m_u_pred"], steps, generator, sampler, grid=grid, motion=motion2)
+    first = generate_stage1(stage1, n, generator, settings, frames=frames, motion=motion1)
+    second = complete(stage2, first["x0_u"], first["m_u_pred"], generator, settings, motion=motion2)
     return {"x0": second["x0"], "x0_u": first["x0_u"], "m_u_pred": first["m_u_pred"]}
 
 
@@ -342,14 +371,10 @@ def generate_u4d_propagated(
     stage1: Loaded,
     stage2: Loaded,
     n: int,
-    steps: int,
     generator: Generators,
     poses: np.ndarray,
-    sampler: Sampler = "ddim",
-    stage1_steps: int | None = None,
-    grid: Grid = "time",
+    settings: SamplingSettings = DEFAULT_SAMPLING,
     motion: Tensor | None = None,
-    mask_fraction: float | None = None,
     pin_known: bool = False,
 ) -> dict[str, Tensor]:
     """L-frame U4D sequences that follow their ego motion: `generate_u4d` draws frame 0, `warp_frame0` moves it into
@@ -358,13 +383,11 @@ def generate_u4d_propagated(
     m_u_pred) (n, L, ...), m_u_pred the warped region."""
     poses = _propagation_poses(poses, n)
     frames = poses.shape[1]
-    first = generate_u4d(
-        stage1, stage2, n, steps, generator, sampler, stage1_steps, frames, grid, motion, mask_fraction
-    )
+    first = generate_u4d(stage1, stage2, n, generator, settings, frames, motion)
     _, cfg2 = stage2
     x0_u, m_u = _warp_first_frames(first["x0"], poses, cfg2)  # (n, L, 2|1, H, W)
     motion2 = motion if cfg2.net.pose_dim else None
-    second = complete(stage2, x0_u, m_u, steps, generator, sampler, grid=grid, motion=motion2, pin_known=pin_known)
+    second = complete(stage2, x0_u, m_u, generator, settings, motion=motion2, pin_known=pin_known)
     x0 = torch.where(m_u.bool(), x0_u.to(second["x0"].device), second["x0"])
     return {"x0": x0, "x0_u": x0_u, "m_u_pred": m_u}
 
@@ -372,29 +395,27 @@ def generate_u4d_propagated(
 def generate_baseline(
     net: Loaded,
     n: int,
-    steps: int,
     generator: Generators,
-    sampler: Sampler = "ddim",
+    settings: SamplingSettings = DEFAULT_SAMPLING,
     frames: int | None = None,
-    grid: Grid = "time",
     motion: Tensor | None = None,
 ) -> dict[str, Tensor]:
-    """R2DM-style unconditional x0 (n, [L,] 2, H, W) (L = `frames`, None: the frames the net was trained with);
-    `motion` (n, L, 4) for a net trained with an ego-motion input."""
+    """R2DM-style unconditional x0 (n, [L,] 2, H, W) (L = `frames`, None: the frames the net was trained with) at
+    settings.steps, from the stored mean with settings.mean_start_below (`with_mean_start`; the stage-1 settings
+    are not read); `motion` (n, L, 4) for a net trained with an ego-motion input."""
     _check_stage(net, "baseline", "baseline")
+    net = with_mean_start(net, "baseline", settings)
     _, cfg = net
     shape = _batch_shape(n, frames or cfg.frames)
-    return {"x0": _sample(net, shape, steps, generator, None, sampler, grid, motion).x0}
+    return {"x0": _sample(net, shape, settings.steps, generator, None, settings, motion).x0}
 
 
 def generate_baseline_propagated(
     net: Loaded,
     n: int,
-    steps: int,
     generator: Generators,
     poses: np.ndarray,
-    sampler: Sampler = "ddim",
-    grid: Grid = "time",
+    settings: SamplingSettings = DEFAULT_SAMPLING,
     motion: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """L-frame baseline sequences that follow their ego motion: `generate_baseline` draws frame 0, `warp_frame0`
@@ -404,10 +425,10 @@ def generate_baseline_propagated(
     _check_stage(net, "baseline", "baseline")
     poses = _propagation_poses(poses, n)
     frames = poses.shape[1]
-    first = generate_baseline(net, n, steps, generator, sampler, frames, grid, motion)["x0"]  # (n, L, 2, H, W)
+    first = generate_baseline(net, n, generator, settings, frames, motion)["x0"]  # (n, L, 2, H, W)
     _, cfg = net
     x0_u, m_u = _warp_first_frames(first, poses, cfg)  # (n, L, 2|1, H, W)
-    x0 = inpaint(net, x0_u, m_u, steps, generator, sampler, grid, motion)["x0"]
+    x0 = inpaint(net, x0_u, m_u, generator, settings, motion)["x0"]
     return {"x0": x0, "x0_u": x0_u, "m_u_pred": m_u}
 
 
@@ -415,16 +436,15 @@ def inpaint(
     net: Loaded,
     x0_u: Tensor,
     m_u: Tensor,
-    steps: int,
     generator: Generators,
-    sampler: Sampler = "ddim",
-    grid: Grid = "time",
+    settings: SamplingSettings = DEFAULT_SAMPLING,
     motion: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """The baseline's completion: x0 (B, [L,] 2, H, W) of the unconditional net with x̂0 pinned to x0_u where m_u is 1
     (`replace_known`, RePaint-style without resampling) and x0_u exactly there; the single-stage counterpart of
-    `complete`."""
+    `complete`, with `settings` as `generate_baseline` reads them."""
     _check_stage(net, "baseline", "baseline")
+    net = with_mean_start(net, "baseline", settings)
     _, cfg = net
     if (
         x0_u.dim() not in (4, 5)
@@ -435,7 +455,8 @@ def inpaint(
             f"the baseline was trained on {cfg.height}x{cfg.width} images: expected x0_u (B, [L,] 2, H, W) and m_u "
             f"(B, [L,] 1, H, W), got x0_u {tuple(x0_u.shape)}, m_u {tuple(m_u.shape)}"
         )
-    sample = _sample(net, tuple(x0_u.shape[:-3]), steps, generator, None, sampler, grid, motion, known=(x0_u, m_u))
+    batch_shape = tuple(x0_u.shape[:-3])
+    sample = _sample(net, batch_shape, settings.steps, generator, None, settings, motion, known=(x0_u, m_u))
     x0 = torch.where(m_u.bool().to(sample.x0.device), x0_u.to(sample.x0.device), sample.x0)  # exact where known
     return {"x0": x0, "x0_u": x0_u, "m_u": m_u}
 

@@ -8,6 +8,7 @@ a yaml of one's own keep working.
 
 from __future__ import annotations
 
+import difflib
 import os
 from pathlib import Path
 
@@ -22,13 +23,19 @@ def configs_root() -> Path:
     return Path(__file__).resolve().parents[1] / "configs"
 
 
-def preset_candidates(name: str | os.PathLike) -> list[Path]:
-    """Where preset `name` may live under `configs_root()`: a leading `configs/` dropped, `.yaml` added if absent."""
+def _relative_name(name: str | os.PathLike) -> str:
+    """`name` as a path under `configs_root()`: a leading `./` and `configs/` dropped."""
     text = Path(name).as_posix()
     if text.startswith("./"):
         text = text[2:]
     if text.startswith("configs/"):
         text = text[len("configs/") :]
+    return text
+
+
+def preset_candidates(name: str | os.PathLike) -> list[Path]:
+    """Where preset `name` may live under `configs_root()`: a leading `configs/` dropped, `.yaml` added if absent."""
+    text = _relative_name(name)
     names = [text] if text.endswith(PRESET_SUFFIXES) else [text + ".yaml", text + ".yml", text]
     return [configs_root() / n for n in names]
 
@@ -49,3 +56,20 @@ def list_presets() -> list[str]:
     root = configs_root()
     found = [p for suffix in PRESET_SUFFIXES for p in root.glob(f"**/*{suffix}")]
     return sorted(p.relative_to(root).with_suffix("").as_posix() for p in found)
+
+
+def closest_presets(name: str | os.PathLike, count: int = 3) -> list[str]:
+    """The shipped presets nearest to `name` (`seg/tny` -> ['seg/tiny']), best first; [] for an absolute path."""
+    if Path(name).is_absolute():
+        return []
+    text = _relative_name(name)
+    for suffix in PRESET_SUFFIXES:
+        text = text.removesuffix(suffix)
+    return difflib.get_close_matches(text, list_presets(), n=count, cutoff=0.75)
+
+
+def did_you_mean(choices: list[str]) -> str:
+    """A hint naming `choices`, " (did you mean 'a' or 'b'?)", or "" when there are none."""
+    if not choices:
+        return ""
+    return f" (did you mean {' or '.join(repr(c) for c in choices)}?)"

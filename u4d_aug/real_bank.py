@@ -7,8 +7,10 @@ bank. By default each scan goes through the generators' range image: projected (
 points; `--raw` copies the scans as they are, to size what the projection costs (`mt+real-raw`).
 
 manifest.json: {"mode": "real", "source": {"root", "sequences"}, "projection": {sensor, height, width, row_mode}
-or null (raw), "samples": [{"index", "source", "sha256": {file: digest}}], "complete"}. A re-run resumes; a changed
-sample is written again; a bank of other sources or another projection is refused.
+or null (raw), "samples": [{"index", "source", "sha256": {file: digest}}], "complete", "placeholder_poses": true,
+"export"}. A re-run resumes; a changed sample is written again; a bank of other sources or another projection is
+refused. Like a generated bank it gets all-ignore labels (`--no-labels`: none), identity calib/poses and times.txt
+(`bank.write_bank_sequence_files`), config.yaml (this run's settings) and log.jsonl (a record per 64 scans).
 
 The split check (`check_disjoint`): the bank's places must be in no split of the experiment that reads it (its
 labelled/unlabelled training and held-out sequences) and in no generator's training; `u4d bank-real --generator`
@@ -19,17 +21,27 @@ from __future__ import annotations
 
 import argparse
 import logging
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
-from u4d_aug.bank import BankLayout, read_manifest, sample_digests, verify_samples, write_manifest, write_sample
+from u4d_aug.bank import (
+    BankLayout,
+    read_manifest,
+    sample_digests,
+    verify_samples,
+    write_bank_sequence_files,
+    write_manifest,
+    write_sample,
+)
 from u4d_aug.data.datasets import expand_sequences, list_frames, resolve_sequences
 from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.errors import InputError
-from u4d_aug.io import load_checkpoint, make_folder
+from u4d_aug.io import append_jsonl, atomic_write_text, load_checkpoint, make_folder
 from u4d_aug.outfolder import check_output_folder
 from u4d_aug.progress import progress_bar
 from u4d_aug.runlock import run_lock
@@ -111,8 +123,13 @@ def write_real_bank(
     generators: list[Path] | None = None,
     max_scans: int | None = None,
     progress: bool = True,
+    labels: bool = True,
 ) -> dict[str, Any]:
-    """Write the bank (resuming) and return its manifest; geometry None copies the scans unprojected."""
+    """Write the bank (resuming) and return its manifest; geometry None copies the scans unprojected; labels: the
+    all-ignore labels of `u4d export --layout semantickitti` (a bank is a training set, read as unlabeled)."""
+    from u4d_aug.export_bank import export_bank
+    from u4d_aug.run import CONFIG_NAME, LOG_NAME
+
     places = resolve_sequences(root, sequences)
     for name, (gen_root, gen_sequences) in generator_splits(generators or []).items():
         if gen_root.resolve() == root.resolve():
@@ -131,8 +148,22 @@ def write_real_bank(
             raise InputError(f"{out}/manifest.json: a bank of other scans or another projection; choose another --out")
         layout = BankLayout(out)
         verified = verify_samples(layout, old)
-        manifest = {**identity, "samples": [], "complete": False}
+        manifest: dict[str, Any] = {**identity, "samples": [], "complete": False}
+        if old is not None and "export" in old:
+            manifest["export"] = old["export"]  # what `u4d export` wrote beside the samples stays recorded
         write_manifest(out, manifest)
+        settings = {
+            "root": str(root),
+            "sequences": list(sequences),
+            "out": str(out),
+            "geometry": geometry,
+            "generators": [str(g) for g in generators or []],
+            "max_scans": max_scans,
+            "labels": labels,
+        }
+        atomic_write_text(out / CONFIG_NAME, yaml.safe_dump(settings, sort_keys=False))  # this run's settings
+        started = time.perf_counter()
+        append_jsonl(out / LOG_NAME, {"event": "start", "scans": len(scans), "samples_done": len(verified)})
         for index, (seq, frame) in enumerate(progress_bar(scans, desc="bank-real", unit="scan", enabled=progress)):
             source = f"sequences/{seq}/velodyne/{frame}.bin"
             if index not in verified:
@@ -143,8 +174,15 @@ def write_real_bank(
             manifest["samples"].append({"index": index, "source": source, "sha256": digests})
             if index % 64 == 63:
                 write_manifest(out, manifest)  # a cut run keeps the record of what it wrote
-        manifest["complete"] = True
+                record = {"event": "block", "samples_done": index + 1, "seconds": time.perf_counter() - started}
+                append_jsonl(out / LOG_NAME, record)
+        write_bank_sequence_files(layout, len(scans), own_poses=False)  # identity placeholders: scans of many places
+        manifest["complete"], manifest["placeholder_poses"] = True, True
         write_manifest(out, manifest)
+        if labels:
+            manifest = {**manifest, "export": export_bank(out, "semantickitti")}
+        record = {"event": "finish", "samples_done": len(scans), "seconds": time.perf_counter() - started}
+        append_jsonl(out / LOG_NAME, record)
     return manifest
 
 
@@ -185,6 +223,9 @@ def add_bank_real_arguments(parser: argparse.ArgumentParser) -> None:
         help="a generator run whose training places the bank must not share (repeatable)",
     )
     parser.add_argument("--max-scans", type=int, default=None, help="only the first scans (in place order)")
+    parser.add_argument(
+        "--no-labels", action="store_true", help="no all-ignore labels/NNNNNN.label (0 = unlabeled) beside the scans"
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -194,8 +235,9 @@ def run_bank_real(args: argparse.Namespace) -> int:
         raise InputError(f"--max-scans {args.max_scans}: expected a positive count")
     geometry = parse_geometry(args)
     manifest = write_real_bank(
-        args.root, args.sequences, args.out, geometry, args.generator, args.max_scans, not args.no_progress
-    )
+        args.root, args.sequences, args.out, geometry, args.generator, args.max_scans, not args.no_progress,
+        not args.no_labels,
+    )  # fmt: skip
     places = manifest["source"]["sequences"]
     how = "unprojected" if geometry is None else f"through the {geometry['height']}x{geometry['width']} range image"
     print(

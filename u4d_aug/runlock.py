@@ -5,7 +5,8 @@ other is refused with one line naming the folder and the holder. A lock whose pr
 alive or alive since another start) is stale: it is taken over with a one-line warning, under an flock of the
 folder so that two runs cannot both take it over. The lock is removed when the run ends, also on an exception; a
 killed run leaves it behind for the next run to take over. Locks are re-entrant within one process (`u4d
-experiment` holds a run folder's lock around `segmentation.train.train`, which takes it again).
+experiment` holds a run folder's lock around `segmentation.train.train`, which takes it again). A run that fails
+removes the folder its lock created when nothing but its scaffolding was written there (`outfolder.removed_if_failed`).
 """
 
 from __future__ import annotations
@@ -22,10 +23,10 @@ from pathlib import Path
 
 from u4d_aug.errors import InputError
 from u4d_aug.io import current_umask, make_folder
+from u4d_aug.outfolder import LOCK_NAME, removed_if_failed
 
 logger = logging.getLogger(__name__)
 
-LOCK_NAME = ".lock"
 _HELD: dict[Path, int] = {}  # lock file -> how many nested run_lock calls of this process hold it
 
 
@@ -170,8 +171,14 @@ def release(path: Path) -> None:
 
 
 @contextlib.contextmanager
-def run_lock(folder: str | os.PathLike, name: str = LOCK_NAME, enabled: bool = True) -> Iterator[Path | None]:
-    """Hold FOLDER/name for the body (re-entrant in one process); enabled=False (torchrun ranks > 0) holds nothing."""
+def run_lock(
+    folder: str | os.PathLike, name: str = LOCK_NAME, enabled: bool = True, scaffolding: tuple[str, ...] = ()
+) -> Iterator[Path | None]:
+    """Hold FOLDER/name for the body (re-entrant in one process); enabled=False (torchrun ranks > 0) holds nothing.
+
+    A body that raises removes FOLDER when this call created it and it holds nothing but `scaffolding` files (the
+    run's config; `outfolder.removed_if_failed`): a failed run leaves no empty output folder behind.
+    """
     if not enabled:
         yield None
         return
@@ -183,10 +190,11 @@ def run_lock(folder: str | os.PathLike, name: str = LOCK_NAME, enabled: bool = T
         finally:
             _HELD[key] -= 1
         return
-    path = acquire(folder, name)
-    _HELD[key] = 1
-    try:
-        yield path
-    finally:
-        del _HELD[key]
-        release(path)
+    with removed_if_failed(folder, scaffolding):  # after the lock's release
+        path = acquire(folder, name)
+        _HELD[key] = 1
+        try:
+            yield path
+        finally:
+            del _HELD[key]
+            release(path)

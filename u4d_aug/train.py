@@ -221,26 +221,25 @@ def _save_sample_png(net: RangeUNet, cfg: DiffusionTrainConfig, images: RangeIma
     import matplotlib.pyplot as plt
 
     from u4d_aug import pipeline
+    from u4d_aug.sampling_settings import SamplingSettings
     from u4d_aug.viz import draw_range_image, save_figure
 
     generator = torch.Generator().manual_seed(cfg.seed)
     device = next(net.parameters()).device
+    # the net's own ancestral DDPM at every step: no stage-1 options, no mean start (no stored mean while training)
+    ddpm = SamplingSettings(
+        sampler="ddpm", steps=cfg.sample_steps, stage1_steps=None, stage1_mask_fraction=None, mean_start_below=None
+    )
     if cfg.diffusion.stage == "u4d":
-        x0 = pipeline.generate_u4d((net, cfg), (net, cfg), 1, cfg.sample_steps, generator, "ddpm")["x0"]
+        x0 = pipeline.generate_u4d((net, cfg), (net, cfg), 1, generator, ddpm)["x0"]
     elif cfg.diffusion.stage == "stage2":
         first = images[0]
-        x0 = pipeline.complete(
-            (net, cfg),
-            first["x0_u"][None].to(device),
-            first["m_u"][None].to(device),
-            cfg.sample_steps,
-            generator,
-            "ddpm",
-        )["x0"]
+        x0_u, m_u = first["x0_u"][None].to(device), first["m_u"][None].to(device)
+        x0 = pipeline.complete((net, cfg), x0_u, m_u, generator, ddpm)["x0"]
     elif cfg.diffusion.stage == "stage1":
-        x0 = pipeline.generate_stage1((net, cfg), 1, cfg.sample_steps, generator, "ddpm")["x0_u"]
+        x0 = pipeline.generate_stage1((net, cfg), 1, generator, ddpm)["x0_u"]
     else:
-        x0 = pipeline.generate_baseline((net, cfg), 1, cfg.sample_steps, generator, "ddpm")["x0"]
+        x0 = pipeline.generate_baseline((net, cfg), 1, generator, ddpm)["x0"]
     frames = (x0[0] if x0.dim() == 5 else x0[:1]).cpu().numpy()  # (L, 2, H, W)
     fig, axes = plt.subplots(len(frames) + 1, 1, figsize=(10, 1.5 * (len(frames) + 1)))
     for index, frame in enumerate(frames):

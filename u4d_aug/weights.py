@@ -212,7 +212,8 @@ def stored_row_mean(state: dict, source: str, role: str | None = None) -> tuple[
     return mean.float(), info
 
 
-# The nets committed under the checkout's weights/ (weights/README.md), by role. A wheel does not carry them.
+# The nets committed under the checkout's weights/ (weights/README.md), by role. A wheel does not carry them: `u4d
+# weights install` copies them where `u4d_aug.weights_store` looks.
 SHIPPED_DIR = Path(__file__).resolve().parents[1] / "weights"
 SHIPPED_GENERATORS = ("u4d_stage1", "u4d_stage2", "baseline")
 SHIPPED_OPTIONAL = ("extractor_frd", "extractor_fpd", "uncertainty_segmentor")
@@ -220,10 +221,16 @@ SHIPPED_OPTIONAL = ("extractor_frd", "extractor_fpd", "uncertainty_segmentor")
 SHIPPED_SEQUENCE = ("u4d_most_stage1", "u4d_most_stage2", "baseline_most")
 
 
-def shipped_weights(root: Path = SHIPPED_DIR) -> dict[str, Path] | None:
-    """{role: file} of the shipped nets under `root`, or None when any of the three generators is absent."""
-    found = {name: root / f"{name}.pt" for name in (*SHIPPED_GENERATORS, *SHIPPED_OPTIONAL, *SHIPPED_SEQUENCE)}
-    found = {name: path for name, path in found.items() if path.is_file()}
+def shipped_weights(root: Path | None = None) -> dict[str, Path] | None:
+    """{role: file} of the shipped nets under `root` (None: wherever `weights_store.find_weights` finds each), or None
+    when any of the three generators is absent."""
+    from u4d_aug.weights_store import find_weights
+
+    found: dict[str, Path] = {}
+    for name in (*SHIPPED_GENERATORS, *SHIPPED_OPTIONAL, *SHIPPED_SEQUENCE):
+        path = root / f"{name}.pt" if root is not None else find_weights(f"{name}.pt")
+        if path is not None and path.is_file():
+            found[name] = path
     if not all(name in found for name in SHIPPED_GENERATORS):
         return None
     return found

@@ -35,6 +35,7 @@ from u4d_aug.io import atomic_write_json, atomic_write_text
 from u4d_aug.pipeline import MeanStart, complete, inpaint, load_generator
 from u4d_aug.propagate import warp_frame0
 from u4d_aug.range_view import NO_RETURN, decode_depth, project, to_image
+from u4d_aug.sampling_settings import SamplingSettings
 from u4d_aug.trajectory import relative_motion
 from u4d_aug.uncertainty import load_probs, probs_path, uncertain_range_view
 
@@ -83,11 +84,12 @@ def fill(
     batch_u, batch_m = (x0_u[None], m_u[None]) if sequence else (x0_u, m_u)
     pose = motion[None] if cfg.net.pose_dim else None
     generator = torch.Generator().manual_seed(seed)
+    settings = SamplingSettings(sampler=sampler, steps=steps, mean_start_below=None)  # `loaded`: in its MeanStart
     with torch.no_grad():
         if cfg.diffusion.stage == "stage2":
-            x0 = complete(loaded, batch_u, batch_m, steps, generator, sampler, "time", pose, pin)["x0"]
+            x0 = complete(loaded, batch_u, batch_m, generator, settings, pose, pin)["x0"]
         else:  # `inpaint` refuses any net but a baseline
-            x0 = inpaint(loaded, batch_u, batch_m, steps, generator, sampler, "time", pose)["x0"]
+            x0 = inpaint(loaded, batch_u, batch_m, generator, settings, pose)["x0"]
     x0 = x0[0] if sequence else x0
     return torch.where(m_u.bool(), x0_u, x0.to(x0_u.dtype))
 

@@ -9,16 +9,19 @@ import pytest
 
 from u4d_aug.bank import (
     BankLayout,
+    has_own_poses,
     named_banks,
     read_manifest,
     record_digests,
     sequence_ids,
     verify_samples,
+    write_bank_sequence_files,
     write_manifest,
     write_sample,
+    write_sequence_poses,
 )
 from u4d_aug.data.datasets import ScanDataset
-from u4d_aug.data.formats import read_kitti_scan
+from u4d_aug.data.formats import read_calib, read_kitti_scan, read_poses, read_times
 from u4d_aug.errors import InputError
 
 
@@ -107,3 +110,42 @@ def test_samples_without_recorded_digests_are_removed_recorded_ones_kept(tmp_pat
         verified = verify_samples(layout, manifest)
     assert set(verified) == {0, 1} and verified[0] == digests
     assert "sample 2 has no recorded digests" in caplog.text and not layout.is_done(2)
+
+
+def test_single_frame_bank_gets_calib_poses_and_times_one_line_per_frame_number(tmp_path):
+    layout = BankLayout(tmp_path)
+    for index in (0, 2):  # sample 1 empty: no .bin, but its frame number keeps its line
+        write_sample(layout, index, np.ones((3, 4), np.float32))
+    write_sample(layout, 1, np.zeros((0, 4), np.float32))
+    digests = {index: record_digests(layout, index) for index in range(3)}
+    write_bank_sequence_files(layout, 3, own_poses=False)
+    folder = layout.sequence_dir()
+    calib = read_calib(folder / "calib.txt")
+    assert sorted(calib) == ["P0", "P1", "P2", "P3", "Tr"] and np.array_equal(calib["Tr"], np.eye(4)[:3])
+    np.testing.assert_array_equal(read_poses(folder / "poses.txt", calib), np.tile(np.eye(4), (3, 1, 1)))
+    assert (folder / "times.txt").read_text() == "0.0\n0.1\n0.2\n"  # KITTI times.txt: seconds, one per line
+    manifest = {"samples": [{"index": i, "sha256": digests[i]} for i in range(3)]}
+    assert sorted(verify_samples(layout, manifest)) == [0, 1, 2]  # outside the samples' digests
+    mtimes = [(folder / name).stat().st_mtime_ns for name in ("calib.txt", "poses.txt", "times.txt")]
+    write_bank_sequence_files(layout, 3, own_poses=False)  # nothing to change: nothing written
+    assert [(folder / name).stat().st_mtime_ns for name in ("calib.txt", "poses.txt", "times.txt")] == mtimes
+    write_sample(layout, 3, np.ones((3, 4), np.float32))
+    write_bank_sequence_files(layout, 4, own_poses=False)  # the bank grew: a line per frame number again
+    assert len(read_poses(folder / "poses.txt")) == 4 == len(read_times(folder / "times.txt"))
+
+
+def test_sequence_bank_keeps_its_own_poses_and_gets_times(tmp_path):
+    layout = BankLayout(tmp_path, frames=3)
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, 0, 3] = [0.0, 1.0, 2.0]
+    write_sequence_poses(layout, 0, poses)
+    for frame in range(3):
+        write_sample(layout, 0, np.ones((2, 4), np.float32), frame=frame)
+    write_sample(layout, 1, np.ones((2, 4), np.float32), frame=0)  # sample 1 unfinished: left alone
+    write_bank_sequence_files(layout, 2, own_poses=True)
+    folder = layout.sequence_dir(0)
+    np.testing.assert_allclose(read_poses(folder / "poses.txt", folder / "calib.txt"), poses)
+    np.testing.assert_array_equal(read_times(folder / "times.txt"), [0.0, 0.1, 0.2])
+    assert not (layout.sequence_dir(1) / "times.txt").exists()
+    assert has_own_poses({"frames": 3, "mode": "complete"}) and has_own_poses({"frames": 3, "motion": "file"})
+    assert not has_own_poses({"frames": 1, "mode": "complete"}) and not has_own_poses({"frames": 3, "mode": "u4d"})

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from tests.tiny_nets import REPO
-from u4d_aug.cli import CONFIGS_DIR, DELEGATED, EXAMPLES, main
+from u4d_aug.cli import CONFIGS_DIR, DELEGATED, EXAMPLES, PROGRESS_COMMANDS, main
 from u4d_aug.data.formats import read_kitti_scan, read_poses
 from u4d_aug.demo import sequence_motion
 from u4d_aug.trajectory import poses_from_motion
@@ -31,6 +31,46 @@ def test_info_on_real_root(kitti_root, capsys):
     assert summary["frames"] == 6 and summary["labeled_frames"] == 3
     assert summary["points_per_scan"]["max"] == 124668
     assert summary["class_histogram"]["road"] == 34228 + 1053 + 33233 + 868 + 32230 + 662
+
+
+def test_info_counts_all_ignore_label_files_apart(kitti_root, tmp_path, capsys):
+    """A label file of only 0 (unlabeled), as `u4d export` writes for generated scans, is no labeled scan."""
+    real = kitti_root / "sequences" / "00"
+    root = tmp_path / "root"
+    for folder in ("velodyne", "labels"):
+        (root / "sequences" / "00" / folder).mkdir(parents=True)
+    for frame in ("000000", "000001"):
+        (root / "sequences" / "00" / "velodyne" / f"{frame}.bin").write_bytes(
+            (real / "velodyne" / f"{frame}.bin").read_bytes()
+        )
+    (root / "sequences" / "00" / "labels" / "000000.label").write_bytes((real / "labels" / "000000.label").read_bytes())
+    np.zeros(124_605, np.uint32).tofile(root / "sequences" / "00" / "labels" / "000001.label")  # all unlabeled
+    assert main(["info", str(root), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert (summary["format"], summary["frames"], summary["labeled_frames"], summary["all_ignore_frames"]) == (
+        "semantickitti", 2, 1, 1)  # fmt: skip
+    assert summary["sequences"] == [{"sequence": "00", "frames": 2, "labeled_frames": 1, "all_ignore_frames": 1}]
+    assert summary["class_histogram"]["road"] == 34228 + 1053  # the labeled scan's alone
+    assert sum(summary["class_histogram"].values()) == 124_668
+    assert main(["info", str(root)]) == 0
+    table = capsys.readouterr().out
+    assert "sequence 00: 2 frames, 1 labeled, 1 all-ignore" in table
+    assert "labels: 2 scans, 1 of them all-ignore (not counted as labeled)" in table
+
+
+def test_info_detects_the_layout_of_its_root(real_root, capsys):
+    nuscenes = real_root / "nuscenes_mmdet3d_demo"
+    if not nuscenes.is_dir():
+        pytest.skip(f"{nuscenes}: real nuScenes sample not found")
+    assert main(["info", str(nuscenes)]) == 2  # read as nuScenes: samples/LIDAR_TOP/, but no v1.0 tables to index it
+    assert capsys.readouterr().err.strip() == (
+        f"error: {nuscenes / 'v1.0-trainval'}: nuScenes table folder not found (expected ROOT/v1.0-*/*.json)"
+    )
+    assert main(["info", str(real_root)]) == 2  # the folder of the datasets: neither layout
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"error: {real_root}: no dataset layout: looked for sequences/") and "\n" not in err
+    assert main(["info", str(real_root / "semantickitti"), "--format", "semantickitti", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["format"] == "semantickitti"
 
 
 def test_show_real_scan_png_ply_and_stats(kitti_root, tmp_path, capsys):
@@ -189,21 +229,31 @@ def test_every_example_parses_and_its_overrides_load(name, tmp_path, monkeypatch
     if cls is not None:
         overrides = split_stage_override(args.overrides) if name == "train-diffusion" else args.overrides
         assert overrides, "the example shows a key=value override"
-        load_config(cls, getattr(args, "config", None), overrides)
+        load_config(cls, getattr(args, "preset", None) or getattr(args, "config", None), overrides)
 
 
-# the commands whose work draws a progress bar (tqdm): each takes --no-progress
-PROGRESS_COMMANDS = ["simulate", "seg-train", "seg-eval", "seg-predict", "train-diffusion", "generate",
-                     "train-extractor", "evaluate", "experiment", "bank-real"]  # fmt: skip
-
-
-@pytest.mark.parametrize("name", PROGRESS_COMMANDS)
+@pytest.mark.parametrize("name", [*PROGRESS_COMMANDS, "demo"])
 def test_every_long_command_takes_no_progress(name):
-    from u4d_aug.cli import delegated_parser
+    from u4d_aug.cli import build_parser, delegated_parser
     from u4d_aug.cmdline import parse_command_line
 
     words = [*shlex.split(EXAMPLES[name])[2:], "--no-progress"]
-    assert parse_command_line(delegated_parser(name)[0], words).no_progress is True
+    if name in dict(DELEGATED):
+        assert parse_command_line(delegated_parser(name)[0], words).no_progress is True
+    else:
+        assert build_parser().parse_args([name, *words]).no_progress is True
+
+
+def test_every_command_module_that_draws_progress_bars_is_a_progress_command():
+    """A new long command (its module calls progress_bar) must take --no-progress and be passed it by the demo."""
+    import importlib
+
+    from u4d_aug.cli import _delegated_command
+
+    for name in dict(DELEGATED):
+        module = importlib.import_module(_delegated_command(name)[1].__module__)
+        if hasattr(module, "progress_bar"):
+            assert name in PROGRESS_COMMANDS, name
 
 
 def test_overrides_after_flags_reach_the_config(tmp_path, capsys):
@@ -214,13 +264,14 @@ def test_overrides_after_flags_reach_the_config(tmp_path, capsys):
     assert err == f"error: {missing}: baseline checkpoint not found"
 
 
-def test_a_shipped_weights_path_from_another_folder_says_where_the_file_is(tmp_path, capsys, monkeypatch):
-    monkeypatch.chdir(tmp_path)  # configs/u4d/generate_hdl64.yaml names weights/*.pt relative to the repository
-    argv = ["generate", "u4d/generate_hdl64", "--out", str(tmp_path / "bank"), "mode=baseline", "num=1"]
-    assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("error: weights/baseline.pt: baseline checkpoint not found (relative to ")
-    assert f"name {REPO / 'weights' / 'baseline.pt'})" in err and not (tmp_path / "bank").exists()
+def test_a_shipped_weights_path_from_another_folder_finds_the_checkouts_file(tmp_path, monkeypatch):
+    from u4d_aug.config import load_config
+    from u4d_aug.generate import GenerateConfig, _checkpoint_paths
+    from u4d_aug.presets import resolve_config_path
+
+    monkeypatch.chdir(tmp_path)  # configs/u4d/generate_hdl64.yaml names weights/*.pt (u4d_aug.weights_store)
+    cfg = load_config(GenerateConfig, resolve_config_path("u4d/generate_hdl64"), [])
+    assert _checkpoint_paths(cfg) == {name: REPO / "weights" / f"u4d_{name}.pt" for name in ("stage1", "stage2")}
 
 
 def test_unknown_flag_is_still_refused_in_one_line(capsys):

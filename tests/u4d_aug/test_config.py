@@ -9,7 +9,9 @@ import pytest
 import yaml
 
 from u4d_aug.config import (
+    closest_keys,
     config_from_dict,
+    config_keys,
     config_to_dict,
     load_config,
     parse_override,
@@ -60,8 +62,30 @@ def test_float_in_exponent_form_without_dot(tmp_path):
 def test_unknown_key_is_named_with_valid_keys(tmp_path):
     path = tmp_path / "c.yaml"
     path.write_text("inner:\n  stepz: 5\n")
-    with pytest.raises(InputError, match=r"unknown config key 'inner.stepz'; valid keys here: lr, mode, steps"):
+    with pytest.raises(
+        InputError,
+        match=r"unknown config key 'inner.stepz' \(did you mean 'inner.steps'\?\); valid keys here: lr, mode, steps",
+    ):
         load_config(Outer, path)
+
+
+@pytest.mark.parametrize(
+    ("override", "hint"),
+    [("inner.lrr=1", "'inner.lr'"), ("lr=1", "'inner.lr'"), ("stpes=1", "'inner.steps'"), ("nam=x", "'name'"),
+     ("sizez=[1, 2]", "'sizes'")],
+)  # fmt: skip
+def test_an_unknown_key_names_the_nearest_ones(override, hint):
+    with pytest.raises(InputError, match=f"unknown config key '{override.split('=')[0]}' \\(did you mean {hint}\\?\\)"):
+        load_config(Outer, None, [override])
+
+
+def test_a_key_near_none_gets_no_hint_and_nested_keys_are_candidates():
+    with pytest.raises(InputError) as error:
+        load_config(Outer, None, ["completely_else=1"])
+    message = str(error.value)
+    assert "did you mean" not in message and "valid keys here: inner, name, seed, sizes, widths" in message
+    assert config_keys(Outer) == ["name", "sizes", "widths", "seed", "inner", "inner.steps", "inner.lr", "inner.mode"]
+    assert closest_keys(Inner, "inner.mdoe", "inner.") == ["inner.mode"]
 
 
 @dataclass

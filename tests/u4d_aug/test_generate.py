@@ -15,14 +15,14 @@ import yaml
 from tests.tiny_nets import TINY, gen_config
 from tests.tiny_worlds import write_posed_world
 from u4d_aug.bank import BankLayout, file_sha256, read_manifest
-from u4d_aug.config import load_config
+from u4d_aug.config import config_to_dict, load_config
 from u4d_aug.data.datasets import ScanDataset
-from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
+from u4d_aug.data.formats import read_kitti_scan, read_poses, read_times, write_kitti_scan
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.generate import GenerateConfig, add_generate_arguments, generate_bank, run_generate
-from u4d_aug.io import atomic_save_npy, atomic_torch_save
+from u4d_aug.io import atomic_save_npy, atomic_torch_save, read_jsonl
 from u4d_aug.range_view import project
 from u4d_aug.stage import DiffusionTrainConfig, build_net, checkpoint_state
 
@@ -105,6 +105,29 @@ def test_manifest_digests_find_a_sample_truncated_by_hand_and_it_is_generated_ag
     assert not list(bank.rglob("*.tmp")) and not (bank / ".lock").exists()
 
 
+def test_bank_writes_config_log_and_sequence_files_and_a_rerun_skips_finished_samples(untrained_checkpoints, tmp_path):
+    bank = tmp_path / "bank"
+    cfg = gen_config(untrained_checkpoints, "num=2", "mode=baseline", "batch_size=1")
+    generate_bank(cfg, bank, progress=False)
+    assert yaml.safe_load((bank / "config.yaml").read_text()) == config_to_dict(cfg)  # the resolved config
+    log = read_jsonl(bank / "log.jsonl")
+    assert [record["event"] for record in log] == ["start", "block", "block", "finish"]
+    assert [record["samples_done"] for record in log] == [0, 1, 2, 2] and log[-1]["complete"] is True
+    assert all(record["seconds"] >= 0 for record in log[1:])
+    folder = BankLayout(bank).sequence_dir()
+    assert len(read_poses(folder / "poses.txt", folder / "calib.txt")) == 2 == len(read_times(folder / "times.txt"))
+    labels = sorted(bank.glob("sequences/00/labels/*.label"))  # labels on by default, all 0 = unlabeled
+    assert [p.stem for p in labels] == ["000000", "000001"] and not any(np.fromfile(p, "<u4").any() for p in labels)
+    first = BankLayout(bank).scan_path(0).stat().st_mtime_ns
+    more = gen_config(untrained_checkpoints, "num=3", "mode=baseline", "batch_size=1")
+    again = generate_bank(more, bank, progress=False)  # resumed: samples 0 and 1 are found intact and skipped
+    assert BankLayout(bank).scan_path(0).stat().st_mtime_ns == first and again["complete"]
+    log = read_jsonl(bank / "log.jsonl")[4:]
+    assert [(record["event"], record["samples_done"]) for record in log] == [("start", 2), ("block", 1), ("finish", 3)]
+    assert log[1]["block"] == [2, 2] and len(read_poses(folder / "poses.txt")) == 3
+    assert yaml.safe_load((bank / "config.yaml").read_text())["num"] == 3
+
+
 def test_a_sample_written_without_its_digests_is_generated_again(untrained_checkpoints, tmp_path, caplog):
     bank = tmp_path / "bank"
     manifest = generate_bank(gen_config(untrained_checkpoints, "num=3", "mode=baseline"), bank, progress=False)
@@ -177,7 +200,13 @@ def test_cli_entry(untrained_checkpoints, tmp_path):
     config = tmp_path / "gen.yaml"
     config.write_text(
         yaml.safe_dump(
-            {"baseline": str(untrained_checkpoints["baseline"]), "mode": "baseline", "steps": 2, "device": "cpu"}
+            {
+                "baseline": str(untrained_checkpoints["baseline"]),
+                "mode": "baseline",
+                "steps": 2,
+                "device": "cpu",
+                "mean_start_below": None,
+            }  # a training checkpoint stores no training mean
         )
     )
     parser = argparse.ArgumentParser()
@@ -207,7 +236,12 @@ def test_u4d_sequence_bank_one_sequence_per_sample(untrained_sequence_checkpoint
             assert len(read_kitti_scan(layout.scan_path(i, frame))) > 0
             mask, x0_u = np.load(layout.mask_path(i, frame)), np.load(layout.stage1_path(i, frame))
             assert mask.shape == (16, 64) and x0_u.shape == (2, 16, 64) and np.all(x0_u[:, ~mask] == -1)
-        assert not layout.poses_path(i).exists()  # generated frames have no poses
+        # generated frames have no poses of their own: identity placeholders, one line per frame, as the manifest says
+        np.testing.assert_array_equal(
+            read_poses(layout.poses_path(i), layout.calib_path(i)), np.tile(np.eye(4), (2, 1, 1))
+        )
+        np.testing.assert_array_equal(read_times(layout.sequence_dir(i) / "times.txt"), [0.0, 0.1])
+    assert manifest["placeholder_poses"] is True
     assert ScanDataset(bank).entries == [("00", "000000"), ("00", "000001"), ("01", "000000"), ("01", "000001")]
     assert layout.scan_path(0, 0).read_bytes() != layout.scan_path(0, 1).read_bytes()
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.tiny_nets import TINY_MOST, save_checkpoint
+from tests.tiny_nets import PLAIN_SAMPLING, TINY_MOST, save_checkpoint
 from tests.tiny_worlds import REAL_ROOT, write_tiny_world
 from u4d_aug.bank import BankLayout, write_sample, write_sequence_poses
 from u4d_aug.config import load_config
@@ -64,7 +64,7 @@ def posed(tmp_path_factory) -> dict:
 def gen_config(posed: dict, *overrides: str) -> GenerateConfig:
     paths = posed["paths"]
     base = [f"stage1={paths['stage1']}", f"stage2={paths['stage2']}", f"baseline={paths['baseline']}"]
-    base += ["steps=2", "sampler=ddim", "device=cpu", "seed=7"]
+    base += ["steps=2", "sampler=ddim", *PLAIN_SAMPLING, "device=cpu", "seed=7"]
     return load_config(GenerateConfig, None, [*base, *overrides])
 
 
@@ -154,14 +154,15 @@ def test_a_pose_conditioned_bank_without_a_trajectory_source_is_one_input_error(
         )
 
 
-def test_unposed_sequence_nets_write_no_poses(posed, tmp_path):
+def test_unposed_sequence_nets_write_only_placeholder_poses(posed, tmp_path):
     manifest = generate_bank(
         gen_config(posed, "mode=baseline", f"baseline={posed['paths']['unposed']}", "num=1"),
         tmp_path / "c",
         progress=False,
     )
     layout = BankLayout(tmp_path / "c", 2)
-    assert layout.is_done(0) and not layout.poses_path(0).exists()
+    assert layout.is_done(0) and manifest["placeholder_poses"]  # identity poses.txt for readers, no ground truth
+    np.testing.assert_array_equal(read_poses(layout.poses_path(0)), np.broadcast_to(np.eye(4), (2, 4, 4)))
     assert "motion" not in manifest and "motion" not in manifest["samples"][0]
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.tiny_nets import save_random_checkpoint
+from tests.tiny_nets import plain_settings, save_random_checkpoint
 from u4d_aug.bank import BankLayout
 from u4d_aug.config import load_config
 from u4d_aug.export_weights import export_weights
@@ -62,22 +62,39 @@ def bank_stage1(root: Path, index: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 def test_one_step_of_stage_1_with_the_mean_start_returns_the_mean(exported):
     net, cfg = load_generator(exported["stage1"])
-    started = generate_stage1((MeanStart(net, STAGE1_MEAN, BELOW), cfg), 2, 1, torch.Generator().manual_seed(0))
+    one_step = plain_settings(1)  # DDIM; the MeanStart below is the mean start
+    started = generate_stage1((MeanStart(net, STAGE1_MEAN, BELOW), cfg), 2, torch.Generator().manual_seed(0), one_step)
     values, mean = kept_pixels(started["x0_u"], started["m_u_pred"])
     assert 0 < values.numel() < started["x0_u"].numel()
     assert torch.allclose(values, mean, atol=ATOL)
     # control: the same step without the mean start is the net's clamped x̂0 at α ≈ 0, nowhere near the mean
-    own = generate_stage1((net, cfg), 2, 1, torch.Generator().manual_seed(0))
+    own = generate_stage1((net, cfg), 2, torch.Generator().manual_seed(0), one_step)
     assert torch.equal(own["m_u_pred"], started["m_u_pred"])  # the mask head is the net's either way
     values, mean = kept_pixels(own["x0_u"], own["m_u_pred"])
     assert float((values - mean).abs().mean()) > 0.2
 
 
+def test_the_settings_mean_start_takes_the_mean_stored_in_the_weights_file(exported):
+    """`SamplingSettings.mean_start_below`: the loaded net's stored x0_u mean, the MeanStart above without the hand."""
+    loaded = load_generator(exported["stage1"])
+    assert torch.equal(loaded.net.row_mean_stage1, STAGE1_MEAN) and "row_mean_stage1" not in loaded.net.state_dict()
+    by_settings = generate_stage1(
+        loaded, 2, torch.Generator().manual_seed(0), plain_settings(1, mean_start_below=BELOW)
+    )
+    by_hand = generate_stage1(
+        (MeanStart(loaded.net, STAGE1_MEAN, BELOW), loaded.config),
+        2,
+        torch.Generator().manual_seed(0),
+        plain_settings(1),
+    )
+    assert all(torch.equal(by_settings[key], by_hand[key]) for key in ("x0_u", "m_u_pred"))
+
+
 def test_a_bank_with_the_mean_start_writes_stage_1_s_mean_as_its_x0_u(exported, tmp_path):
     base = [f"stage1={exported['stage1']}", f"stage2={exported['stage2']}", "mode=u4d", "num=2", "device=cpu"]
-    base += ["steps=2", "stage1_steps=1", "seed=3"]
+    base += ["sampler=ddpm", "steps=2", "stage1_steps=1", "stage1_mask_fraction=null", "seed=3"]
     banks, manifests = {}, {}
-    for name, extra in (("started", [f"mean_start_below={BELOW}"]), ("own", [])):
+    for name, extra in (("started", [f"mean_start_below={BELOW}"]), ("own", ["mean_start_below=null"])):
         manifests[name] = generate_bank(
             load_config(GenerateConfig, None, [*base, *extra]), tmp_path / name, progress=False
         )

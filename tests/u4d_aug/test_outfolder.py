@@ -15,7 +15,7 @@ from u4d_aug.data.sim.config import SimConfig
 from u4d_aug.data.sim.writer import simulate
 from u4d_aug.errors import InputError
 from u4d_aug.generate import generate_bank
-from u4d_aug.outfolder import check_output_folder, folder_content
+from u4d_aug.outfolder import check_output_folder, folder_content, missing_folders, removed_if_failed
 from u4d_aug.real_bank import write_real_bank
 
 SIM_TINY = REPO / "configs" / "sim" / "tiny.yaml"
@@ -88,3 +88,32 @@ def test_bank_real_refuses_a_generated_bank_and_a_dataset(dataset: Path, tmp_pat
     # a copy of the bank is still its own kind to generate: it resumes
     shutil.copytree(bank, tmp_path / "copy")
     generate_bank(gen_config(untrained_checkpoints, "num=1", "mode=baseline"), tmp_path / "copy", progress=False)
+
+
+def test_a_failed_run_leaves_no_folder_it_created(tmp_path: Path):
+    out = tmp_path / "runs" / "a"
+    assert missing_folders(out) == [out, tmp_path / "runs"]
+    with pytest.raises(RuntimeError), removed_if_failed(out, ("config.yaml",)):
+        out.mkdir(parents=True)
+        (out / "config.yaml").write_text("steps: 1\n")  # its scaffolding: removed with it
+        raise RuntimeError("bad data")
+    assert not (tmp_path / "runs").exists()
+    with removed_if_failed(out):  # a run that succeeds keeps its folder
+        out.mkdir(parents=True)
+    assert out.is_dir() and missing_folders(out) == []
+
+
+def test_a_failed_run_keeps_a_folder_that_was_there_or_holds_more(tmp_path: Path):
+    existing = tmp_path / "existing"
+    existing.mkdir()
+    with pytest.raises(RuntimeError), removed_if_failed(existing):
+        raise RuntimeError("bad data")
+    assert existing.is_dir()
+    for other in ("log.jsonl", ".lock"):  # a file the run wrote, another run's lock
+        out = tmp_path / f"new{other}"
+        with pytest.raises(RuntimeError), removed_if_failed(out, ("config.yaml",)):
+            out.mkdir()
+            (out / "config.yaml").write_text("steps: 1\n")
+            (out / other).write_text("{}\n")
+            raise RuntimeError("failed later")
+        assert sorted(p.name for p in out.iterdir()) == sorted(["config.yaml", other])

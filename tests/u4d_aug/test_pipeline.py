@@ -9,13 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from tests.tiny_nets import TINY, TINY_MOST, save_checkpoint, save_random_checkpoint
+from tests.tiny_nets import TINY, TINY_MOST, plain_settings, save_checkpoint, save_random_checkpoint
 from u4d_aug import sampling
 from u4d_aug.data.sensors import hdl64
 from u4d_aug.errors import InputError
+from u4d_aug.export_weights import export_weights
 from u4d_aug.nn.most import MoSTBlock
 from u4d_aug.pipeline import (
     LoadedGenerator,
+    MeanStart,
     cap_mask,
     complete,
     generate_baseline,
@@ -27,6 +29,9 @@ from u4d_aug.pipeline import (
     to_points,
 )
 from u4d_aug.range_view import project, to_image
+
+PLAIN = plain_settings(3)  # DDIM at 3 steps, no mask cap, no mean start: these nets store no training mean
+PLAIN_2 = plain_settings(2)
 
 
 def test_load_generator_uses_ema_weights(random_ema_checkpoints):
@@ -42,9 +47,9 @@ def test_load_generator_uses_ema_weights(random_ema_checkpoints):
 
 def test_same_generator_same_output_and_masking(random_ema_checkpoints):
     stage1, stage2 = load_generator(random_ema_checkpoints["stage1"]), load_generator(random_ema_checkpoints["stage2"])
-    a = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7))
-    b = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7))
-    c = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(8))
+    a = generate_u4d(stage1, stage2, 2, torch.Generator().manual_seed(7), PLAIN)
+    b = generate_u4d(stage1, stage2, 2, torch.Generator().manual_seed(7), PLAIN)
+    c = generate_u4d(stage1, stage2, 2, torch.Generator().manual_seed(8), PLAIN)
     for key in ("x0", "x0_u", "m_u_pred"):
         assert torch.equal(a[key], b[key])
     assert not torch.equal(a["x0"], c["x0"])
@@ -53,8 +58,8 @@ def test_same_generator_same_output_and_masking(random_ema_checkpoints):
     assert 0 < int(a["m_u_pred"].sum()) < a["m_u_pred"].numel()
     assert bool((a["x0_u"][~m] == -1).all())
     baseline = load_generator(random_ema_checkpoints["baseline"])
-    d = generate_baseline(baseline, 1, 3, torch.Generator().manual_seed(1), sampler="ddpm")
-    e = generate_baseline(baseline, 1, 3, torch.Generator().manual_seed(1), sampler="ddpm")
+    d = generate_baseline(baseline, 1, torch.Generator().manual_seed(1), plain_settings(3, "ddpm"))
+    e = generate_baseline(baseline, 1, torch.Generator().manual_seed(1), plain_settings(3, "ddpm"))
     assert torch.equal(d["x0"], e["x0"]) and float(d["x0"].abs().max()) <= 1.0
 
 
@@ -72,8 +77,10 @@ def test_cap_mask_keeps_the_surest_pixels_of_each_frame():
 
 def test_mask_fraction_caps_the_stage1_mask(random_ema_checkpoints):
     stage1, stage2 = load_generator(random_ema_checkpoints["stage1"]), load_generator(random_ema_checkpoints["stage2"])
-    free = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7))
-    capped = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7), mask_fraction=0.05)
+    free = generate_u4d(stage1, stage2, 2, torch.Generator().manual_seed(7), PLAIN)
+    capped = generate_u4d(
+        stage1, stage2, 2, torch.Generator().manual_seed(7), plain_settings(3, stage1_mask_fraction=0.05)
+    )
     limit = round(0.05 * 16 * 64)
     assert bool((free["m_u_pred"].sum(dim=(1, 2, 3)) > limit).all())  # the cap binds
     assert bool((capped["m_u_pred"].sum(dim=(1, 2, 3)) <= limit).all())
@@ -85,14 +92,14 @@ def test_stage2_output_depends_on_its_condition(random_ema_checkpoints):
     stage2 = load_generator(random_ema_checkpoints["stage2"])
     x0_u = torch.full((1, 2, 16, 64), -1.0)
     m_u = torch.zeros(1, 1, 16, 64)
-    empty = complete(stage2, x0_u, m_u, 3, torch.Generator().manual_seed(0))["x0"]
+    empty = complete(stage2, x0_u, m_u, torch.Generator().manual_seed(0), PLAIN)["x0"]
     x0_u[:, :, 4:8, 10:30] = 0.3
     m_u[:, :, 4:8, 10:30] = 1.0
-    filled = complete(stage2, x0_u, m_u, 3, torch.Generator().manual_seed(0))["x0"]
+    filled = complete(stage2, x0_u, m_u, torch.Generator().manual_seed(0), PLAIN)["x0"]
     assert float((filled - empty).abs().max()) > 1e-3
 
     # pinned: x̂0 is the known pixels at every step, so the sample ends on them there and the rest follows
-    pinned = complete(stage2, x0_u, m_u, 3, torch.Generator().manual_seed(0), pin_known=True)["x0"]
+    pinned = complete(stage2, x0_u, m_u, torch.Generator().manual_seed(0), PLAIN, pin_known=True)["x0"]
     known = m_u.bool().expand_as(x0_u)
     assert torch.allclose(pinned[known], x0_u[known], atol=1e-5)
     assert not torch.allclose(filled[known], x0_u[known], atol=1e-3)  # not so without the pin
@@ -105,25 +112,49 @@ def test_inpaint_keeps_the_known_pixels_and_fills_the_rest_from_them(random_ema_
     m_u = torch.zeros(1, 1, 16, 64)
     x0_u[:, :, 4:12, 10:40] = 0.3
     m_u[:, :, 4:12, 10:40] = 1.0
-    out = inpaint(baseline, x0_u, m_u, 3, torch.Generator().manual_seed(0))
+    out = inpaint(baseline, x0_u, m_u, torch.Generator().manual_seed(0), PLAIN)
     assert torch.equal(out["x0"][:, :, 4:12, 10:40], x0_u[:, :, 4:12, 10:40])  # exact where known
-    free = generate_baseline(baseline, 1, 3, torch.Generator().manual_seed(0))["x0"]
+    free = generate_baseline(baseline, 1, torch.Generator().manual_seed(0), PLAIN)["x0"]
     unknown = ~m_u.bool().expand_as(x0_u)
     assert float((out["x0"] - free)[unknown].abs().max()) > 1e-3  # the known pixels steer the others
     with pytest.raises(InputError, match="16x64"):
-        inpaint(baseline, torch.zeros(1, 2, 8, 64), torch.zeros(1, 1, 8, 64), 2, torch.Generator())
+        inpaint(baseline, torch.zeros(1, 2, 8, 64), torch.zeros(1, 1, 8, 64), torch.Generator(), PLAIN)
     with pytest.raises(InputError, match="baseline"):
-        inpaint(load_generator(random_ema_checkpoints["stage2"]), x0_u, m_u, 2, torch.Generator())
+        inpaint(load_generator(random_ema_checkpoints["stage2"]), x0_u, m_u, torch.Generator(), PLAIN)
 
 
 def test_wrong_stage_or_size_is_an_input_error(random_ema_checkpoints):
     stage1, stage2 = load_generator(random_ema_checkpoints["stage1"]), load_generator(random_ema_checkpoints["stage2"])
     with pytest.raises(InputError, match="stage1"):
-        generate_stage1(stage2, 1, 2, torch.Generator())
+        generate_stage1(stage2, 1, torch.Generator(), PLAIN)
     with pytest.raises(InputError, match="16x64"):
-        complete(stage2, torch.zeros(1, 2, 8, 64), torch.zeros(1, 1, 8, 64), 2, torch.Generator())
+        complete(stage2, torch.zeros(1, 2, 8, 64), torch.zeros(1, 1, 8, 64), torch.Generator(), PLAIN)
     with pytest.raises(InputError):
-        generate_baseline(stage1, 1, 2, torch.Generator())
+        generate_baseline(stage1, 1, torch.Generator(), PLAIN)
+
+
+def test_the_mean_start_takes_each_role_s_stored_mean(tmp_path):
+    """Exported weights keep their training means as the net's `row_mean_<role>` buffers (not in its state_dict); a
+    one-net u4d file without its stage-1 mean still loads, and the mean start names what to do for stage 1."""
+    path = tmp_path / "u4d.pt"
+    export_weights(save_random_checkpoint(tmp_path / "ckpt.pt", "u4d"), path, data_root=str(tmp_path / "nowhere"))
+    state = torch.load(path, weights_only=True)
+    mean = torch.stack([torch.linspace(-0.5, 0.5, 16), torch.full((16,), 0.2)])[..., None]  # (2, H, 1)
+    state["row_mean"] = {"key": "x0", "mean": mean, "source": {"data_root": "hand-made"}}
+    torch.save(state, path)
+    loaded = load_generator(path)
+    buffers = dict(loaded.net.named_buffers(recurse=False))
+    assert torch.equal(buffers["row_mean_stage2"], mean) and "row_mean_stage1" not in buffers
+    assert "row_mean_stage2" not in loaded.net.state_dict()
+    x0_u, m_u = torch.full((1, 2, 16, 64), -1.0), torch.zeros(1, 1, 16, 64)
+    started = complete(loaded, x0_u, m_u, torch.Generator().manual_seed(0), plain_settings(2, mean_start_below=-10.0))
+    by_hand = complete(
+        (MeanStart(loaded.net, mean, -10.0), loaded.config), x0_u, m_u, torch.Generator().manual_seed(0), PLAIN_2
+    )
+    own = complete(loaded, x0_u, m_u, torch.Generator().manual_seed(0), PLAIN_2)
+    assert torch.equal(started["x0"], by_hand["x0"]) and not torch.equal(started["x0"], own["x0"])
+    with pytest.raises(InputError, match="no stored training mean for stage1 .*export-weights --data-root"):
+        generate_u4d(loaded, loaded, 1, torch.Generator(), plain_settings(2, mean_start_below=-10.0))
 
 
 def test_to_points_returns_one_valid_point_per_return_pixel():
@@ -175,17 +206,17 @@ def without_temporal_branch(loaded):
 def test_sequence_generation_shapes_and_frame_mixing(sequence_checkpoints, random_ema_checkpoints, monkeypatch):
     stage1, stage2 = load_generator(sequence_checkpoints["stage1"]), load_generator(sequence_checkpoints["stage2"])
     assert stage2.config.frames == 2 and stage2.net.most_names
-    a = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7))
-    b = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7))
+    a = generate_u4d(stage1, stage2, 2, torch.Generator().manual_seed(7), PLAIN)
+    b = generate_u4d(stage1, stage2, 2, torch.Generator().manual_seed(7), PLAIN)
     assert a["x0"].shape == (2, 2, 2, 16, 64) and a["m_u_pred"].shape == (2, 2, 1, 16, 64)
     assert torch.equal(a["x0"], b["x0"]) and not torch.equal(a["x0"][:, 0], a["x0"][:, 1])
     # frames mix: changing only frame 1's starting noise changes frame 0's sample, through the temporal branch
     alone = without_temporal_branch(stage1), without_temporal_branch(stage2)
-    c = generate_u4d(*alone, 2, 3, torch.Generator().manual_seed(7))
+    c = generate_u4d(*alone, 2, torch.Generator().manual_seed(7), PLAIN)
     with monkeypatch.context() as patch:
         nudge_frame_1(patch)
-        nudged = generate_u4d(stage1, stage2, 2, 3, torch.Generator().manual_seed(7))
-        nudged_alone = generate_u4d(*alone, 2, 3, torch.Generator().manual_seed(7))
+        nudged = generate_u4d(stage1, stage2, 2, torch.Generator().manual_seed(7), PLAIN)
+        nudged_alone = generate_u4d(*alone, 2, torch.Generator().manual_seed(7), PLAIN)
     assert float((nudged["x0"][:, 0] - a["x0"][:, 0]).abs().max()) > 1e-2
     assert float((nudged["x0_u"][:, 0] - a["x0_u"][:, 0]).abs().max()) > 1e-2  # stage 1 mixes its frames too
     # without it frame 0 is bit for bit what it was: nothing else in the net looks across frames
@@ -197,12 +228,11 @@ def test_sequence_generation_shapes_and_frame_mixing(sequence_checkpoints, rando
     assert bool((a["x0_u"][~m] == -1).all())
     clouds = to_points(a["x0"], hdl64(), stage2.config.row_mode)
     assert len(clouds) == 4 and all(c.shape[1] == 4 for c in clouds)  # sample 0 frames 0, 1, sample 1 ...
-    assert generate_baseline(load_generator(sequence_checkpoints["baseline"]), 1, 2, torch.Generator())["x0"].shape == (
-        1, 2, 2, 16, 64
-    )  # fmt: skip
+    sequence_baseline = load_generator(sequence_checkpoints["baseline"])
+    assert generate_baseline(sequence_baseline, 1, torch.Generator(), PLAIN)["x0"].shape == (1, 2, 2, 16, 64)
     # a single-frame stage 1 gives stage 2 its L frames, each generated on its own
     mixed = generate_u4d(
-        load_generator(random_ema_checkpoints["stage1"]), stage2, 1, 2, torch.Generator().manual_seed(0)
+        load_generator(random_ema_checkpoints["stage1"]), stage2, 1, torch.Generator().manual_seed(0), PLAIN
     )
     assert mixed["x0_u"].shape == (1, 2, 2, 16, 64)
 
@@ -211,14 +241,14 @@ def test_sequence_completion_mixes_the_frames_conditions(sequence_checkpoints):
     stage2 = load_generator(sequence_checkpoints["stage2"])
     x0_u = torch.full((1, 2, 2, 16, 64), -1.0)
     m_u = torch.zeros(1, 2, 1, 16, 64)
-    empty = complete(stage2, x0_u, m_u, 3, torch.Generator().manual_seed(0))["x0"]
+    empty = complete(stage2, x0_u, m_u, torch.Generator().manual_seed(0), PLAIN)["x0"]
     x0_u[:, 0, :, 4:8, 10:30] = 0.3  # only frame 0's condition changes
     m_u[:, 0, :, 4:8, 10:30] = 1.0
-    filled = complete(stage2, x0_u, m_u, 3, torch.Generator().manual_seed(0))["x0"]
+    filled = complete(stage2, x0_u, m_u, torch.Generator().manual_seed(0), PLAIN)["x0"]
     assert filled.shape == (1, 2, 2, 16, 64)
     assert float((filled[:, 1] - empty[:, 1]).abs().max()) > 1e-3  # frame 1 sees it through MoST
     with pytest.raises(InputError, match="m_u"):
-        complete(stage2, x0_u, m_u[:, :1], 2, torch.Generator())
+        complete(stage2, x0_u, m_u[:, :1], torch.Generator(), PLAIN)
 
 
 @pytest.mark.parametrize("pos_weight", [1.0, 4.0])
@@ -264,14 +294,12 @@ def test_ego_motion_reaches_the_net_through_every_generator(tmp_path):
         loaded[stage] = load_generator(save_checkpoint(tmp_path / f"{stage}.pt", TINY_MOST, overrides, 1, randomize))
     straight = torch.from_numpy(straight_motion(2, 1.2))[None]  # (1, L=2, 4)
     turning = torch.from_numpy(straight_motion(2, 1.2, yaw_rate=0.3))[None]
-    a = generate_baseline(loaded["baseline"], 1, 3, torch.Generator().manual_seed(0), "ddim", motion=straight)["x0"]
-    b = generate_baseline(loaded["baseline"], 1, 3, torch.Generator().manual_seed(0), "ddim", motion=turning)["x0"]
+    a = generate_baseline(loaded["baseline"], 1, torch.Generator().manual_seed(0), PLAIN, motion=straight)["x0"]
+    b = generate_baseline(loaded["baseline"], 1, torch.Generator().manual_seed(0), PLAIN, motion=turning)["x0"]
     assert a.shape == (1, 2, 2, 16, 64) and not torch.allclose(a, b)
-    u4d = generate_u4d(
-        loaded["stage1"], loaded["stage2"], 1, 2, torch.Generator().manual_seed(0), "ddim", motion=straight
-    )
+    u4d = generate_u4d(loaded["stage1"], loaded["stage2"], 1, torch.Generator().manual_seed(0), PLAIN, motion=straight)
     assert u4d["x0"].shape == (1, 2, 2, 16, 64)
     with pytest.raises(InputError, match="conditioned on ego motion"):
-        generate_baseline(loaded["baseline"], 1, 2, torch.Generator(), "ddim")
+        generate_baseline(loaded["baseline"], 1, torch.Generator(), PLAIN)
     with pytest.raises(InputError, match="conditioned on ego motion"):
-        generate_baseline(loaded["baseline"], 2, 2, torch.Generator(), "ddim", motion=straight)  # 1 motion, 2 samples
+        generate_baseline(loaded["baseline"], 2, torch.Generator(), PLAIN, motion=straight)  # 1 motion, 2 samples

@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch import nn
 
-from tests.tiny_nets import TINY_MOST, save_checkpoint
+from tests.tiny_nets import PLAIN_SAMPLING, TINY_MOST, plain_settings, save_checkpoint
 from u4d_aug.bank import BankLayout
 from u4d_aug.config import load_config
 from u4d_aug.data.formats import read_kitti_scan
@@ -22,6 +22,7 @@ from u4d_aug.propagate import warp_frame0
 from u4d_aug.trajectory import poses_from_motion, straight_motion
 
 FRAMES, STEPS, SEED = 3, 3, 5
+DDIM = plain_settings(STEPS)  # these nets store no training mean
 
 
 def randomize(net: nn.Module) -> None:
@@ -42,10 +43,10 @@ def straight_poses() -> np.ndarray:
 def by_hand(stage1, stage2, pin_known: bool) -> dict[str, torch.Tensor]:
     """`generate_u4d_propagated` spelled out with the same draws: frame 0 by U4D, warped along the poses, completed."""
     generator = torch.Generator().manual_seed(SEED)
-    first = generate_u4d(stage1, stage2, 1, STEPS, generator, frames=FRAMES)["x0"]  # (1, L, 2, H, W)
+    first = generate_u4d(stage1, stage2, 1, generator, DDIM, frames=FRAMES)["x0"]  # (1, L, 2, H, W)
     x0_u, m_u = warp_frame0(first[0, 0], straight_poses()[0], get_sensor(stage2.config.sensor), stage2.config.row_mode)
     x0_u, m_u = x0_u[None], m_u[None]  # (1, L, 2|1, H, W)
-    filled = complete(stage2, x0_u, m_u, STEPS, generator, pin_known=pin_known)["x0"]
+    filled = complete(stage2, x0_u, m_u, generator, DDIM, pin_known=pin_known)["x0"]
     return {"x0_u": x0_u, "m_u": m_u, "filled": filled, "x0": torch.where(m_u.bool(), x0_u, filled)}
 
 
@@ -53,7 +54,7 @@ def test_the_pin_holds_stage_2_to_the_warped_pixels_and_changes_the_fill(random_
     stage1, stage2 = load_generator(random_ema_checkpoints["stage1"]), load_generator(random_ema_checkpoints["stage2"])
     runs = {
         pin: generate_u4d_propagated(
-            stage1, stage2, 1, STEPS, torch.Generator().manual_seed(SEED), straight_poses(), pin_known=pin
+            stage1, stage2, 1, torch.Generator().manual_seed(SEED), straight_poses(), DDIM, pin_known=pin
         )
         for pin in (True, False)
     }
@@ -86,7 +87,7 @@ def posed_random(tmp_path_factory) -> dict[str, Path]:
 def test_a_pinned_bank_is_filled_otherwise_than_a_plain_one(posed_random, tmp_path):
     np.save(tmp_path / "straight.npy", straight_motion(FRAMES, 1.0))
     paths = [f"stage1={posed_random['stage1']}", f"stage2={posed_random['stage2']}"]
-    base = [*paths, "steps=2", "sampler=ddim", "device=cpu", "seed=7", "num=1", f"frames={FRAMES}"]
+    base = [*paths, "steps=2", "sampler=ddim", *PLAIN_SAMPLING, "device=cpu", "seed=7", "num=1", f"frames={FRAMES}"]
     base += [f"motion_file={tmp_path / 'straight.npy'}", "propagate=true"]
     scans = {}
     for name, extra in (("plain", []), ("pinned", ["propagate_pin=true"])):

@@ -21,7 +21,7 @@ from u4d_aug.data.sensors import get_sensor
 from u4d_aug.demo import DEMO_PRESETS, demo_experiment, demo_steps
 from u4d_aug.errors import InputError
 from u4d_aug.generate import GenerateConfig
-from u4d_aug.presets import configs_root, list_presets, resolve_config_path
+from u4d_aug.presets import closest_presets, configs_root, list_presets, resolve_config_path
 from u4d_aug.train import DiffusionTrainConfig
 
 
@@ -56,6 +56,22 @@ def test_unknown_preset_is_a_one_line_error(elsewhere):
     with pytest.raises(InputError, match="seg/nope: config file not found, nor a preset") as error:
         read_yaml("seg/nope")
     assert "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize(
+    ("name", "hint"),
+    [("seg/tny", "'seg/tiny'"), ("configs/seg/tiny_semii.yaml", "'seg/tiny_semi'"), ("sim/seg_ricj", "'sim/seg_rich'")],
+)
+def test_an_unknown_preset_names_the_nearest_ones(elsewhere, name, hint):
+    with pytest.raises(InputError, match=f"config file not found, nor a preset .* \\(did you mean {hint}"):
+        read_yaml(name)
+    assert closest_presets(name)[0] == hint.strip("'")
+
+
+def test_a_name_near_no_preset_gets_the_example_instead(elsewhere):
+    with pytest.raises(InputError, match=r"nor a preset of that name under .* \(e.g. seg/tiny\)$"):
+        read_yaml("nothing/like/it")
+    assert closest_presets(elsewhere / "seg" / "tny.yaml") == []  # an absolute path names a file, not a preset
 
 
 def test_presets_that_name_presets_resolve_from_any_folder(elsewhere):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.tiny_nets import TINY_MOST, save_checkpoint
+from tests.tiny_nets import TINY_MOST, plain_settings, save_checkpoint
 from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.data.sensors import hdl64
 from u4d_aug.errors import InputError
@@ -58,7 +58,7 @@ def test_propagated_sequences_keep_the_warped_pixels(tmp_path: Path) -> None:
     motion = straight_motion(3, 2.0)  # (3, 4)
     poses = poses_from_motion(motion)[None]  # (1, 3, 4, 4)
     out = generate_u4d_propagated(
-        loaded["stage1"], loaded["stage2"], 1, 2, torch.Generator().manual_seed(0), poses, "ddim",
+        loaded["stage1"], loaded["stage2"], 1, torch.Generator().manual_seed(0), poses, plain_settings(2),
         motion=torch.from_numpy(motion)[None],
     )  # fmt: skip
     x0, x0_u, m_u = out["x0"], out["x0_u"], out["m_u_pred"]
@@ -70,7 +70,7 @@ def test_propagated_sequences_keep_the_warped_pixels(tmp_path: Path) -> None:
     torch.testing.assert_close(m_u[0], expected_m)  # and it is frame 0 moved along the poses
     torch.testing.assert_close(x0_u[0], expected_u)
     with pytest.raises(InputError, match="propagation needs poses"):
-        generate_u4d_propagated(loaded["stage1"], loaded["stage2"], 2, 2, torch.Generator(), poses, "ddim")
+        generate_u4d_propagated(loaded["stage1"], loaded["stage2"], 2, torch.Generator(), poses, plain_settings(2))
     with pytest.raises(InputError, match="warp_frame0: expected"):
         warp_frame0(x0[0], poses[0], sensor)
 
@@ -80,10 +80,11 @@ def test_propagated_baseline_sequences_inpaint_around_the_warped_pixels(tmp_path
     loaded = load_generator(save_checkpoint(tmp_path / "baseline.pt", TINY_MOST, overrides, 1, randomize))
     motion = torch.from_numpy(straight_motion(3, 2.0))[None]  # (1, 3, 4)
     poses = poses_from_motion(motion[0].numpy())[None]  # (1, 3, 4, 4)
-    out = generate_baseline_propagated(loaded, 1, 3, torch.Generator().manual_seed(0), poses, "ddim", motion=motion)
+    ddim = plain_settings(3)
+    out = generate_baseline_propagated(loaded, 1, torch.Generator().manual_seed(0), poses, ddim, motion=motion)
     x0, x0_u, m_u = out["x0"], out["x0_u"], out["m_u_pred"]
     assert x0.shape == (1, 3, 2, 16, 64) and m_u.shape == (1, 3, 1, 16, 64)
-    plain = generate_baseline(loaded, 1, 3, torch.Generator().manual_seed(0), "ddim", 3, motion=motion)["x0"]
+    plain = generate_baseline(loaded, 1, torch.Generator().manual_seed(0), ddim, 3, motion=motion)["x0"]
     torch.testing.assert_close(x0[:, 0], plain[:, 0])  # frame 0 is the first pass's frame 0
     expected_u, expected_m = warp_frame0(plain[0, 0], poses[0], hdl64(), loaded.config.row_mode)
     torch.testing.assert_close(m_u[0], expected_m)  # the known region is frame 0 moved along the poses
@@ -92,4 +93,4 @@ def test_propagated_baseline_sequences_inpaint_around_the_warped_pixels(tmp_path
     assert 0 < float(m_u[0, 1:].mean()) < 1  # frames 1, 2: part warped, part inpainted
     assert not torch.allclose(x0[:, 1:][~known[:, 1:]], plain[:, 1:][~known[:, 1:]])  # the rest is drawn anew
     with pytest.raises(InputError, match="propagation needs poses"):
-        generate_baseline_propagated(loaded, 2, 2, torch.Generator(), poses, "ddim", motion=motion)
+        generate_baseline_propagated(loaded, 2, torch.Generator(), poses, ddim, motion=motion)

@@ -6,15 +6,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from tests.tiny_nets import save_checkpoint
 from tests.tiny_worlds import write_toy_root
 from u4d_aug.bank import read_manifest
 from u4d_aug.cli import main
 from u4d_aug.data.datasets import ScanDataset, expand_sequences
-from u4d_aug.data.formats import read_kitti_scan
+from u4d_aug.data.formats import read_kitti_scan, read_poses, read_times
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.errors import InputError
+from u4d_aug.io import read_jsonl
 from u4d_aug.range_view import project
 from u4d_aug.real_bank import check_disjoint, check_real_bank, projected_points, split_overlap, write_real_bank
 
@@ -59,6 +61,26 @@ def test_bank_holds_every_scan_of_the_places_with_a_manifest_and_resumes(places:
     # another projection into the same folder is refused, naming the manifest
     with pytest.raises(InputError, match="manifest.json: a bank of other scans or another projection"):
         write_real_bank(places, ["03-04"], bank, None)
+
+
+def test_bank_has_labels_sequence_files_config_and_log(places: Path, tmp_path: Path):
+    bank = tmp_path / "real"
+    manifest = write_real_bank(places, ["03-04"], bank, None)
+    scans = sorted(bank.glob("sequences/00/velodyne/*.bin"))
+    for scan in scans:  # all-ignore labels, one per point: the bank is read as unlabeled, never as class 0
+        label = np.fromfile(scan.parent.parent / "labels" / f"{scan.stem}.label", dtype="<u4")
+        assert len(label) == scan.stat().st_size // 16 and not label.any()
+    assert manifest["export"]["labels"] == {"kind": "ignore", "semantic": 0, "instance": 0, "files": 4}
+    folder = bank / "sequences" / "00"
+    assert len(read_poses(folder / "poses.txt", folder / "calib.txt")) == 4 == len(read_times(folder / "times.txt"))
+    assert read_manifest(bank)["placeholder_poses"] is True
+    assert yaml.safe_load((bank / "config.yaml").read_text())["sequences"] == ["03-04"]
+    log = read_jsonl(bank / "log.jsonl")
+    assert [record["event"] for record in log] == ["start", "finish"] and log[-1]["samples_done"] == 4
+    again = write_real_bank(places, ["03-04"], bank, None)  # resumed: every sample intact, labels kept
+    assert again["samples"] == manifest["samples"] and read_jsonl(bank / "log.jsonl")[2]["samples_done"] == 4
+    bare = write_real_bank(places, ["04"], tmp_path / "bare", None, labels=False)
+    assert "export" not in bare and not (tmp_path / "bare" / "sequences" / "00" / "labels").exists()
 
 
 def test_raw_bank_copies_the_scans(places: Path, tmp_path: Path):

@@ -132,3 +132,15 @@ def test_links_that_leave_the_folder_are_refused_links_inside_it_are_not(tmp_pat
     with pytest.raises(InputError, match="checkpoints: a symbolic link"), run_lock(out):
         pass
     assert not (out / LOCK_NAME).exists() and (outside / "log.jsonl").read_text() == "kept\n"
+
+
+def test_a_failed_run_removes_the_folder_its_lock_created(tmp_path):
+    out = tmp_path / "runs" / "a"
+    with pytest.raises(InputError, match="bad data"), run_lock(out, scaffolding=("config.yaml",)):
+        (out / "config.yaml").write_text("steps: 1\n")
+        raise InputError("bad data")
+    assert not (tmp_path / "runs").exists()  # the parent it created too
+    out.mkdir(parents=True)
+    with pytest.raises(InputError, match="bad data"), run_lock(out):
+        raise InputError("bad data")
+    assert out.is_dir()  # there before the run: kept

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.tiny_nets import REPO, TINY, diffusion_config
+from tests.tiny_nets import REPO, TINY, diffusion_config, plain_settings
 from tests.tiny_worlds import write_tiny_world
 from u4d_aug.batches import RangeImages, crop_batch
 from u4d_aug.config import load_config
@@ -226,8 +226,9 @@ def test_stage2_overfits_one_scan(tmp_path):
     train(cfg, progress=False)
     item = RangeImages(cfg)[0]
     x0_u, m_u = item["x0_u"][None], item["m_u"][None]
-    trained = complete(load_generator(tmp_path / "overfit"), x0_u, m_u, 8, torch.Generator().manual_seed(0))["x0"]
-    untrained = complete((build_net(cfg).eval(), cfg), x0_u, m_u, 8, torch.Generator().manual_seed(0))["x0"]
+    ddim = plain_settings(8)
+    trained = complete(load_generator(tmp_path / "overfit"), x0_u, m_u, torch.Generator().manual_seed(0), ddim)["x0"]
+    untrained = complete((build_net(cfg).eval(), cfg), x0_u, m_u, torch.Generator().manual_seed(0), ddim)["x0"]
     error = float((trained[0] - item["x0"]).abs().mean())
     error_untrained = float((untrained[0] - item["x0"]).abs().mean())
     assert error < 0.5 * error_untrained, (error, error_untrained)
@@ -341,7 +342,8 @@ def test_full_width_sample_of_a_crop_trained_net_closes_the_ring(tmp_path):
         "ema_decay=0.0", "diffusion.min_snr_gamma=null",
     )  # fmt: skip
     train(cfg, progress=False)
-    x0 = generate_baseline(load_generator(tmp_path / "crop"), 2, 8, torch.Generator().manual_seed(0), "ddpm")["x0"]
+    ddpm = plain_settings(8, "ddpm")
+    x0 = generate_baseline(load_generator(tmp_path / "crop"), 2, torch.Generator().manual_seed(0), ddpm)["x0"]
     assert x0.shape == (2, 2, 16, 64) and torch.isfinite(x0).all()
     steps = (x0 - torch.roll(x0, 1, -1)).abs().mean(dim=(1, 2))  # (2, W): column j against column j - 1
     seam, inner = steps[:, 0], steps[:, 1:]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.tiny_nets import diffusion_config, gen_config
+from tests.tiny_nets import PLAIN_SAMPLING, diffusion_config, gen_config, plain_settings
 from tests.tiny_worlds import write_tiny_world
 from u4d_aug.batches import RangeImages, crop_loss_weight, net_row_mean, stage_inputs, training_batch
 from u4d_aug.config import load_config
@@ -100,13 +100,14 @@ def test_u4d_stage_trains_checkpoints_and_samples_two_stages_from_one_net(tiny_w
     assert record["step"] == 4 and np.isfinite(record["loss"]) and np.isfinite(record["mask_bce"])
     loaded = load_generator(out)
     assert loaded.config.diffusion.stage == "u4d"
-    result = generate_u4d(loaded, loaded, 2, 2, torch.Generator().manual_seed(0), "ddpm")
+    result = generate_u4d(loaded, loaded, 2, torch.Generator().manual_seed(0), plain_settings(2, "ddpm"))
     assert result["x0"].shape == (2, 2, 16, 64)
     outside = result["m_u_pred"].expand_as(result["x0_u"]) == 0
     assert bool((result["x0_u"][outside] == -1).all())  # stage 1's region, empty off its mask
     # `u4d generate net=RUN`: the one net serves both stages; the bank records it under both roles
     bank = tmp_path / "bank"
-    cfg = load_config(GenerateConfig, None, [f"net={out}", "num=2", "steps=2", "device=cpu", "batch_size=2"])
+    overrides = [f"net={out}", "num=2", "sampler=ddpm", "steps=2", *PLAIN_SAMPLING, "device=cpu", "batch_size=2"]
+    cfg = load_config(GenerateConfig, None, overrides)
     manifest = generate_bank(cfg, bank, progress=False)
     assert manifest["complete"] and manifest["checkpoints"]["stage1"] == manifest["checkpoints"]["stage2"]
     with pytest.raises(InputError, match="net: a one-net u4d checkpoint replaces stage1 and stage2"):
@@ -164,7 +165,7 @@ def test_v_parameterized_u4d_net_trains_and_samples(tiny_world, tmp_path):
     out = tmp_path / "run"
     train(diffusion_config(tiny_world, out, "u4d", "diffusion.parameterization=v"), progress=False)
     loaded = load_generator(out)
-    result = generate_u4d(loaded, loaded, 1, 2, torch.Generator().manual_seed(0), "dpmpp2m-sde")
+    result = generate_u4d(loaded, loaded, 1, torch.Generator().manual_seed(0), plain_settings(2, "dpmpp2m-sde"))
     assert bool(torch.isfinite(result["x0"]).all())
 
 

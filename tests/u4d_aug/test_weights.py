@@ -21,7 +21,7 @@ from segmentation.predict import load_checkpoint as load_seg_checkpoint
 from segmentation.predict import model_from_checkpoint, predict_probs
 from segmentation.train import CHECKPOINT_KIND as SEG_CHECKPOINT_KIND
 from segmentation.train import train as train_segmentor
-from tests.tiny_nets import SEG_TINY, diffusion_config, extractor_config
+from tests.tiny_nets import SEG_TINY, diffusion_config, extractor_config, plain_settings
 from tests.tiny_worlds import read_scans, write_tiny_root, write_tiny_world, write_toy_root
 from u4d_aug import weights
 from u4d_aug.batches import row_mean
@@ -118,21 +118,22 @@ def test_exported_generators_sample_like_the_fp32_ema_nets(diffusion):
         a, b = (a, b) if isinstance(a, torch.Tensor) else (a[0], b[0])  # stage 1: (eps, mask logits)
         assert float(a.std()) > 0.5 and float((a - b).abs().max()) < 5e-3, stage
 
-    u4d_a = generate_u4d(fp32["stage1"], fp32["stage2"], 2, 4, torch.Generator().manual_seed(3))
-    u4d_b = generate_u4d(fp16["stage1"], fp16["stage2"], 2, 4, torch.Generator().manual_seed(3))
+    ddim = plain_settings(4)
+    u4d_a = generate_u4d(fp32["stage1"], fp32["stage2"], 2, torch.Generator().manual_seed(3), ddim)
+    u4d_b = generate_u4d(fp16["stage1"], fp16["stage2"], 2, torch.Generator().manual_seed(3), ddim)
     assert float((u4d_a["m_u_pred"] != u4d_b["m_u_pred"]).float().mean()) < 0.01
     assert_close_samples(u4d_a["x0_u"], u4d_b["x0_u"])
     assert_close_samples(u4d_a["x0"], u4d_b["x0"])
     same_condition = [
-        complete(nets["stage2"], u4d_a["x0_u"], u4d_a["m_u_pred"], 4, torch.Generator().manual_seed(3))["x0"]
+        complete(nets["stage2"], u4d_a["x0_u"], u4d_a["m_u_pred"], torch.Generator().manual_seed(3), ddim)["x0"]
         for nets in (fp32, fp16)
     ]
     assert_close_samples(*same_condition)
     baseline = [
-        generate_baseline(nets["baseline"], 2, 4, torch.Generator().manual_seed(3))["x0"] for nets in (fp32, fp16)
+        generate_baseline(nets["baseline"], 2, torch.Generator().manual_seed(3), ddim)["x0"] for nets in (fp32, fp16)
     ]
     assert_close_samples(*baseline)
-    other_seed = generate_baseline(fp32["baseline"], 2, 4, torch.Generator().manual_seed(4))["x0"]
+    other_seed = generate_baseline(fp32["baseline"], 2, torch.Generator().manual_seed(4), ddim)["x0"]
     assert float((baseline[0] - other_seed).abs().mean()) > 0.1  # the tolerances are far below a sample's spread
 
 

@@ -30,6 +30,7 @@ __all__ = [
     "NuscenesSequenceDataset",
     "ScanDataset",
     "SequenceDataset",
+    "detect_format",
     "label_path_for",
     "list_frames",
     "list_sequences",
@@ -249,6 +250,24 @@ def _sequence_poses(root: Path, seq: str, frames: list[str]) -> np.ndarray:
 
 # ------------------------------------------------------------------------------------------------------------
 # by format name
+
+
+def detect_format(root: PathLike) -> str:
+    """The layout of a dataset root: 'nuscenes' with a v1.0-* table folder or samples/LIDAR_TOP/, 'semantickitti' with
+    sequences/; InputError naming what was looked for when it has neither (or both)."""
+    root = Path(root)
+    if not root.is_dir():
+        found = "is a file" if root.exists() else "folder not found"
+        raise InputError(f"{root}: {found}; expected a dataset root (SemanticKITTI sequences/ or nuScenes v1.0-*/)")
+    nuscenes = any(p.is_dir() for p in root.glob("v1.0-*")) or (root / "samples" / "LIDAR_TOP").is_dir()
+    semantickitti = (root / "sequences").is_dir()
+    if nuscenes and not semantickitti:
+        return "nuscenes"
+    elif semantickitti and not nuscenes:
+        return "semantickitti"
+    looked = "sequences/ (SemanticKITTI) and a v1.0-* table folder or samples/LIDAR_TOP/ (nuScenes)"
+    found = "holds both" if nuscenes else "no dataset layout: looked for"
+    raise InputError(f"{root}: {found} {looked}; name the layout with --format semantickitti|nuscenes")
 
 
 def open_scans(

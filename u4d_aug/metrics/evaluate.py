@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from u4d_aug.bank import read_manifest
 from u4d_aug.data.datasets import expand_sequences, list_frames, list_sequences
 from u4d_aug.data.formats import read_kitti_scan
 from u4d_aug.errors import InputError
@@ -170,6 +171,9 @@ def _temporal_table(
     root: Path, entries: list[tuple[str, str, Path]], metrics: tuple[str, ...], what: str = "", progress: bool = False
 ) -> dict[str, Any]:
     """TTCE (m) and CTC (m^2) per interval pooled over the sequences of `entries`, or the reason it is missing."""
+    manifest = root / "manifest.json"
+    if manifest.is_file() and (read_manifest(root) or {}).get("placeholder_poses"):
+        return {"missing": f"{manifest}: the bank's poses.txt are identity placeholders, no ground-truth poses"}
     by_seq: dict[str, list[int]] = {}
     for seq, frame, _ in entries:
         if not frame.isdigit():

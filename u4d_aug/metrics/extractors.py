@@ -465,11 +465,12 @@ def _heldout_dataset(cfg: ExtractorConfig) -> Any:
 def train_extractor(kind: str, cfg: ExtractorConfig, progress: bool = True) -> tuple[Path, str]:
     """Train the FRD or FPD net on labelled training scans; writes out_dir/{kind}.pt + log; returns (path, hash).
 
-    Holds out_dir/.KIND.lock (`u4d_aug.runlock`) while it runs: the other kind may train into the same folder.
+    Holds out_dir/.KIND.lock (`u4d_aug.runlock`) while it runs: the other kind may train into the same folder. A run
+    that fails before its log leaves no out_dir it created behind (its KIND_config.yaml is removed with it).
     """
     if kind not in EXTRACTOR_KINDS:
         raise InputError(f"extractor kind {kind!r} is not one of {', '.join(EXTRACTOR_KINDS)}")
-    with run_lock(cfg.out_dir, name=f".{kind}.lock"):
+    with run_lock(cfg.out_dir, name=f".{kind}.lock", scaffolding=(f"{kind}_config.yaml",)):
         return train_extractor_locked(kind, cfg, progress)
 
 

@@ -11,6 +11,7 @@ from scipy.spatial import cKDTree
 from u4d_aug.data.datasets import (
     ScanDataset,
     SequenceDataset,
+    detect_format,
     label_path_for,
     list_frames,
     list_sequences,
@@ -121,8 +122,40 @@ def test_sequence_dataset_bad_input(tmp_path, rng):
         SequenceDataset(tmp_path, num_frames=2)
 
 
+def test_detect_format_by_the_folders_of_a_root(tmp_path):
+    (tmp_path / "kitti" / "sequences").mkdir(parents=True)
+    (tmp_path / "nusc" / "v1.0-mini").mkdir(parents=True)
+    (tmp_path / "both" / "sequences").mkdir(parents=True)
+    (tmp_path / "both" / "samples" / "LIDAR_TOP").mkdir(parents=True)
+    (tmp_path / "neither" / "velodyne").mkdir(parents=True)
+    assert detect_format(tmp_path / "kitti") == "semantickitti" and detect_format(tmp_path / "nusc") == "nuscenes"
+    with pytest.raises(InputError, match="both: holds both sequences/ .*; name the layout with --format"):
+        detect_format(tmp_path / "both")
+    looked = (
+        r"neither: no dataset layout: looked for sequences/ \(SemanticKITTI\) and a v1.0-\* table folder or samples"
+    )
+    with pytest.raises(InputError, match=looked):
+        detect_format(tmp_path / "neither")
+    with pytest.raises(InputError, match="missing: folder not found; expected a dataset root"):
+        detect_format(tmp_path / "missing")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(InputError, match="file: is a file; expected a dataset root"):
+        detect_format(tmp_path / "file")
+
+
 # ------------------------------------------------------------------------------------------------------------
 # real seq 00 sample (frames 0-5, labels for 0-2)
+
+
+def test_detect_format_of_the_real_roots(real_root: Path):
+    assert detect_format(real_root / "semantickitti") == "semantickitti"
+    assert detect_format(real_root / "semantickitti_mmdet3d_tests") == "semantickitti"
+    nuscenes = [real_root / name for name in ("nuscenes_mmdet3d_demo", "nuscenes_mmdet3d_tests")]
+    if not all(root.is_dir() for root in nuscenes):
+        pytest.skip(f"real nuScenes samples not found under {real_root}")
+    assert [detect_format(root) for root in nuscenes] == ["nuscenes", "nuscenes"]  # samples/LIDAR_TOP/, no tables
+    with pytest.raises(InputError, match="no dataset layout"):
+        detect_format(real_root)  # the folder of the datasets is none itself
 
 
 def test_real_scan_dataset(kitti_root: Path):

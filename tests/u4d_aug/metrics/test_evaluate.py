@@ -210,3 +210,17 @@ def test_intensity_histogram_js_and_means(tmp_path):
     with warnings.catch_warnings():  # the reader warns of the odd scale (once per process: not asserted here)
         warnings.simplefilter("ignore", UserWarning)
         assert evaluate(above, real, ("intensityjs",))["table1"]["intensityjs"]["value"] == pytest.approx(expected)
+
+
+def test_a_bank_with_placeholder_poses_has_no_temporal_metrics(kitti_root, tmp_path):
+    """A single-frame bank's identity poses.txt (u4d_aug.bank: "placeholder_poses") are no ground truth for TTCE/CTC."""
+    import shutil
+
+    from u4d_aug.bank import write_manifest
+
+    bank = tmp_path / "bank"
+    shutil.copytree(kitti_root, bank)  # real poses.txt / calib.txt, but the manifest says they are placeholders
+    write_manifest(bank, {"mode": "u4d", "frames": 1, "samples": [], "complete": True, "placeholder_poses": True})
+    result = evaluate(bank, kitti_root, ("ttce", "ctc"), max_scans=5)
+    assert "identity placeholders" in result["table2"]["bank"]["missing"]
+    assert "ttce" in result["table2"]["real"]

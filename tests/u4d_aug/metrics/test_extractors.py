@@ -223,6 +223,22 @@ def test_a_non_finite_loss_stops_extractor_training_without_a_checkpoint(trained
     with pytest.raises(NonFiniteLossError, match="training step 1: the loss is inf"):
         train_extractor("frd", extractor_config(trained["root"], out))
     assert not (out / "frd.pt").exists() and not (out / ".frd.lock").exists()
+    assert not out.exists()  # it held only the run's frd_config.yaml: a failed run leaves no folder it created
+
+
+def test_a_bad_data_root_is_one_error_line_and_leaves_no_folder(tmp_path, capsys):
+    from u4d_aug.cli import main
+
+    out = tmp_path / "runs" / "extractor"
+    missing = tmp_path / "missing"
+    argv = ["train-extractor", "frd", str(TINY_CONFIG), f"data.root={missing}", f"out_dir={out}", "--no-progress"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"error: {missing}")
+    assert not (tmp_path / "runs").exists()
+    (tmp_path / "kept").mkdir()  # a folder that was there before the run stays
+    assert main([*argv[:4], f"out_dir={tmp_path / 'kept'}"]) == 2
+    assert (tmp_path / "kept").is_dir()
 
 
 @pytest.mark.parametrize(

@@ -14,8 +14,8 @@ the static world from [seed, k, 0, 1], the agents from [seed, k, 0, 2] and the r
 (so a change to, say, vegetation settings keeps the street layout), the ground hills from [seed, k, 0, 4], its street
 type (scenes.py, when several have weight) from [seed, k, 0, 5] and frame f from [seed, k, 1, f]; files do not depend
 on --workers, and a re-run skips frames whose files exist (writes are atomic). manifest.json records the sensor's
-intensity response, the config source (`--config` preset or file, and the overrides) beside the resolved config,
-and each place's street type.
+intensity response, the config source (the CONFIG preset or file, or its alias --config, and the overrides) beside
+the resolved config, and each place's street type.
 """
 
 from __future__ import annotations
@@ -61,6 +61,7 @@ from u4d_aug.data.sim.world import World, build_world
 from u4d_aug.errors import InputError
 from u4d_aug.io import atomic_save_npy, atomic_write_json, load_npy, remove_temp_files
 from u4d_aug.outfolder import check_output_folder
+from u4d_aug.presets import resolve_config_path
 from u4d_aug.runlock import run_lock
 
 logger = logging.getLogger(__name__)
@@ -436,7 +437,15 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--workers", type=int, default=1, help="processes, one sequence each")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--config", type=Path, default=None, help="SimConfig yaml (a file or a preset, e.g. sim/tiny)")
+    parser.add_argument(
+        "preset",
+        nargs="?",
+        type=Path,
+        default=None,
+        metavar="config",
+        help="SimConfig yaml, a file or a preset, e.g. sim/seg_rich (default: the built-in defaults)",
+    )
+    parser.add_argument("--config", type=Path, default=None, help="the positional config under another name")
     parser.add_argument("overrides", nargs="*", help="key=value config overrides, e.g. agents.cars_per_100m=3")
     parser.add_argument(
         "--set",
@@ -448,10 +457,20 @@ def add_simulate_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def config_argument(preset: Path | None, config: Path | None) -> Path | None:
+    """The config of `u4d simulate`: the positional one or its alias --config; InputError if both name other files."""
+    if preset is None or config is None:
+        return preset if preset is not None else config
+    if resolve_config_path(preset).resolve() != resolve_config_path(config).resolve():
+        raise InputError(f"simulate: config {preset} and --config {config} name different files; give one of them")
+    return preset
+
+
 def run_simulate(args: argparse.Namespace) -> int:
-    """`u4d simulate --out DIR --sequences N --frames F --seed S [--config YAML] [key=value ...]`."""
+    """`u4d simulate [CONFIG] --out DIR --sequences N --frames F --seed S [key=value ...]`."""
     overrides = [*(getattr(args, "set_overrides", None) or []), *(getattr(args, "overrides", None) or [])]
-    cfg = load_config(SimConfig, args.config, overrides)
+    config = config_argument(getattr(args, "preset", None), args.config)
+    cfg = load_config(SimConfig, config, overrides)
     summary = simulate(
         args.out,
         args.sequences,
@@ -462,7 +481,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         cfg,
         layout=getattr(args, "format", "semantickitti"),
         keyframe_every=getattr(args, "keyframe_every", None),
-        config_source={"config": None if args.config is None else str(args.config), "overrides": overrides},
+        config_source={"config": None if config is None else str(config), "overrides": overrides},
         progress=not getattr(args, "no_progress", False),
     )
     print(

@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import jensenshannon
 
 from tests.tiny_nets import REPO
-from u4d_aug.config import load_config
+from u4d_aug.config import config_to_dict, load_config
 from u4d_aug.data.formats import (
     read_calib,
     read_kitti_label,
@@ -34,6 +34,7 @@ from u4d_aug.data.sim.scenes import STREET_TYPES
 from u4d_aug.data.sim.writer import (
     add_simulate_arguments,
     build_sequence,
+    config_argument,
     render_frame,
     run_simulate,
     simulate,
@@ -169,6 +170,28 @@ def test_cli_arguments(tmp_path: Path, capsys, caplog) -> None:
     assert manifest["config_source"] == {"config": str(TINY), "overrides": ["agents.pedestrians_per_100m=0"]}
     with pytest.raises(InputError, match="unknown config key"):
         load_config(SimConfig, None, ["lidar.nope=1"])
+
+
+def test_the_config_is_positional_and_config_is_its_alias(tmp_path: Path) -> None:
+    from u4d_aug.cmdline import CommandParser, parse_command_line
+
+    parser = CommandParser(prog="u4d simulate")
+    add_simulate_arguments(parser)
+    out = tmp_path / "world"
+    argv = ["sim/tiny", "--out", str(out), "--frames", "1", "--no-progress", "agents.pedestrians_per_100m=0"]
+    args = parse_command_line(parser, argv)
+    assert (args.preset, args.config, args.overrides) == (Path("sim/tiny"), None, ["agents.pedestrians_per_100m=0"])
+    assert run_simulate(args) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["config_source"] == {"config": "sim/tiny", "overrides": ["agents.pedestrians_per_100m=0"]}
+    assert manifest["config"] == config_to_dict(_tiny("agents.pedestrians_per_100m=0"))  # the preset was read
+    # --config names the same file: fine; another one: refused before anything is written
+    assert config_argument(Path("sim/tiny"), TINY) == Path("sim/tiny")
+    assert config_argument(None, Path("sim/tiny")) == Path("sim/tiny") and config_argument(None, None) is None
+    other = parse_command_line(parser, ["sim/tiny", "--config", "sim/seg_rich", "--out", str(tmp_path / "other")])
+    with pytest.raises(InputError, match="simulate: config sim/tiny and --config sim/seg_rich name different files"):
+        run_simulate(other)
+    assert not (tmp_path / "other").exists()
 
 
 @pytest.mark.slow

@@ -88,6 +88,8 @@ def test_info_summarises_the_scenes(world: Path, capsys) -> None:
     assert summary["frames"] == summary["labeled_frames"] == 4  # the keyframes
     assert list(summary["class_histogram"]) == [*NUSCENES_CLASSES, "ignore"]
     assert summary["class_histogram"]["driveable_surface"] > 0
+    assert main(["info", str(world), "--json"]) == 0  # without --format: the v1.0-trainval/ tables say nuScenes
+    assert json.loads(capsys.readouterr().out) == summary and summary["format"] == "nuscenes"
     assert main(["info", str(world), "--format", "nuscenes", "--nuscenes-version", "v1.0-mini"]) == 2
     assert "v1.0-mini: nuScenes table folder not found; it holds v1.0-trainval" in capsys.readouterr().err
 
