@@ -39,7 +39,6 @@ import logging
 import os
 import pickle
 import secrets
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -60,7 +59,7 @@ from u4d_aug.errors import InputError
 from u4d_aug.io import (
     TEMP_PREFIX,
     TEMP_SUFFIX,
-    atomic_open,
+    atomic_copy,
     atomic_write_bytes,
     dumps_json,
     make_folder,
@@ -196,8 +195,7 @@ def place_file(source: Path, target: Path) -> str:
     try:
         os.link(source, temp)
     except OSError:  # another file system, or links refused (protected_hardlinks): copy
-        with atomic_open(target, "wb") as f, open(source, "rb") as src:
-            shutil.copyfileobj(src, f)
+        atomic_copy(source, target)
         return "copied"
     try:
         os.replace(temp, target)

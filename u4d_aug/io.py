@@ -150,6 +150,14 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def atomic_copy(source: str | os.PathLike, target: str | os.PathLike) -> None:
+    """Copy a file's bytes to `target` atomically (temp file + rename): `target` is the old file or the whole copy."""
+    import shutil
+
+    with open(source, "rb") as src, atomic_open(target, "wb") as dst:
+        shutil.copyfileobj(src, dst, 1 << 20)
+
+
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
     """Write an object as indented json atomically (NaN/inf as null: json has no such numbers)."""
     atomic_write_text(path, dumps_json(obj, indent=2) + "\n")

@@ -9,12 +9,11 @@ run lock.
 from __future__ import annotations
 
 import argparse
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
 from u4d_aug.errors import InputError
-from u4d_aug.io import atomic_open, file_sha256
+from u4d_aug.io import atomic_copy, file_sha256
 from u4d_aug.runlock import run_lock
 from u4d_aug.weights_store import PREFIX, find_weights, install_dir, search_dirs, shipped_table
 
@@ -78,8 +77,7 @@ def install_weights(source: Path, target: Path) -> list[tuple[str, str]]:
             if destination.is_file() and file_sha256(destination, 64) == table[name]["sha256"]:
                 done.append((name, "already installed"))
                 continue
-            with path.open("rb") as src, atomic_open(destination) as dst:
-                shutil.copyfileobj(src, dst, 1 << 20)
+            atomic_copy(path, destination)
             done.append((name, "installed"))
     missing = sorted(set(table) - {name for name, _ in checked})
     done += [(name, f"not in {folder}") for name in missing]
