@@ -1,5 +1,5 @@
 """Shared fixtures: the real-scan folder beside the checkout, tiny seeded generators, one intra-op thread, the toy
-SemanticKITTI root and tiny diffusion checkpoints that several test modules read."""
+SemanticKITTI root, tiny diffusion checkpoints that several test modules read and a machine without installed nets."""
 
 from __future__ import annotations
 
@@ -13,8 +13,9 @@ import torch
 
 from tests.tiny_nets import TINY, TINY_MOST, save_checkpoint, save_random_checkpoint
 from tests.tiny_worlds import REAL_ROOT, write_toy_root
-from u4d_aug import progress
+from u4d_aug import progress, weights_store
 from u4d_aug.cmdline import LOGGERS
+from u4d_aug.weights_store import WEIGHTS_ENV
 
 STAGES = ("stage1", "stage2", "baseline")
 
@@ -104,3 +105,13 @@ def random_ema_checkpoints(tmp_path_factory: pytest.TempPathFactory) -> dict[str
     """Tiny checkpoints of the three stages: random EMA weights, zero raw weights (`save_random_checkpoint`)."""
     root = tmp_path_factory.mktemp("ckpt_random_ema")
     return {stage: save_random_checkpoint(root / f"{stage}.pt", stage) for stage in STAGES}
+
+
+@pytest.fixture
+def no_installed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A machine with no checkout weights/, an empty user cache and no U4D_WEIGHTS (a wheel before `install`)."""
+    monkeypatch.chdir(tmp_path)  # not the checkout, whose weights/NAME.pt exist as written
+    monkeypatch.setattr(weights_store, "CHECKOUT_DIR", tmp_path / "no_checkout" / "weights")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setenv(WEIGHTS_ENV, "")  # recorded, so what main sets is undone
+    return tmp_path
