@@ -27,6 +27,15 @@
 # the rest completed: u4d_aug.propagate) into banks NAME_prop_sSEED, scores them into RESULTS/temporal_evals_propagated
 # and writes RESULTS/temporal_propagated.json / .md; it reuses every trained net on the machine and trains the missing
 # ones. The floor (real sequences) is the same in both and is scored once, into RESULTS/temporal_evals/floor.
+# ONE_NET=1 trains U4D as one net for both stages (train-diffusion stage=u4d, the recipe of the final single-frame
+# nets): u4d_most, baseline_most and u4d_no_temporal, seeds 0 and 1 (no fusion variants), fine-tuned from SOURCE_U4D
+# (default weights/u4d.pt, a one-net u4d exported by `u4d export-weights`) and SOURCE_BASELINE (default
+# weights/baseline.pt), each with its source's diffusion settings (`u4d_aug.stage.diffusion_overrides`: the loss it
+# was trained on, e.g. cond_noise=0.05 min_snr_gamma=null). Budget as above: every batch of the one net trains both
+# tasks, a window each, so it runs STEPS steps of 2 windows, the baseline's 2 x STEPS windows. Its runs, banks and
+# claims go to RUNS/temporal_one_net, its evaluations to RESULTS/temporal_evals_one_net[_propagated], its table to
+# RESULTS/temporal_one_net[_propagated].json / .md (u4d gates: most_gates_one_net[_stage1].png); with PROPAGATE=1 as
+# above. The two modes share the world and the floor and can run side by side.
 # The world is DATA/sim_seg (DATA default data, then a link to RUNS/data unless the checkout has one) and its
 # probabilities DATA/sim_seg_probs (the same commands as scripts/downstream_queue.sh), the first task.
 set -euo pipefail
@@ -38,12 +47,17 @@ STEPS=${STEPS:-2000}
 CORE=${CORE:?set CORE=A or CORE=B}
 export OMP_NUM_THREADS=1
 WAIT=${WAIT:-120}  # seconds between looks for a task whose inputs the other queue is writing
-T=$RUNS/temporal
+ONE_NET=${ONE_NET:-0}
+SOURCE_U4D=${SOURCE_U4D:-weights/u4d.pt}
+SOURCE_BASELINE=${SOURCE_BASELINE:-weights/baseline.pt}
+if [ "$ONE_NET" = 1 ]; then MODE=_one_net; else MODE=; fi
+T=$RUNS/temporal$MODE
 PROPAGATE=${PROPAGATE:-0}
 if [ "$PROPAGATE" = 1 ]; then
-  E=${EVALS:-$RESULTS/temporal_evals_propagated} BANK=_prop_s TABLE=temporal_propagated PROP=(propagate=true)
+  E=${EVALS:-$RESULTS/temporal_evals${MODE}_propagated} BANK=_prop_s TABLE=temporal${MODE}_propagated
+  PROP=(propagate=true)
 else
-  E=${EVALS:-$RESULTS/temporal_evals} BANK=_s TABLE=temporal PROP=()
+  E=${EVALS:-$RESULTS/temporal_evals$MODE} BANK=_s TABLE=temporal$MODE PROP=()
 fi
 FLOOR=$RESULTS/temporal_evals/floor
 PRESET=configs/u4d/cpu_hdl64_most.yaml
@@ -65,10 +79,30 @@ finetune() {  # RUN STAGE STEPS [overrides...]: one sequence net from the shippe
     "data_root=$DATA/sim_seg" "probs_root=$DATA/sim_seg_probs" sample_every=0 "$@" --out "$run" --no-progress \
     $(resume_flag "$run")
 }
+recipe() {  # NET: the diffusion.* overrides of the loss NET was trained on, for a fine-tune that starts from it
+  "$PY" - "$1" <<'PYEOF'
+import sys
+from u4d_aug.pipeline import load_generator
+from u4d_aug.stage import diffusion_overrides
+print(" ".join(diffusion_overrides(load_generator(sys.argv[1]).config.diffusion)))
+PYEOF
+}
+finetune_one() {  # RUN SEED [overrides...]: one U4D sequence net for both stages from SOURCE_U4D, 2 windows a step
+  local run=$1 seed=$2 loss
+  shift 2
+  [ "$(last_step "$run")" = "$STEPS" ] && return 0
+  loss=$(recipe "$SOURCE_U4D")
+  # shellcheck disable=SC2086  # $loss: one override per word
+  u4d train-diffusion "$PRESET" stage=u4d "steps=$STEPS" batch_size=2 "init_from=$SOURCE_U4D" $loss \
+    "data_root=$DATA/sim_seg" "probs_root=$DATA/sim_seg_probs" sample_every=0 "seed=$seed" "$@" --out "$run" \
+    --no-progress $(resume_flag "$run")
+}
 finetune_baseline() {  # RUN SEED
-  local run=$1 seed=$2
+  local run=$1 seed=$2 loss=
   [ "$(last_step "$run")" = "$((2 * STEPS))" ] && return 0
-  u4d train-diffusion "$PRESET" stage=baseline "steps=$((2 * STEPS))" init_from=weights/baseline.pt \
+  if [ "$ONE_NET" = 1 ]; then loss=$(recipe "$SOURCE_BASELINE"); fi
+  # shellcheck disable=SC2086  # $loss: one override per word
+  u4d train-diffusion "$PRESET" stage=baseline "steps=$((2 * STEPS))" "init_from=$SOURCE_BASELINE" $loss \
     "data_root=$DATA/sim_seg" sample_every=0 "seed=$seed" --out "$run" --no-progress $(resume_flag "$run")
 }
 sequences() {  # OUT MODE SEED [overrides...]: 24 sequences of 5 frames along motions of the nets' training places
@@ -92,29 +126,43 @@ score() {  # BANK OUT: TTCE k = 3, 4 (ICP from the identity and from a global re
   [ -f "$2/evaluation.json" ] || u4d evaluate --bank "$1" --real "$DATA/sim_seg" --real-sequences 88-99 \
     --metrics ttce,ttce_global,ctc,frd --extractor-frd "$FRD" --json --md --out "$2" --no-progress
 }
-budget() {  # OUT RUN...: each net's steps and training minutes (its log) and the host, beside the evaluation
+budget() {  # OUT RUN...: each net's steps, training minutes (its log), stage and batch (its config) and the host
   "$PY" - "$@" <<'PYEOF'
 import json, os, sys
+import yaml
 from u4d_aug.host import host_info
 out, runs = sys.argv[1], sys.argv[2:]
 nets = {}
 for run in runs:
     last = [json.loads(line) for line in open(os.path.join(run, "log.jsonl")) if '"time"' in line][-1]
-    nets[os.path.basename(run.rstrip("/"))] = {"steps": last["step"], "minutes": round(last["time"] / 60, 1)}
+    net = {"steps": last["step"], "minutes": round(last["time"] / 60, 1)}
+    if os.path.isfile(os.path.join(run, "config.yaml")):
+        config = yaml.safe_load(open(os.path.join(run, "config.yaml")))
+        net |= {"stage": config["diffusion"]["stage"], "batch_size": config["batch_size"]}
+    nets[os.path.basename(run.rstrip("/"))] = net
 with open(os.path.join(out, "budget.json.tmp"), "w") as f:
     json.dump({"nets": nets, "host": host_info()}, f, indent=2)
 os.replace(os.path.join(out, "budget.json.tmp"), os.path.join(out, "budget.json"))
 PYEOF
 }
 method() {  # NAME SEED: generate and score one trained U4D-like method (u4d_most, u4d_no_temporal, fusion_*)
-  local name=$1 seed=$2
-  sequences "$T/banks/$name$BANK$seed" u4d "$seed" "stage1=$T/${name}_s$seed/stage1" "stage2=$T/${name}_s$seed/stage2"
+  local name=$1 seed=$2 run=$T/${1}_s$2
+  if [ "$ONE_NET" = 1 ]; then
+    sequences "$T/banks/$name$BANK$seed" u4d "$seed" "net=$run/u4d" stage1= stage2=
+  else
+    sequences "$T/banks/$name$BANK$seed" u4d "$seed" "stage1=$run/stage1" "stage2=$run/stage2"
+  fi
   score "$T/banks/$name$BANK$seed" "$E/${name}_s$seed"
   if [ "$name" = u4d_most ] && [ "$seed" = 0 ] && [ "$PROPAGATE" = 0 ]; then  # the gate figures of the trained model (+ json beside)
-    u4d gates "$T/u4d_most_s0/stage2" --png "$RESULTS/most_gates.png"
-    u4d gates "$T/u4d_most_s0/stage1" --png "$RESULTS/most_gates_stage1.png"
+    if [ "$ONE_NET" = 1 ]; then
+      u4d gates "$run/u4d" --role stage2 --png "$RESULTS/most_gates_one_net.png"
+      u4d gates "$run/u4d" --role stage1 --png "$RESULTS/most_gates_one_net_stage1.png"
+    else
+      u4d gates "$run/stage2" --png "$RESULTS/most_gates.png"
+      u4d gates "$run/stage1" --png "$RESULTS/most_gates_stage1.png"
+    fi
   fi
-  budget "$E/${name}_s$seed" "$T/${name}_s$seed/stage1" "$T/${name}_s$seed/stage2"
+  if [ "$ONE_NET" = 1 ]; then budget "$E/${name}_s$seed" "$run/u4d"; else budget "$E/${name}_s$seed" "$run/stage1" "$run/stage2"; fi
 }
 baseline_method() {  # SEED: generate and score one trained baseline
   local seed=$1
@@ -133,18 +181,30 @@ floor() {  # the held-out real sequences 88-99 as the bank: their own TTCE / CTC
 # inputs exist) and run_KIND.
 TASKS=("world")
 LAST=()
-for entry in u4d_most:0: u4d_no_temporal:0:net.most=false u4d_most:1: u4d_no_temporal:1:net.most=false baseline:0 \
-  baseline:1 fusion_cascade:0:net.most_fusion=cascade fusion_add:0:net.most_fusion=add \
-  fusion_concat:0:net.most_fusion=concat; do
-  IFS=: read -r name seed over <<< "$entry"
-  if [ "$name" = baseline ]; then
-    TASKS+=("finish_baseline $seed")
-    LAST+=("baseline $seed")
-  else
-    TASKS+=("stage $name $seed stage1${over:+ $over}" "stage $name $seed stage2${over:+ $over}" "finish $name $seed")
-  fi
-done
-TASKS+=("floor" "${LAST[@]}")  # the baselines' trainings, the longest tasks, once nothing else is ready
+if [ "$ONE_NET" = 1 ]; then  # nets of one length: U4D and the baseline of a seed side by side
+  for entry in u4d_most:0: baseline:0 u4d_most:1: baseline:1 u4d_no_temporal:0:net.most=false \
+    u4d_no_temporal:1:net.most=false; do
+    IFS=: read -r name seed over <<< "$entry"
+    if [ "$name" = baseline ]; then
+      TASKS+=("baseline $seed" "finish_baseline $seed")
+    else
+      TASKS+=("net $name $seed${over:+ $over}" "finish $name $seed")
+    fi
+  done
+else
+  for entry in u4d_most:0: u4d_no_temporal:0:net.most=false u4d_most:1: u4d_no_temporal:1:net.most=false baseline:0 \
+    baseline:1 fusion_cascade:0:net.most_fusion=cascade fusion_add:0:net.most_fusion=add \
+    fusion_concat:0:net.most_fusion=concat; do
+    IFS=: read -r name seed over <<< "$entry"
+    if [ "$name" = baseline ]; then
+      TASKS+=("finish_baseline $seed")
+      LAST+=("baseline $seed")
+    else
+      TASKS+=("stage $name $seed stage1${over:+ $over}" "stage $name $seed stage2${over:+ $over}" "finish $name $seed")
+    fi
+  done
+fi
+TASKS+=("floor" "${LAST[@]}")  # two nets: the baselines' trainings, the longest tasks, once nothing else is ready
 
 done_world() { [ -f "$DATA/sim_seg_probs/done" ]; }
 ready_world() { true; }
@@ -156,8 +216,17 @@ run_stage() {
   shift 3
   finetune "$T/${name}_s$seed/$stage" "$stage" "$STEPS" "seed=$seed" "$@"
 }
+done_net() { [ -f "$E/${1}_s$2/budget.json" ] || [ "$(last_step "$T/${1}_s$2/u4d")" = "$STEPS" ]; }
+ready_net() { done_world; }
+run_net() {
+  local name=$1 seed=$2
+  shift 2
+  finetune_one "$T/${name}_s$seed/u4d" "$seed" "$@"
+}
 done_finish() { [ -f "$E/${1}_s$2/budget.json" ]; }
-ready_finish() { done_stage "$1" "$2" stage1 && done_stage "$1" "$2" stage2; }
+ready_finish() {
+  if [ "$ONE_NET" = 1 ]; then done_net "$1" "$2"; else done_stage "$1" "$2" stage1 && done_stage "$1" "$2" stage2; fi
+}
 run_finish() { method "$1" "$2"; }
 done_baseline() { [ -f "$E/baseline_most_s$1/budget.json" ] || [ "$(last_step "$T/baseline_most_s$1")" = "$((2 * STEPS))" ]; }
 ready_baseline() { [ -f "$DATA/sim_seg/done" ]; }
@@ -209,14 +278,16 @@ while true; do  # take the first ready task nobody holds; wait while the other q
   sleep "$WAIT"
 done
 if claim table; then  # every method-seed and the floor are scored: the table (a queue finishing later rewrites it)
+  FUSION=()  # the MoST fusion ablation: two nets only
+  if [ "$ONE_NET" != 1 ]; then
+    FUSION=(--fusion "gating=$E/u4d_most_s0" --fusion "cascade=$E/fusion_cascade_s0"
+      --fusion "add=$E/fusion_add_s0" --fusion "concat=$E/fusion_concat_s0")
+  fi
   "$PY" benchmarks/reports/temporal_table.py \
     --method "u4d_most=$E/u4d_most_s0" --method "u4d_most=$E/u4d_most_s1" \
     --method "baseline_most=$E/baseline_most_s0" --method "baseline_most=$E/baseline_most_s1" \
     --method "u4d_no_temporal=$E/u4d_no_temporal_s0" --method "u4d_no_temporal=$E/u4d_no_temporal_s1" \
-    --method "floor=$FLOOR" \
-    --fusion "gating=$E/u4d_most_s0" --fusion "cascade=$E/fusion_cascade_s0" \
-    --fusion "add=$E/fusion_add_s0" --fusion "concat=$E/fusion_concat_s0" \
-    --out "$RESULTS/$TABLE"
+    --method "floor=$FLOOR" "${FUSION[@]}" --out "$RESULTS/$TABLE"
   release table
 fi
 echo "temporal queue $CORE done"

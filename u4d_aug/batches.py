@@ -24,6 +24,7 @@ from u4d_aug.data.datasets import (
     open_sequences,
 )
 from u4d_aug.data.sensors import Sensor, get_sensor
+from u4d_aug.diffusion import stage1_count
 from u4d_aug.errors import InputError
 from u4d_aug.nn.unet import crop_columns
 from u4d_aug.propagate import warp_frame0
@@ -42,8 +43,9 @@ class RangeImages:
     With cfg.frames = L > 1, item i stacks the L scans of window i of a `SequenceDataset` (one sequence,
     frame_stride apart): x0 (L, 2, H, W), x0_u (L, 2, H, W), m_u (L, 1, H, W); poses are not needed.
     x0_u and m_u are recomputed per scan for strategy 'random' (seeded by `generator`), cached otherwise.
-    With cfg.propagated_share > 0 (stage 2), a window drawn by `generator` with that probability is conditioned
-    instead on frame 0 moved along its poses (x0_u, m_u of `propagate.warp_frame0`; frame 0 wholly known).
+    With cfg.propagated_share > 0 (stage 2, or u4d), a window drawn by `generator` with that probability is conditioned
+    instead on frame 0 moved along its poses (x0_u, m_u of `propagate.warp_frame0`; frame 0 wholly known), unless
+    `propagate` is False: a u4d batch's stage-1 windows, whose target is P_u itself (`make_batch`).
     """
 
     def __init__(self, cfg: DiffusionTrainConfig) -> None:
@@ -82,7 +84,9 @@ class RangeImages:
         stop = start + self.cfg.frames * self.cfg.frame_stride
         return seq, self.windows.frames[seq][start : stop : self.cfg.frame_stride]
 
-    def __getitem__(self, index: int, generator: torch.Generator | None = None) -> dict[str, Tensor]:
+    def __getitem__(
+        self, index: int, generator: torch.Generator | None = None, propagate: bool = True
+    ) -> dict[str, Tensor]:
         seq, frames = self.window(index)
         if self.windows is None:
             return self.scan_images(seq, frames[0], generator)
@@ -92,7 +96,7 @@ class RangeImages:
         positions = list(range(start, start + self.cfg.frames * self.cfg.frame_stride, self.cfg.frame_stride))
         if self.cfg.net.pose_dim:  # the ego motion of the window's frames, (L, 4) in the first frame's sensor frame
             out["motion"] = torch.from_numpy(relative_motion(self.windows.poses[seq][positions]))
-        share = self.cfg.propagated_share
+        share = self.cfg.propagated_share if propagate else 0.0
         if share > 0 and generator is not None and float(torch.rand((), generator=generator)) < share:
             poses = self.windows.poses[seq][positions]  # (L, 4, 4)
             out["x0_u"], out["m_u"] = warp_frame0(out["x0"][0], poses, self.sensor, self.cfg.row_mode)
@@ -126,9 +130,10 @@ def row_mean(cfg: DiffusionTrainConfig, key: str = "x0", count: int = 32, seed: 
     """(C, H, 1) mean of the `key` images (x0, or x0_u for stage 1) of `count` evenly spaced training items, over
     items, frames and columns: the MMSE estimate of a range image at vanishing SNR, per row (`sampling.mean_start`).
     `seed` draws P_u where the net's uncertainty strategy is random (the selection ablation)."""
+    cfg = dataclasses.replace(cfg, propagated_share=0.0)  # the mean of P_u (or x0), never of a propagated frame 0
     if key == "x0":  # full scans: no uncertainty (and no probability files, nor a stage-2 condition) needed
         baseline = dataclasses.replace(cfg.diffusion, stage="baseline", cond_noise=0.0)
-        cfg = dataclasses.replace(cfg, diffusion=baseline, propagated_share=0.0)
+        cfg = dataclasses.replace(cfg, diffusion=baseline)
     images = RangeImages(cfg)
     step = max(1, len(images) // count)
     generator = torch.Generator().manual_seed(seed)
@@ -164,9 +169,12 @@ def batch_indices(step: int, rank: int, num_scans: int, batch_size: int, seed: i
     return rng.integers(0, num_scans, batch_size).tolist()
 
 
-def make_batch(images: RangeImages, indices: list[int], generator: torch.Generator, device: torch.device) -> dict:
-    """Stack the items of `indices` into (B, [L,] C, H, W) tensors on `device`."""
-    items = [images.__getitem__(i, generator) for i in indices]
+def make_batch(
+    images: RangeImages, indices: list[int], generator: torch.Generator, device: torch.device, stage1_items: int = 0
+) -> dict:
+    """Stack the items of `indices` into (B, [L,] C, H, W) tensors on `device`; the first `stage1_items` (a u4d
+    batch's stage-1 samples, `diffusion.stage1_count`) keep their own P_u, never the propagated condition."""
+    items = [images.__getitem__(i, generator, position >= stage1_items) for position, i in enumerate(indices)]
     return {key: torch.stack([item[key] for item in items]).to(device) for key in items[0]}
 
 
@@ -221,7 +229,8 @@ def training_batch(
     of (seed, step, rank) that drew them, which then draws the step's noise."""
     generator = torch.Generator().manual_seed(derived_seed(cfg.seed, _NOISE, step, rank))
     indices = batch_indices(step, rank, len(images), cfg.batch_size, cfg.seed)
-    batch = make_batch(images, indices, generator, device)
+    stage1_items = stage1_count(len(indices), cfg.diffusion.stage1_share) if cfg.diffusion.stage == "u4d" else 0
+    batch = make_batch(images, indices, generator, device, stage1_items)
     offsets = crop_offsets(len(indices), cfg, generator)
     if offsets is not None:
         batch = crop_batch(batch, offsets, cfg.crop_width)

@@ -68,6 +68,10 @@ class DiffusionConfig:
     # training draws t ~ U(0, train_t_max): 1 is the whole schedule (R2DM); below 1 a fine-tune of the low-noise end,
     # where a few-step sampler's last x̂0 is made (0.1: log-SNR >= 3.7)
     train_t_max: float = 1.0
+    # input perturbation (DDPM-IP, Ning et al. 2023): the net sees x_t = α x0 + σ (ε + γ ξ) and still predicts ε, so
+    # it learns to remove a little more noise than the level it is told, the error a sampler's earlier x̂0 leaves
+    # (exposure bias); γ = 0 is the plain loss
+    input_perturbation: float = 0.0
     # stage u4d: the share of each batch's samples that train the stage-1 task (the first round(share · B) of the
     # batch; the rest train stage 2), so every batch trains both tasks
     stage1_share: float = 0.5
@@ -89,6 +93,8 @@ class DiffusionConfig:
             raise InputError(
                 f"diffusion.cond_noise must be >= 0, and 0 unless stage=stage2 or u4d, got {self.cond_noise}"
             )
+        if not 0.0 <= self.input_perturbation < 1.0:
+            raise InputError(f"diffusion.input_perturbation must be in [0, 1), got {self.input_perturbation}")
         if not 0.0 < self.train_t_max <= 1.0:
             raise InputError(f"diffusion.train_t_max must be in (0, 1], got {self.train_t_max}")
 
@@ -196,6 +202,8 @@ class GaussianDiffusion(nn.Module):
             net_cond = stage_cond(noisy_condition(cond, m_u, self.cfg.cond_noise, generator), m_u)
         if stage == "u4d":
             net_cond = torch.cat([empty_condition(net_cond[ones]), net_cond[rest]])
+        if self.cfg.input_perturbation > 0:  # drawn last: runs without it draw exactly what they drew before
+            x_t = x_t + sigma * self.cfg.input_perturbation * _randn_like(x_t, generator)
         kwargs = _net_kwargs(crop_offsets, poses, task, self.most, generator)
         pred, mask_logits = self.net(x_t, lam, net_cond, **kwargs)
         if self.cfg.parameterization == "v":
@@ -273,6 +281,12 @@ def _diffuse(
     lam = log_snr(t)  # (B,)
     alpha, sigma = alpha_sigma(lam.view(batch, *([1] * (x0.dim() - 1))))
     return lam, alpha, sigma, eps, alpha * x0 + sigma * eps
+
+
+def _randn_like(x: Tensor, generator: torch.Generator | None) -> Tensor:
+    """Standard normal noise of x's shape drawn from `generator` (on its device), moved to x's device and dtype."""
+    draw_device = generator.device if generator is not None else x.device
+    return torch.randn(x.shape, generator=generator, device=draw_device).to(x.device, x.dtype)
 
 
 def _net_kwargs(

@@ -7,8 +7,8 @@ call's log-SNR: a (steps, blocks) table per gate, its mean per block over the wh
 middle and last third (high -> low noise). Gates near ½ do not mean the branches are equal: a branch conv can grow
 or shrink while its gate stays put, so each call also records the RMS of what each branch adds (α^s F^s, α^t F^t)
 and the temporal share of the update, RMS(α^t F^t) / (RMS(α^s F^s) + RMS(α^t F^t)), per block. Stage 2 samples
-with an empty condition (no uncertain region); a net with an ego-motion condition drives `--step` metres per frame,
-straight ahead.
+with an empty condition (no uncertain region); a one-net u4d samples the task of `--role` (stage 1 or stage 2, with
+that same empty condition); a net with an ego-motion condition drives `--step` metres per frame, straight ahead.
 """
 
 from __future__ import annotations
@@ -29,10 +29,17 @@ PHASES = ("high noise", "middle", "low noise")
 
 
 def gate_trajectory(
-    loaded: tuple, frames: int, steps: int, generator: torch.Generator, sampler: str = "ddpm", step: float = 1.0
+    loaded: tuple,
+    frames: int,
+    steps: int,
+    generator: torch.Generator,
+    sampler: str = "ddpm",
+    step: float = 1.0,
+    role: str = "stage2",
 ) -> dict:
-    """Gates of every net call while sampling one L-frame sequence: log_snr (S,), alpha_s / alpha_t (S, M)."""
-    from u4d_aug.diffusion import stage_cond
+    """Gates of every net call while sampling one L-frame sequence: log_snr (S,), alpha_s / alpha_t (S, M); `role`
+    (stage1 | stage2): the task a one-net u4d samples (other nets have one)."""
+    from u4d_aug.diffusion import STAGE1_TASK, STAGE2_TASK, stage_cond
     from u4d_aug.sampling import sample
 
     net, cfg = loaded
@@ -45,13 +52,17 @@ def gate_trajectory(
     if cfg.net.cond_channels:  # stage 2: an empty uncertain region
         empty = torch.full((1, frames, 2, cfg.height, cfg.width), -1.0)
         cond = stage_cond(empty, torch.zeros(1, frames, 1, cfg.height, cfg.width))
-    poses = None
+    inputs: dict = {}
     if cfg.net.pose_dim:
-        poses = torch.from_numpy(straight_motion(frames, step))[None]  # (1, L, 4)
+        inputs["poses"] = torch.from_numpy(straight_motion(frames, step))[None]  # (1, L, 4)
+    if role not in ("stage1", "stage2"):
+        raise InputError(f"gates: --role must be stage1 or stage2, got {role!r}")
+    if cfg.net.num_tasks:  # a one-net u4d: which stage it samples (both read the empty condition here)
+        inputs["task"] = STAGE1_TASK if role == "stage1" else STAGE2_TASK
     log_snrs, gates, updates = [], [], []
 
     def denoise(x, lam, c):
-        out = net(x, lam, c, poses=poses) if poses is not None else net(x, lam, c)
+        out = net(x, lam, c, **inputs)
         log_snrs.append(float(lam.reshape(-1)[0]))
         gates.append(net.gate_weights().cpu().numpy())  # (M, 2)
         updates.append(net.branch_updates().cpu().numpy())  # (M, 3)
@@ -144,7 +155,7 @@ def plot_gates(path: str | Path, trajectory: dict, title: str = "") -> Path:
 
 
 def add_gates_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of `u4d gates CKPT --png OUT [--json] [--frames L] [--steps S] [--seed S]`."""
+    """Arguments of `u4d gates CKPT --png OUT [--json] [--frames L] [--steps S] [--seed S] [--role stage1|stage2]`."""
     parser.add_argument("checkpoint", type=Path, help="train-diffusion checkpoint, run folder or exported weights")
     parser.add_argument("--png", type=Path, required=True, help="figure to write")
     parser.add_argument("--json", action="store_true", help="also print the gate table as json")
@@ -152,6 +163,9 @@ def add_gates_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=32, help="DDPM steps")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--step", type=float, default=1.0, help="metres per frame for nets with an ego-motion input")
+    parser.add_argument(
+        "--role", choices=["stage1", "stage2"], default="stage2", help="the stage a one-net u4d samples (stage=u4d)"
+    )
 
 
 def run_gates(args: argparse.Namespace) -> int:
@@ -166,8 +180,10 @@ def run_gates(args: argparse.Namespace) -> int:
         raise InputError(f"--step {args.step}: expected a finite number of metres per frame")
     loaded = load_generator(args.checkpoint)
     frames = args.frames if args.frames is not None else loaded.config.frames
-    trajectory = gate_trajectory(loaded, frames, args.steps, torch.Generator().manual_seed(args.seed), step=args.step)
-    title = f"{args.checkpoint} ({loaded.config.diffusion.stage}, L={frames}, DDPM {args.steps})"
+    generator = torch.Generator().manual_seed(args.seed)
+    trajectory = gate_trajectory(loaded, frames, args.steps, generator, step=args.step, role=args.role)
+    stage = loaded.config.diffusion.stage + (f" {args.role}" if loaded.config.net.num_tasks else "")
+    title = f"{args.checkpoint} ({stage}, L={frames}, DDPM {args.steps})"
     plot_gates(args.png, trajectory, title)
     summary = summarise_gates(trajectory)
     if args.json:

@@ -169,7 +169,7 @@ def dpmpp_2m_sample(
     "time" = the other samplers' t = linspace(1, 0, steps + 1), "logsnr" = uniform in log-SNR between its ends.
     Only x_1 ~ N(0, I) uses the generator.
     """
-    lams = _grid(steps, grid)  # log-SNR = 2λ at the steps + 1 grid points, rising
+    lams = log_snr_grid(steps, grid)  # log-SNR = 2λ at the steps + 1 grid points, rising
     batch, device, x = _start(shape, steps, generator, device)
     extra: Any = None
     x0_prev: Tensor | None = None  # x̂0 of the previous call, the second point of the multistep
@@ -220,7 +220,7 @@ def dpmpp_2m_sde_sample(
     """
     if eta < 0:
         raise ValueError(f"eta must be >= 0, got {eta}")
-    lams = _grid(steps, grid)  # log-SNR = 2λ at the steps + 1 grid points, rising
+    lams = log_snr_grid(steps, grid)  # log-SNR = 2λ at the steps + 1 grid points, rising
     batch, device, x = _start(shape, steps, generator, device)
     extra: Any = None
     x0_prev: Tensor | None = None
@@ -259,7 +259,7 @@ def _sample(
     clip: bool,
 ) -> Sample:
     batch, device, x = _start(shape, steps, generator, device)
-    grid = _grid(steps, "time")
+    grid = log_snr_grid(steps, "time")
     extra: Any = None
     for i in progress_bar(range(steps), enabled=progress, desc=f"{mode} sampling", leave=False):
         lam_t, lam_s = grid[i], grid[i + 1]  # lam_s > lam_t: s is the less noisy time
@@ -305,7 +305,7 @@ def _start(
     return batch, device, _randn(shape, generator, device)
 
 
-def _grid(steps: int, kind: Grid) -> list[float]:
+def log_snr_grid(steps: int, kind: Grid) -> list[float]:
     """log-SNR at steps + 1 points from t = 1 to t = 0, uniform in t or in log-SNR (float64: exact at the ends)."""
     if kind == "time":
         return log_snr(torch.linspace(1.0, 0.0, steps + 1, dtype=torch.float64)).tolist()

@@ -151,6 +151,35 @@ class DiffusionTrainConfig:
             raise InputError(f"key 'ema_decay' must be in [0, 1], got {self.ema_decay}")
 
 
+# the diffusion keys a fine-tune does not take from its source net (`init_from`): the stage is the run's own, and the
+# MoST term weighs blocks a single-frame source does not have
+NOT_INHERITED = ("stage", "most_cv_weight")
+
+
+def diffusion_recipe(cfg: DiffusionConfig) -> dict[str, object]:
+    """The diffusion settings a fine-tune should share with its source net: every key of `cfg` but `NOT_INHERITED`."""
+    return {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg) if f.name not in NOT_INHERITED}
+
+
+def diffusion_overrides(cfg: DiffusionConfig) -> list[str]:
+    """`diffusion.KEY=VALUE` overrides (values in yaml: null, 0.05, eps) that set a run's `diffusion_recipe` to cfg's,
+    e.g. a 4D fine-tune's to its single-frame source's (scripts/temporal_queue.sh ONE_NET=1)."""
+    return [f"diffusion.{key}={_yaml_scalar(value)}" for key, value in diffusion_recipe(cfg).items()]
+
+
+def _yaml_scalar(value: object) -> str:
+    """A number, bool, None or string as the yaml an override parses back to the same value (1e-05 -> 1.0e-05: YAML
+    1.1 reads a float only with a dot and a signed exponent)."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, float):
+        mantissa, sep, exponent = repr(value).partition("e")  # python writes the exponent's sign: 1e-05, 1e+20
+        return f"{mantissa}{'' if '.' in mantissa or not sep else '.0'}{sep}{exponent}"
+    return str(value)
+
+
 def build_net(cfg: DiffusionTrainConfig, device: torch.device | str = "cpu") -> RangeUNet:
     """RangeUNet of the config (initialised from cfg.seed), with the ray angles of its sensor for Fourier features."""
     elevation, azimuth = ray_angles(get_sensor(cfg.sensor), cfg.height, cfg.width, cfg.row_mode)

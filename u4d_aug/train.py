@@ -43,6 +43,8 @@ from u4d_aug.stage import (  # the stage contract (u4d_aug/stage.py)
     build_net,
     checkpoint_state,
     config_from_checkpoint,
+    diffusion_overrides,
+    diffusion_recipe,
 )
 from u4d_aug.validate import check_finite_loss
 
@@ -213,7 +215,24 @@ def start_from(net: RangeUNet, cfg: DiffusionTrainConfig, announce: bool = False
     added = sorted({name.split(".")[0] for name in set(target) - set(weights)})
     if announce:
         logger.info("%s: started from %s; new tensors %s", cfg.out, cfg.init_from, ", ".join(added) or "none")
+        check_source_recipe(source_cfg, cfg)
     return added
+
+
+def check_source_recipe(source_cfg: DiffusionTrainConfig, cfg: DiffusionTrainConfig) -> dict[str, tuple]:
+    """The diffusion settings (`stage.diffusion_recipe`) in which this fine-tune differs from its init_from net,
+    {key: (source's, this run's)}, logged as a warning naming the overrides that would match them."""
+    source, mine = diffusion_recipe(source_cfg.diffusion), diffusion_recipe(cfg.diffusion)
+    differs = {key: (value, mine[key]) for key, value in source.items() if mine[key] != value}
+    if differs:
+        keys = {f"diffusion.{key}" for key in differs}
+        same = [override for override in diffusion_overrides(source_cfg.diffusion) if override.split("=")[0] in keys]
+        logger.warning(
+            "%s: init_from %s was trained with other diffusion settings (%s); to fine-tune on its recipe pass %s",
+            cfg.out, cfg.init_from, ", ".join(f"{k}: {a!r} there, {b!r} here" for k, (a, b) in differs.items()),
+            " ".join(same),
+        )  # fmt: skip
+    return differs
 
 
 def _save_sample_png(net: RangeUNet, cfg: DiffusionTrainConfig, images: RangeImages, path: Path) -> None:
@@ -222,6 +241,7 @@ def _save_sample_png(net: RangeUNet, cfg: DiffusionTrainConfig, images: RangeIma
 
     from u4d_aug import pipeline
     from u4d_aug.sampling_settings import SamplingSettings
+    from u4d_aug.trajectory import straight_motion
     from u4d_aug.viz import draw_range_image, save_figure
 
     generator = torch.Generator().manual_seed(cfg.seed)
@@ -230,16 +250,21 @@ def _save_sample_png(net: RangeUNet, cfg: DiffusionTrainConfig, images: RangeIma
     ddpm = SamplingSettings(
         sampler="ddpm", steps=cfg.sample_steps, stage1_steps=None, stage1_mask_fraction=None, mean_start_below=None
     )
+    motion = None
+    if cfg.net.pose_dim:  # an ego-motion net drives 1 m per frame straight ahead
+        motion = torch.from_numpy(straight_motion(cfg.frames, 1.0))  # (L, 4)
+        motion = motion[None] if cfg.frames > 1 else motion  # (1, L, 4), or (1, 4) for single frames
     if cfg.diffusion.stage == "u4d":
-        x0 = pipeline.generate_u4d((net, cfg), (net, cfg), 1, generator, ddpm)["x0"]
+        x0 = pipeline.generate_u4d((net, cfg), (net, cfg), 1, generator, ddpm, motion=motion)["x0"]
     elif cfg.diffusion.stage == "stage2":
         first = images[0]
         x0_u, m_u = first["x0_u"][None].to(device), first["m_u"][None].to(device)
-        x0 = pipeline.complete((net, cfg), x0_u, m_u, generator, ddpm)["x0"]
+        motion = first["motion"][None] if "motion" in first else None  # the window's own
+        x0 = pipeline.complete((net, cfg), x0_u, m_u, generator, ddpm, motion=motion)["x0"]
     elif cfg.diffusion.stage == "stage1":
-        x0 = pipeline.generate_stage1((net, cfg), 1, generator, ddpm)["x0_u"]
+        x0 = pipeline.generate_stage1((net, cfg), 1, generator, ddpm, motion=motion)["x0_u"]
     else:
-        x0 = pipeline.generate_baseline((net, cfg), 1, generator, ddpm)["x0"]
+        x0 = pipeline.generate_baseline((net, cfg), 1, generator, ddpm, motion=motion)["x0"]
     frames = (x0[0] if x0.dim() == 5 else x0[:1]).cpu().numpy()  # (L, 2, H, W)
     fig, axes = plt.subplots(len(frames) + 1, 1, figsize=(10, 1.5 * (len(frames) + 1)))
     for index, frame in enumerate(frames):

@@ -6,7 +6,9 @@
 
 Each DIR holds the evaluation.json of `u4d evaluate --json --out DIR` (u4d_aug/metrics/evaluate.py); repeating a NAME
 adds a seed. A method's score is its "table2.bank" side (for the real floor, the bank is the held-out real sequences)
-and "table1.frd". Nothing is recomputed. Writes OUT.json and OUT.md (two tables, mean ± std over seeds, ddof 1 as
+and "table1.frd". Nothing is recomputed. The budget.json that scripts/temporal_queue.sh leaves beside an evaluation
+(each trained net's steps, minutes, stage and batch: U4D as two nets stage1 + stage2, or with ONE_NET=1 one net u4d)
+is listed with the sources. Writes OUT.json and OUT.md (two tables, mean ± std over seeds, ddof 1 as
 segmentation.experiment.mean_std; a missing entry shows its reason, never a number) and OUT.png (TTCE and CTC against
 the interval k, one line per method and fusion variant, bars = std over seeds; the floor dashed black; TTCE-global
 in a third panel where computed).
@@ -20,6 +22,8 @@ OUT.json:
             registration, `u4d evaluate --metrics ttce_global`) likewise, absent when no source computed it
         frd: {mean, std, n, per_seed} or {missing: reason}; absent when no source's table1 has frd
         missing: {source: reason} for the seeds whose temporal metrics are missing (absent when none)
+        nets: [per seed, aligned with sources: budget.json's {net: {steps, minutes[, stage, batch_size]}} or null];
+            absent when no seed has a budget.json
     figure: the PNG's file name (beside OUT.json)
 """
 
@@ -94,6 +98,18 @@ def read_evaluation(path: Path) -> dict:
     return result
 
 
+def read_budget(evaluation: Path) -> dict | None:
+    """The nets of the budget.json beside an evaluation.json (scripts/temporal_queue.sh), None without one."""
+    path = evaluation.parent / "budget.json"
+    if not path.is_file():
+        return None
+    record = read_json_file(path, "the budget.json of scripts/temporal_queue.sh")
+    nets = record.get("nets") if isinstance(record, dict) else None
+    if not isinstance(nets, dict) or not all(isinstance(net, dict) and "steps" in net for net in nets.values()):
+        raise InputError(f"{path}: expected {{'nets': {{NAME: {{'steps': ..., 'minutes': ...}}}}}}")
+    return nets
+
+
 # ------------------------------------------------------------------------------------------------- numbers
 
 
@@ -138,6 +154,9 @@ def summarize(sources: list[tuple[Path, dict]]) -> dict:
     missing = {str(path): str(bank["missing"]) for (path, _), bank in zip(sources, banks) if "missing" in bank}
     if missing:
         entry["missing"] = missing
+    nets = [read_budget(path) for path, _ in sources]
+    if any(n is not None for n in nets):
+        entry["nets"] = nets
     return entry
 
 
@@ -215,8 +234,22 @@ def to_markdown(table: dict) -> str:
     for part in ("methods", "fusion"):
         for name, entry in table[part].items():
             seeds = f"{entry['seeds']} seed" + ("s" if entry["seeds"] != 1 else "")
-            lines.append(f"- {part}/{name} ({seeds}): " + ", ".join(f"`{s}`" for s in entry["sources"]))
+            line = f"- {part}/{name} ({seeds}): " + ", ".join(f"`{s}`" for s in entry["sources"])
+            if "nets" in entry:
+                line += "; trained: " + "; ".join(_nets_text(nets) for nets in entry["nets"])
+            lines.append(line)
     return "\n".join(lines) + "\n"
+
+
+def _nets_text(nets: dict | None) -> str:
+    """One seed's nets as 'stage1 2000 steps x batch 1 (40.5 min) + stage2 ...', or '—' without a budget.json."""
+    if nets is None:
+        return "—"
+    parts = []
+    for name, net in nets.items():
+        text = f"{name} {net['steps']} steps" + (f" x batch {net['batch_size']}" if "batch_size" in net else "")
+        parts.append(text + (f" ({net['minutes']} min)" if net.get("minutes") is not None else ""))
+    return " + ".join(parts)
 
 
 # ------------------------------------------------------------------------------------------------- figure

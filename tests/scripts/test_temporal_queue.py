@@ -1,6 +1,7 @@
 """scripts/temporal_queue.sh run end to end with the stand-in `u4d` (tests/scripts/stand_in.py): every call is one
 the real commands accept, the budgets are equal, the table comes out of the real
-benchmarks/reports/temporal_table.py, and a second run starts nothing; two queues share one task list through claims."""
+benchmarks/reports/temporal_table.py, and a second run starts nothing; two queues share one task list through claims;
+ONE_NET=1 trains U4D as one net from SOURCE_U4D on its source's loss, at the baseline's budget, into its own table."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from tests.scripts.stand_in import check_call, recorded_calls, run_both, stand_in_env
-from tests.tiny_nets import REPO
+from tests.tiny_nets import REPO, TINY, save_checkpoint
 
 SCRIPT = REPO / "scripts" / "temporal_queue.sh"
 
@@ -159,3 +160,57 @@ def test_claims_of_ended_queues_are_taken_over_and_a_live_claim_is_left_alone(qu
     for proc, core in zip(procs, ("A", "B")):
         assert proc.wait(timeout=60) == 0, (tmp_path / f"queue_{core}.err").read_text()[-3000:]
     assert (evals / "floor" / "evaluation.json").is_file() and (tmp_path / "results" / "temporal.json").is_file()
+
+
+def test_one_net_mode_fine_tunes_one_u4d_net_on_its_sources_loss_at_the_baselines_budget(queue_env, tmp_path):
+    recipe = ("diffusion.min_snr_gamma=null", "diffusion.cond_noise=0.05")  # the final single-frame recipe's
+    sources = {
+        "u4d": save_checkpoint(tmp_path / "u4d.pt", TINY, ("diffusion.stage=u4d", *recipe)),
+        "baseline": save_checkpoint(tmp_path / "baseline.pt", TINY, ("diffusion.min_snr_gamma=null",)),
+    }
+    env = {**queue_env, "ONE_NET": "1", "SOURCE_U4D": str(sources["u4d"]), "SOURCE_BASELINE": str(sources["baseline"])}
+    run_both(SCRIPT, REPO, env)
+    made = recorded_calls(tmp_path)
+    runs, results = tmp_path / "runs" / "temporal_one_net", tmp_path / "results"
+    windows: dict[str, int] = {}
+    for argv in made:
+        args, cfg = check_call(argv, REPO)
+        if argv[0] == "train-diffusion":
+            stage = cfg.diffusion.stage
+            assert stage in ("u4d", "baseline") and cfg.init_from == str(sources[stage]) and cfg.frames == 4
+            assert cfg.diffusion.min_snr_gamma is None and cfg.diffusion.cond_noise == (0.05 if stage == "u4d" else 0)
+            windows[str(args.out)] = cfg.steps * cfg.batch_size
+        elif argv[0] == "generate":
+            assert cfg.mode == "u4d" or cfg.baseline.startswith(str(runs / "baseline_most_s"))
+            if cfg.mode == "u4d":  # the one net for both stages
+                assert (cfg.stage1, cfg.stage2) == ("", "") and Path(cfg.net).parent.parent == runs
+                assert Path(cfg.net).name == "u4d"
+        elif argv[0] == "evaluate":
+            assert args.out.parent in (results / "temporal_evals_one_net", results / "temporal_evals")  # + the floor
+    nets = [runs / f"{m}_s{s}" / "u4d" for m in ("u4d_most", "u4d_no_temporal") for s in (0, 1)]
+    nets += [runs / f"baseline_most_s{s}" for s in (0, 1)]
+    assert sorted(windows) == sorted(map(str, nets))
+    assert set(windows.values()) == {40}  # one net: 20 steps x 2 windows (one per task) = the baseline's 40 x 1
+    no_temporal = [a for a in made if a[0] == "train-diffusion" and "u4d_no_temporal" in option(a, "--out")]
+    assert len(no_temporal) == 2 and all("net.most=false" in a for a in no_temporal)
+    gates = [(a[1], option(a, "--role"), option(a, "--png")) for a in made if a[0] == "gates"]
+    assert gates == [
+        (f"{runs}/u4d_most_s0/u4d", "stage2", f"{results}/most_gates_one_net.png"),
+        (f"{runs}/u4d_most_s0/u4d", "stage1", f"{results}/most_gates_one_net_stage1.png"),
+    ]
+    budget = json.loads((results / "temporal_evals_one_net" / "u4d_most_s1" / "budget.json").read_text())
+    assert budget["nets"] == {"u4d": {"steps": 20, "minutes": 20.0}}
+    table = json.loads((results / "temporal_one_net.json").read_text())
+    assert set(table["methods"]) == {"u4d_most", "baseline_most", "u4d_no_temporal", "floor"} and table["fusion"] == {}
+    assert table["methods"]["u4d_most"]["nets"] == [{"u4d": {"steps": 20, "minutes": 20.0}}] * 2
+    assert not (results / "temporal.json").exists()  # the two-net table is not touched
+
+    (tmp_path / "calls.jsonl").unlink()
+    run_both(SCRIPT, REPO, {**env, "PROPAGATE": "1"})  # the same nets, propagated: its own evaluations and table
+    made = recorded_calls(tmp_path)
+    assert not [a for a in made if a[0] == "train-diffusion"]
+    generated = [a for a in made if a[0] == "generate"]
+    assert len(generated) == 6 and all(check_call(a, REPO)[1].propagate for a in generated)
+    scored = {Path(option(a, "--out")).parent for a in made if a[0] == "evaluate"}
+    assert scored == {results / "temporal_evals_one_net_propagated"}
+    assert json.loads((results / "temporal_one_net_propagated.json").read_text())["methods"]["u4d_most"]["seeds"] == 2

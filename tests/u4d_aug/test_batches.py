@@ -1,5 +1,5 @@
 """u4d_aug.batches: azimuth crops wrap around the ring; a step's batch and noise depend on (seed, step, rank) only;
-stage 2's propagated condition."""
+stage 2's propagated condition (in a u4d batch, its stage-2 samples' only)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 
 from tests.tiny_nets import TINY_MOST, diffusion_config
 from tests.tiny_worlds import write_posed_world, write_tiny_world
-from u4d_aug.batches import RangeImages, crop_batch, row_mean, training_batch
+from u4d_aug.batches import RangeImages, crop_batch, row_mean, row_mean_key, training_batch
 from u4d_aug.config import load_config
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.errors import InputError
@@ -74,3 +74,16 @@ def test_propagated_share_conditions_windows_on_frame_0_moved_along_their_poses(
             load_config(DiffusionTrainConfig, TINY_MOST, ["diffusion.stage=stage2", *bad])
     with pytest.raises(InputError, match="stage baseline"):
         load_config(DiffusionTrainConfig, TINY_MOST, ["propagated_share=0.5"])
+
+
+def test_a_u4d_batch_propagates_only_the_condition_of_its_stage_2_windows(tmp_path):
+    world = (tmp_path / "world", tmp_path / "probs")
+    write_posed_world(*world, num_scans=3)
+    overrides = [f"data_root={world[0]}", f"probs_root={world[1]}", "diffusion.stage=u4d", "batch_size=4"]
+    cfg = load_config(DiffusionTrainConfig, TINY_MOST, [*overrides, "propagated_share=1.0"])
+    batch, _, _ = training_batch(RangeImages(cfg), cfg, 0, 0, torch.device("cpu"))
+    frame0_known = [bool(m_u[0].all()) for m_u in batch["m_u"]]  # (B, L, 1, H, W): a propagated window knows frame 0
+    assert frame0_known == [False, False, True, True]  # stage 1 learns P_u itself; stage 2 reads the propagated frame
+    plain = load_config(DiffusionTrainConfig, TINY_MOST, overrides)
+    assert row_mean_key(cfg, "stage1") == "x0_u"
+    assert torch.equal(row_mean(cfg, "x0_u"), row_mean(plain, "x0_u"))  # stage 1's mean start: the mean of P_u

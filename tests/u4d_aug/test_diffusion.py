@@ -162,6 +162,33 @@ def test_train_t_max_draws_only_the_low_noise_end_and_1_changes_nothing():
     assert losses[0.1] < losses[1.0]  # Min-SNR weights are small at high SNR
 
 
+def test_input_perturbation_adds_sigma_gamma_noise_to_the_net_input_and_keeps_the_eps_target():
+    net = tiny_net()
+    seen: list[torch.Tensor] = []
+    net.register_forward_pre_hook(lambda module, args: seen.append(args[0].clone()))
+    x0 = toy_scan().expand(8, -1, -1, -1)
+    losses = {}
+    for gamma in (0.0, 0.3):
+        diffusion = GaussianDiffusion(net, DiffusionConfig(input_perturbation=gamma))
+        losses[gamma] = diffusion(x0, generator=torch.Generator().manual_seed(5))["eps_mse"]
+    plain = GaussianDiffusion(net, DiffusionConfig())(x0, generator=torch.Generator().manual_seed(5))["eps_mse"]
+    assert torch.equal(losses[0.0], plain)  # off: the very same draws and loss
+    generator = torch.Generator().manual_seed(5)  # redraw what the loss drew: t, ε, then ξ
+    t = torch.rand(8, generator=generator)
+    eps = torch.randn(x0.shape, generator=generator)
+    xi = torch.randn(x0.shape, generator=generator)
+    alpha, sigma = alpha_sigma(log_snr(t).view(8, 1, 1, 1))
+    assert torch.allclose(seen[0], alpha * x0 + sigma * eps, atol=1e-6)
+    assert torch.allclose(seen[1], alpha * x0 + sigma * (eps + 0.3 * xi), atol=1e-6)  # σ γ ξ on the input only
+    with torch.no_grad():
+        pred = net(seen[1], log_snr(t))[0]
+    weight = min_snr_weight(log_snr(t), 5.0)
+    assert torch.allclose(losses[0.3], (weight * (pred - eps).square().mean(dim=(1, 2, 3))).mean(), atol=1e-6)
+    for bad in (-0.1, 1.0):
+        with pytest.raises(InputError, match="input_perturbation"):
+            DiffusionConfig(input_perturbation=bad)
+
+
 def test_noisy_condition_touches_only_the_uncertain_region():
     x0 = toy_scan().expand(3, -1, -1, -1)  # (3, 2, H, W)
     m_u = torch.zeros(3, 1, H, W)

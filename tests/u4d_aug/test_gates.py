@@ -84,3 +84,24 @@ def test_nets_without_gates_are_refused(tmp_path):
         loaded = load_generator(save_net(tmp_path / f"{overrides[0]}.pt", *overrides))
         with pytest.raises(InputError, match="no gated MoST blocks"):
             gate_trajectory(loaded, 2, 2, torch.Generator())
+
+
+def test_a_one_net_u4d_samples_the_task_of_its_role(tmp_path, capsys):
+    from u4d_aug.cli import main
+    from u4d_aug.diffusion import STAGE1_TASK, STAGE2_TASK
+    from u4d_aug.pipeline import load_generator
+
+    path = save_net(tmp_path / "u4d.pt", "diffusion.stage=u4d", "net.pose_dim=4", temporal_block="mid")
+    loaded = load_generator(path)
+    seen: list[torch.Tensor] = []
+    loaded.net.task_embed.register_forward_hook(lambda module, args, out: seen.append(args[0].clone()))
+    for role, task in (("stage1", STAGE1_TASK), ("stage2", STAGE2_TASK)):
+        seen.clear()
+        trajectory = gate_trajectory(loaded, 2, 2, torch.Generator().manual_seed(0), role=role)
+        assert len(seen) == 2 and all(bool((t == task).all()) for t in seen)  # every call: the task of the role
+        assert summarise_gates(trajectory)["mean_alpha_t"][2] > 0.99
+    with pytest.raises(InputError, match="--role must be stage1 or stage2"):
+        gate_trajectory(loaded, 2, 2, torch.Generator(), role="baseline")
+    png = tmp_path / "gates.png"
+    assert main(["gates", str(path), "--png", str(png), "--role", "stage1", "--steps", "2"]) == 0
+    assert png.is_file() and "mid: alpha_s" in capsys.readouterr().out

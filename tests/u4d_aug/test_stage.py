@@ -9,11 +9,19 @@ import re
 import pytest
 import torch
 
-from tests.tiny_nets import TINY
+from tests.tiny_nets import TINY, TINY_MOST
 from u4d_aug.config import load_config
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
-from u4d_aug.stage import CHECKPOINT_KIND, DiffusionTrainConfig, build_net, checkpoint_state, config_from_checkpoint
+from u4d_aug.stage import (
+    CHECKPOINT_KIND,
+    DiffusionTrainConfig,
+    build_net,
+    checkpoint_state,
+    config_from_checkpoint,
+    diffusion_overrides,
+    diffusion_recipe,
+)
 
 
 def tiny(*overrides: str) -> DiffusionTrainConfig:
@@ -93,3 +101,18 @@ def test_a_checkpoint_names_its_kind_and_config():
     assert config_from_checkpoint(ckpt, "run/step.pt") == cfg
     with pytest.raises(InputError, match=re.escape("seg.pt: not a u4d train-diffusion checkpoint")):
         config_from_checkpoint({**ckpt, "kind": "u4d-seg-checkpoint"}, "seg.pt")
+
+
+def test_diffusion_overrides_give_a_run_its_source_nets_loss():
+    source = tiny(
+        "diffusion.stage=u4d", "diffusion.cond_noise=0.05", "diffusion.min_snr_gamma=null", "diffusion.train_t_max=1e-5"
+    )
+    overrides = diffusion_overrides(source.diffusion)
+    assert "diffusion.min_snr_gamma=null" in overrides and "diffusion.train_t_max=1.0e-05" in overrides
+    assert not any(item.startswith(("diffusion.stage=", "diffusion.most_cv_weight=")) for item in overrides)
+    # a MoST fine-tune of another stage preset and MoST term: the same loss as its source, its own stage and CV weight
+    most = load_config(
+        DiffusionTrainConfig, TINY_MOST, ["diffusion.stage=u4d", "diffusion.most_cv_weight=0.1", *overrides]
+    )
+    assert diffusion_recipe(most.diffusion) == diffusion_recipe(source.diffusion)
+    assert most.diffusion.most_cv_weight == 0.1 and most.diffusion.min_snr_gamma is None

@@ -49,13 +49,49 @@ def test_run_on_tiny_nets_and_world(untrained_checkpoints, tmp_path):
     out = tmp_path / "denoise.json"
     nets = [f"{stage}={path}" for stage, path in untrained_checkpoints.items()]
     argv = ["--root", str(tmp_path / "world"), "--probs", str(tmp_path / "probs"), "--num", "2", "--out", str(out)]
-    assert bench.main([*argv, "--nets", *nets, "--log-snr", "0", "8"]) == 0
+    assert (
+        bench.main([*argv, "--nets", *nets, "--log-snr", "0", "8", "--from-log-snr", "2", "--sampler", "ddim:4"]) == 0
+    )
     result = json.loads(out.read_text())
     assert set(result["nets"]) == set(untrained_checkpoints) and result["log_snrs"] == [0.0, 8.0]
     assert result["last_call_log_snr"]["20"] == pytest.approx(5.07, abs=0.01)
     for name, net in result["nets"].items():
         assert net["stage"] == name and len(net["rows"]) == 2
         assert all(row["error"] <= row["noise"] + 1e-6 for row in net["rows"])  # untrained: ε̂ = 0
-    assert "| 8 |" in out.with_suffix(".md").read_text()
+        assert [row["from_log_snr"] for row in net["trajectories"]] == [2.0] and net["real_bev_points_per_cell"] >= 0
+    assert result["sampler"] == {
+        "name": "ddim",
+        "steps": 4,
+        "grid": "time",
+        "last_call_log_snr": pytest.approx(1.76, abs=0.01),
+    }
+    assert (
+        "| 8 |" in out.with_suffix(".md").read_text()
+        and "## Sampler trajectories" in out.with_suffix(".md").read_text()
+    )
+    assert bench.main([*argv, "--nets", *nets, "--sampler", "euler:4"]) == 2
+    assert bench.main([*argv, "--nets", *nets, "--sampler", "ddim:4:logsnr"]) == 2  # ddim runs on the time grid only
     assert bench.main([*argv, "--nets", "no-equals-sign"]) == 2
     assert bench.main([*argv, "--nets", f"stage2={untrained_checkpoints['stage2']}", "--probs", str(tmp_path)]) == 2
+
+
+def test_trajectories_follow_the_real_scan_up_to_the_start_and_the_net_after():
+    from u4d_aug.data.sensors import get_sensor
+
+    target = target_images(torch.Generator().manual_seed(1))
+    sensor = get_sensor("hdl64")
+
+    def oracle(x_t, lam, cond):
+        alpha, sigma = alpha_sigma(lam[0].double())
+        return (x_t - float(alpha) * target) / float(sigma), None
+
+    def silent(x_t, lam, cond):
+        return torch.zeros_like(x_t), None
+
+    starts = [-100.0, 3.0, 100.0]  # the net from the first step, from the middle, never
+    exact = bench.trajectory_rows(oracle, target, None, starts, "dpmpp2m-sde", 8, sensor, "linear", seed=0)
+    assert [row["from_log_snr"] for row in exact] == starts
+    assert all(row["error"] < 1e-4 for row in exact)  # an oracle net is the real scan whenever it takes over
+    rows = bench.trajectory_rows(silent, target, None, starts, "dpmpp2m-sde", 8, sensor, "linear", seed=0)
+    assert rows[2]["error"] < 1e-5  # handed the real x̂0 at every step: the real scan
+    assert rows[0]["error"] > rows[1]["error"] > rows[2]["error"]  # the earlier a silent net takes over, the worse

@@ -164,3 +164,23 @@ def test_intervals_are_the_metrics_own():
 
     assert table.INTERVALS["ttce"] == tuple(str(k) for k in temporal.TTCE_INTERVALS)
     assert table.INTERVALS["ctc"] == tuple(str(k) for k in temporal.CTC_INTERVALS)
+
+
+def test_the_nets_behind_each_seed_are_listed_for_two_nets_or_one(tmp_path, capsys):
+    two = write(tmp_path / "two", evaluation(0.2, 0.1))
+    (tmp_path / "two" / "budget.json").write_text(
+        json.dumps({"nets": {"stage1": {"steps": 20, "minutes": 2.0}, "stage2": {"steps": 20, "minutes": 2.5}}})
+    )
+    one = write(tmp_path / "one", evaluation(0.3, 0.1))
+    net = {"steps": 20, "minutes": 4.0, "stage": "u4d", "batch_size": 2}
+    (tmp_path / "one" / "budget.json").write_text(json.dumps({"nets": {"u4d": net}}))
+    bare = write(tmp_path / "bare", evaluation(0.3, 0.1))  # an evaluation without budget.json (e.g. the floor)
+    args = ["--method", f"two={two}", "--method", f"one={one}", "--method", f"one={bare}", "--out", str(tmp_path / "t")]
+    assert table.main(args) == 0
+    methods = json.loads((tmp_path / "t.json").read_text())["methods"]
+    assert list(methods["two"]["nets"][0]) == ["stage1", "stage2"] and methods["one"]["nets"] == [{"u4d": net}, None]
+    md = (tmp_path / "t.md").read_text()
+    assert "trained: stage1 20 steps (2.0 min) + stage2 20 steps (2.5 min)" in md
+    assert "trained: u4d 20 steps x batch 2 (4.0 min); —" in md
+    (tmp_path / "bare" / "budget.json").write_text(json.dumps({"nets": {"u4d": {"minutes": 1}}}))
+    assert table.main(args) == 2 and "budget.json: expected" in capsys.readouterr().err
