@@ -18,7 +18,7 @@ scores them the same way, so it is the value a perfect generator would get at th
 the floor, points per scan over the floor's raw and projected points) and the same per sampler under `samplers`;
 `sampler_ratios.<method> <metric> <headline tag>/<tag>`: each method's headline score over its score with every other
 setting (the fast sampler against the same nets' 32-step DDPM).
-What a segmentor reads (issue 68), `--metrics teacher,bev_density,roughness`, scores each bank's own scans, not
+What a segmentor reads, `--metrics teacher,bev_density,roughness`, scores each bank's own scans, not
 against the reference: `methods.<name>.teacher_kept_share` / `teacher_building_share` (of the kept pseudo-labels) /
 `teacher_class_share` ({class: share}, mean over seeds) of the `--teacher` (`segmentation.teacher_view`),
 `bev_points_per_cell` (above-ground points per occupied 0.25 m BEV cell) and `ring_roughness` / `vertical_roughness`
@@ -59,7 +59,7 @@ REPO = Path(__file__).resolve().parents[1]
 WEIGHTS = REPO / "weights"  # the shipped 64x1024 nets and extractors (weights/README.md)
 METHODS = ("u4d", "baseline")
 SEED_STRIDE = 100_000
-# what a segmentor reads in a scan (issue 68): the teacher's kept pseudo-labels and their class mix, above-ground points
+# what a segmentor reads in a scan: the teacher's kept pseudo-labels and their class mix, above-ground points
 # per occupied BEV cell, ring / vertical roughness of the range image; scored per bank, not against the reference
 STRUCTURE = ("teacher", "bev_density", "roughness")
 STRUCTURE_KEYS = {
@@ -101,8 +101,13 @@ def floor_bank(root: Path, sequences: list[str], num: int, seed: int, out: Path)
     for i, index in enumerate(sorted(chosen)):
         seq, frame = entries[index]
         link = velodyne / f"{i:06d}.bin"
-        if not link.exists():
-            link.symlink_to((root / "sequences" / seq / "velodyne" / f"{frame}.bin").resolve())
+        source = (root / "sequences" / seq / "velodyne" / f"{frame}.bin").resolve()
+        if not link.is_symlink():
+            if link.exists():
+                raise InputError(f"{link}: a file this benchmark did not write; pick another --work")
+            link.symlink_to(source)
+        elif link.resolve() != source:  # another root, sequences or seed wrote this folder
+            raise InputError(f"{link}: links {link.resolve()}, not {source}; pick another --work or remove {out}")
     return out
 
 

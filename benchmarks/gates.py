@@ -1,4 +1,4 @@
-"""Gate scores of generated banks on what matters downstream (issue 68): the teacher's view, BEV density, roughness,
+"""Gate scores of generated banks on what matters downstream: the teacher's view, BEV density, roughness,
 FRD / FPD, beside real scans and real scans made like generated ones.
 
     python benchmarks/gates.py --bank baseline=BANK_DIR [--bank u4d=DIR ...] --real data/sim_eval \\
@@ -133,23 +133,34 @@ def to_markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--bank", action="append", default=[], metavar="NAME=DIR", help="a bank (repeatable)")
+def add_scoring_arguments(parser: argparse.ArgumentParser, floor_help: str, sensor_help: str, work: str) -> None:
+    """The arguments of a script that scores rows of scans against real ones as the gates do: --real,
+    --real-sequences, --floor-sequences, --num, --teacher, --extractor-frd/-fpd, --sensor, --work, --out."""
     parser.add_argument("--real", type=Path, required=True, help="SemanticKITTI root of the real scans")
     parser.add_argument("--real-sequences", nargs="+", required=True, help="the reference's sequences (e.g. 00-11)")
-    parser.add_argument(
-        "--floor-sequences", nargs="+", default=None, help="the real row's sequences (default: the other ones)"
-    )
+    parser.add_argument("--floor-sequences", nargs="+", default=None, help=floor_help)
     parser.add_argument("--num", type=int, default=16, help="scans per row")
-    parser.add_argument("--seed", type=int, default=0, help="draws the reference's and the real row's scans")
-    parser.add_argument("--metrics", default=DEFAULT_METRICS, help=f"subset of {DEFAULT_METRICS} (bench_generation's)")
     parser.add_argument("--teacher", type=Path, default=WEIGHTS / "uncertainty_segmentor.pt")
     parser.add_argument("--extractor-frd", type=Path, default=WEIGHTS / "extractor_frd.pt")
     parser.add_argument("--extractor-fpd", type=Path, default=WEIGHTS / "extractor_fpd.pt")
-    parser.add_argument("--sensor", default="hdl64", help="the range image of the real-projected row and roughness")
-    parser.add_argument("--work", type=Path, default=Path("runs/gates"), help="the real rows' folders go here")
+    parser.add_argument("--sensor", default="hdl64", help=sensor_help)
+    parser.add_argument("--work", type=Path, default=Path(work), help="the rows' bank folders go here")
     parser.add_argument("--out", type=Path, required=True, help="FILE.json (and FILE.md)")
+
+
+def beam_geometry(sensor_name: str) -> dict:
+    """{sensor, height, width, row_mode}: the sensor's own range image in beam rows, where roughness is measured."""
+    sensor = get_sensor(sensor_name)
+    return {"sensor": sensor_name, "height": sensor.height, "width": sensor.width, "row_mode": "beam"}
+
+
+def run(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--bank", action="append", default=[], metavar="NAME=DIR", help="a bank (repeatable)")
+    parser.add_argument("--seed", type=int, default=0, help="draws the reference's and the real row's scans")
+    parser.add_argument("--metrics", default=DEFAULT_METRICS, help=f"subset of {DEFAULT_METRICS} (bench_generation's)")
+    add_scoring_arguments(parser, "the real row's sequences (default: the other ones)",
+                          "the range image of the real-projected row and roughness", "runs/gates")  # fmt: skip
     args = parser.parse_args(argv)
     if args.num < 1:
         raise InputError(f"--num must be >= 1, got {args.num}")
@@ -158,8 +169,7 @@ def run(argv: list[str] | None = None) -> int:
     args.floor_sequences = args.floor_sequences or other_sequences(args.real, args.real_sequences)
     make_folder(args.out.parent)  # a file in the way: one line before the long computation
     torch.set_num_threads(1)
-    sensor = get_sensor(args.sensor)
-    geometry = {"sensor": args.sensor, "height": sensor.height, "width": sensor.width, "row_mode": "beam"}
+    geometry = beam_geometry(args.sensor)
     teacher = load_teacher(args.teacher) if "teacher" in metrics else None
     rows = gate_rows(args, banks, metrics, geometry, teacher)
     result = {

@@ -1,5 +1,5 @@
 """Does each generation metric see a bad scan? FRD, FPD, JSD, MMD and the gates (teacher, BEV density, roughness) on
-real held-out scans under controlled corruptions (issue 68, deliverable 3(d)).
+real held-out scans under controlled corruptions.
 
     python benchmarks/metric_validity.py --real data/sim_eval --real-sequences 00-11 --num 16 \\
         --work runs/metric_validity --out benchmarks/results/generation/metric_validity.json
@@ -30,12 +30,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from bench_generation import HEADER, STRUCTURE, WEIGHTS, columns, floor_bank, parse_bench_metrics, score_bank
-from gates import other_sequences
+from bench_generation import HEADER, STRUCTURE, columns, floor_bank, parse_bench_metrics, score_bank
+from gates import add_scoring_arguments, beam_geometry, other_sequences
 
 from segmentation.teacher_view import load_teacher
 from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
-from u4d_aug.data.sensors import get_sensor
 from u4d_aug.errors import InputError, exit_code_of
 from u4d_aug.host import host_info
 from u4d_aug.io import atomic_write_json, atomic_write_text, make_folder
@@ -226,23 +225,13 @@ def to_markdown(result: dict) -> str:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--real", type=Path, required=True, help="SemanticKITTI root of the real scans")
-    parser.add_argument("--real-sequences", nargs="+", required=True, help="the reference's sequences (e.g. 00-11)")
-    parser.add_argument(
-        "--floor-sequences", nargs="+", default=None, help="the scans to corrupt (default: the other sequences)"
-    )
-    parser.add_argument("--num", type=int, default=16, help="scans per row")
     parser.add_argument("--kinds", nargs="+", default=list(CORRUPTIONS), help=f"some of {', '.join(CORRUPTIONS)}")
     parser.add_argument("--levels", type=float, nargs="+", default=list(DEFAULT_LEVELS), help="in [0, 1]; 0 added")
     parser.add_argument("--metrics", default=DEFAULT_METRICS, help=f"subset of {DEFAULT_METRICS} (bench_generation's)")
     parser.add_argument("--noise-draws", type=int, default=2, help="other draws of uncorrupted scans: the noise")
     parser.add_argument("--seed", type=int, default=0, help="draws the scans and seeds the corruptions")
-    parser.add_argument("--teacher", type=Path, default=WEIGHTS / "uncertainty_segmentor.pt")
-    parser.add_argument("--extractor-frd", type=Path, default=WEIGHTS / "extractor_frd.pt")
-    parser.add_argument("--extractor-fpd", type=Path, default=WEIGHTS / "extractor_fpd.pt")
-    parser.add_argument("--sensor", default="hdl64", help="the rings and columns of the corruptions and roughness")
-    parser.add_argument("--work", type=Path, default=Path("runs/metric_validity"), help="the banks go here")
-    parser.add_argument("--out", type=Path, required=True, help="FILE.json (and FILE.md)")
+    add_scoring_arguments(parser, "the scans to corrupt (default: the other sequences)",
+                          "the rings and columns of the corruptions and roughness", "runs/metric_validity")  # fmt: skip
     return parser.parse_args(argv)
 
 
@@ -255,8 +244,7 @@ def run(argv: list[str] | None = None) -> int:
     args.floor_sequences = args.floor_sequences or other_sequences(args.real, args.real_sequences)
     make_folder(args.out.parent)  # a file in the way: one line before the long computation
     torch.set_num_threads(1)
-    sensor = get_sensor(args.sensor)
-    args.geometry = {"sensor": args.sensor, "height": sensor.height, "width": sensor.width, "row_mode": "beam"}
+    args.geometry = beam_geometry(args.sensor)
     teacher = load_teacher(args.teacher) if "teacher" in metrics else None
     start = time.perf_counter()
     rows = validity_rows(args, metrics, teacher)

@@ -170,3 +170,22 @@ def test_metric_names_are_checked_in_one_line():
     assert bench.parse_bench_metrics("frd, teacher,roughness") == ("frd", "teacher", "roughness")
     with pytest.raises(InputError, match="teacher,bev_density,roughness"):
         bench.parse_bench_metrics("frd,stars")
+
+
+def test_floor_bank_refills_its_own_folder_and_refuses_one_another_draw_wrote(toy_root, tmp_path):
+    out = tmp_path / "floor"
+    bank = bench.floor_bank(toy_root, ["00", "01"], 3, 0, out)
+    links = sorted((bank / "sequences" / "00" / "velodyne").iterdir())
+    assert len(links) == 3 and all(link.is_symlink() for link in links)
+    targets = [link.resolve() for link in links]
+    links[1].unlink()  # an interrupted run: the same call completes the folder with the same scans
+    bench.floor_bank(toy_root, ["00", "01"], 3, 0, out)
+    assert [link.resolve() for link in sorted(links[0].parent.iterdir())] == targets
+    seeds = [seed for seed in range(1, 20) if sorted(np.random.default_rng(seed).choice(6, 3, replace=False)) !=
+             sorted(np.random.default_rng(0).choice(6, 3, replace=False))]  # fmt: skip
+    with pytest.raises(InputError, match="pick another --work"):  # another draw into the same folder
+        bench.floor_bank(toy_root, ["00", "01"], 3, seeds[0], out)
+    (out / "sequences" / "00" / "velodyne" / "000000.bin").unlink()
+    (out / "sequences" / "00" / "velodyne" / "000000.bin").write_bytes(b"x")
+    with pytest.raises(InputError, match="did not write"):
+        bench.floor_bank(toy_root, ["00", "01"], 3, 0, out)

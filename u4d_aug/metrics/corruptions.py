@@ -1,4 +1,5 @@
-"""Controlled corruptions of one real scan for the metric-validity check (issue 68, deliverable 3(d)).
+"""Controlled corruptions of one real scan for the metric-validity check
+(`benchmarks/metric_validity.py`).
 
 Each function takes one scan (N, 4) [x, y, z, reflectance] float32, a `level` in [0, 1] (0: the scan unchanged,
 bit for bit) and an `rng`, and returns a new float32 scan with each point's reflectance kept. A point's ring and
