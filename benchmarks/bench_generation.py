@@ -153,6 +153,38 @@ def projected_bank(bank: Path, geometry: dict, out: Path) -> Path:
     return out
 
 
+def autoencoded_bank(bank: Path, autoencoder_path: Path, geometry: dict, out: Path) -> Path:
+    """`bank`'s scans through a latent generator's autoencoder: projected to the range image, encoded to the latent,
+    decoded and unprojected (the best a latent generator with it can do), one folder in SemanticKITTI layout."""
+    import torch
+
+    from u4d_aug.autoencoder_stage import load_autoencoder
+
+    autoencoder, ae_cfg = load_autoencoder(autoencoder_path)
+    if (ae_cfg.sensor, ae_cfg.height, ae_cfg.width, ae_cfg.row_mode) != (
+        geometry["sensor"], geometry["height"], geometry["width"], geometry["row_mode"]
+    ):  # fmt: skip
+        raise InputError(
+            f"{autoencoder_path}: trained on {ae_cfg.sensor} {ae_cfg.height}x{ae_cfg.width} ({ae_cfg.row_mode}) "
+            f"images; this score uses {geometry}"
+        )
+    sensor = get_sensor(geometry["sensor"])
+    paths = sorted(bank.glob("sequences/*/velodyne/*.bin"))
+    if not paths:
+        raise InputError(f"{bank}: no scans to encode")
+    for path in paths:
+        target = out / path.relative_to(bank)
+        if not target.exists():
+            projection = project(
+                read_kitti_scan(path), sensor, geometry["height"], geometry["width"], geometry["row_mode"]
+            )
+            image = to_image(projection, sensor)[None]  # (1, 2, H, W)
+            with torch.no_grad():
+                decoded = autoencoder.from_latent(autoencoder.to_latent(image))
+            write_kitti_scan(target, to_points(decoded, sensor, geometry["row_mode"])[0])
+    return out
+
+
 def parse_bench_metrics(text: str) -> tuple[str, ...]:
     """'frd,teacher' -> ('frd', 'teacher'): `u4d evaluate`'s metrics and STRUCTURE; one line naming both otherwise."""
     names = tuple(dict.fromkeys(part.strip().lower() for part in text.split(",") if part.strip()))

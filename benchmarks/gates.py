@@ -22,6 +22,7 @@ OUT with .md; prints the table. 16 scans per bank take ~1 min on one core (FPD's
 from __future__ import annotations
 
 import argparse
+import hashlib
 import sys
 import time
 from pathlib import Path
@@ -31,6 +32,7 @@ from bank_confidence import parse_banks
 from bench_generation import (
     STRUCTURE,
     WEIGHTS,
+    autoencoded_bank,
     floor_bank,
     parse_bench_metrics,
     projected_bank,
@@ -55,7 +57,7 @@ COLUMNS = (  # (json key, markdown header, scale, digits)
     ("frd", "FRD ↓", 1.0, 0),
     ("fpd", "FPD ↓", 1.0, 1),
 )
-REFERENCE, REAL, PROJECTED = "reference", "real", "real projected"
+REFERENCE, REAL, PROJECTED, AUTOENCODED = "reference", "real", "real projected", "real autoencoded"
 
 
 def score_row(
@@ -66,6 +68,24 @@ def score_row(
     extractors = (args.extractor_frd, args.extractor_fpd)
     values = score_bank(bank, reference, None, metrics, extractors, geometry, teacher, max_scans=args.num)
     return values | {"scans": len(list_scans(bank, args.num)), "seconds": round(time.perf_counter() - start, 1)}
+
+
+def parse_autoencoders(texts: list[str]) -> dict[str, Path]:
+    """--autoencoder NAME=FILE, repeatable: {name: file}."""
+    found = {}
+    for text in texts:
+        name, sep, file = text.partition("=")
+        if not sep or not name or not Path(file).is_file():
+            raise InputError(
+                f"--autoencoder {text!r}: expected NAME=FILE, FILE the OUT/autoencoder.pt of `u4d train-autoencoder`"
+            )
+        found[name] = Path(file)
+    return found
+
+
+def file_digest(path: Path) -> str:
+    """The first 12 hex digits of the sha256 of a file."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12]
 
 
 def other_sequences(root: Path, taken: list[str]) -> list[str]:
@@ -85,9 +105,15 @@ def gate_rows(
     reference = floor_bank(args.real, args.real_sequences, args.num, args.seed, work / f"reference_n{args.num}")
     real = floor_bank(args.real, args.floor_sequences, args.num, args.seed, work / f"real_n{args.num}")
     projected = projected_bank(real, geometry, work / f"real_projected_n{args.num}")
+    encoded = {  # keyed by the file's digest: a retrained autoencoder never reuses another's scans
+        f"{AUTOENCODED} ({name})": autoencoded_bank(
+            real, path, geometry, work / f"real_ae_{file_digest(path)}_n{args.num}"
+        )
+        for name, path in getattr(args, "autoencoders", {}).items()
+    }
     own = tuple(m for m in metrics if m in STRUCTURE)  # the reference against itself: no FRD / FPD
     rows = {REFERENCE: score_row(reference, reference, own, args, geometry, teacher) if own else {}}
-    for name, bank in {REAL: real, PROJECTED: projected, **banks}.items():
+    for name, bank in {REAL: real, PROJECTED: projected, **encoded, **banks}.items():
         rows[name] = score_row(bank, reference, metrics, args, geometry, teacher)
         print(f"{name}: {summary_line(rows[name])}", flush=True)
     return rows
@@ -103,7 +129,8 @@ def _cell(value: float | None, scale: float, digits: int) -> str:
 
 
 def to_markdown(result: dict) -> str:
-    """The gate table (rows: reference, real, real projected, banks) and each row's largest pseudo-label classes."""
+    """The gate table (rows: reference, real, real projected, real autoencoded, banks) and each row's largest
+    pseudo-label classes."""
     rows = result["rows"]
     keys = [c for c in COLUMNS if any(row.get(c[0]) is not None for row in rows.values())]
     lines = [
@@ -158,6 +185,10 @@ def run(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--bank", action="append", default=[], metavar="NAME=DIR", help="a bank (repeatable)")
     parser.add_argument("--seed", type=int, default=0, help="draws the reference's and the real row's scans")
+    parser.add_argument(
+        "--autoencoder", action="append", default=[], metavar="NAME=FILE",
+        help="a latent generator's autoencoder (OUT/autoencoder.pt): adds the row of the real scans through it",
+    )  # fmt: skip
     parser.add_argument("--metrics", default=DEFAULT_METRICS, help=f"subset of {DEFAULT_METRICS} (bench_generation's)")
     add_scoring_arguments(parser, "the real row's sequences (default: the other ones)",
                           "the range image of the real-projected row and roughness", "runs/gates")  # fmt: skip
@@ -166,6 +197,7 @@ def run(argv: list[str] | None = None) -> int:
         raise InputError(f"--num must be >= 1, got {args.num}")
     metrics = parse_bench_metrics(args.metrics)
     banks = parse_banks(args.bank)
+    args.autoencoders = parse_autoencoders(args.autoencoder)
     args.floor_sequences = args.floor_sequences or other_sequences(args.real, args.real_sequences)
     make_folder(args.out.parent)  # a file in the way: one line before the long computation
     torch.set_num_threads(1)
@@ -187,6 +219,7 @@ def run(argv: list[str] | None = None) -> int:
         "extractors": {"frd": str(args.extractor_frd), "fpd": str(args.extractor_fpd)},
         "geometry": geometry,
         "banks": {name: str(path) for name, path in banks.items()},
+        "autoencoders": {name: str(path) for name, path in args.autoencoders.items()},
         "rows": rows,
     }
     text = to_markdown(result)

@@ -9,6 +9,7 @@ run draws what an uninterrupted one would; `crop_batch` cuts azimuth crops for t
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -46,9 +47,10 @@ class RangeImages:
     With cfg.propagated_share > 0 (stage 2, or u4d), a window drawn by `generator` with that probability is conditioned
     instead on frame 0 moved along its poses (x0_u, m_u of `propagate.warp_frame0`; frame 0 wholly known), unless
     `propagate` is False: a u4d batch's stage-1 windows, whose target is P_u itself (`make_batch`).
+    With `encode` (a latent generator's) each scan's images are its latents instead (`latent.encode_item`).
     """
 
-    def __init__(self, cfg: DiffusionTrainConfig) -> None:
+    def __init__(self, cfg: DiffusionTrainConfig, encode: Callable[[dict], dict] | None = None) -> None:
         if not cfg.data_root:
             raise InputError("data_root: expected a SemanticKITTI-layout folder (or a nuScenes root) of training scans")
         self.cfg = cfg
@@ -71,6 +73,8 @@ class RangeImages:
                 f"probs_root: stage {cfg.diffusion.stage} needs the probability files of `u4d seg-predict`"
             )
         self.cache: dict[tuple[str, str], dict[str, Tensor]] = {}
+        # a latent generator's: a scan's images -> their latents (`latent.encode_item`), computed once and cached
+        self.encode = encode
 
     def __len__(self) -> int:
         return len(self.windows) if self.windows is not None else len(self.scans)
@@ -121,6 +125,8 @@ class RangeImages:
                 cfg.uncertainty.k, cfg.uncertainty.strategy, generator,
             )  # fmt: skip
             out.update(x0_u=x0_u, m_u=m_u)
+        if self.encode is not None:
+            out = self.encode(out)
         if cfg.cache_images and cfg.uncertainty.strategy != "random":
             self.cache[(seq, frame)] = out
         return out
@@ -130,6 +136,12 @@ def row_mean(cfg: DiffusionTrainConfig, key: str = "x0", count: int = 32, seed: 
     """(C, H, 1) mean of the `key` images (x0, or x0_u for stage 1) of `count` evenly spaced training items, over
     items, frames and columns: the MMSE estimate of a range image at vanishing SNR, per row (`sampling.mean_start`).
     `seed` draws P_u where the net's uncertainty strategy is random (the selection ablation)."""
+    stacked = mean_images(cfg, key, count, seed)  # (K·L, C, H, W)
+    return stacked.mean(dim=(0, 3)).unsqueeze(-1)
+
+
+def mean_images(cfg: DiffusionTrainConfig, key: str = "x0", count: int = 32, seed: int = 0) -> Tensor:
+    """(K·L, C, H, W) the `key` images of `count` evenly spaced training items, their frames unfolded (`row_mean`)."""
     cfg = dataclasses.replace(cfg, propagated_share=0.0)  # the mean of P_u (or x0), never of a propagated frame 0
     if key == "x0":  # full scans: no uncertainty (and no probability files, nor a stage-2 condition) needed
         baseline = dataclasses.replace(cfg.diffusion, stage="baseline", cond_noise=0.0)
@@ -139,7 +151,7 @@ def row_mean(cfg: DiffusionTrainConfig, key: str = "x0", count: int = 32, seed: 
     generator = torch.Generator().manual_seed(seed)
     picked = [images.__getitem__(i, generator)[key] for i in range(0, len(images), step)[:count]]
     stacked = torch.stack(picked)  # (K, [L,] C, H, W)
-    return stacked.reshape(-1, *stacked.shape[-3:]).mean(dim=(0, 3)).unsqueeze(-1)
+    return stacked.reshape(-1, *stacked.shape[-3:])
 
 
 def row_mean_key(cfg: DiffusionTrainConfig, role: str | None = None) -> str:
@@ -150,17 +162,21 @@ def row_mean_key(cfg: DiffusionTrainConfig, role: str | None = None) -> str:
 
 
 def net_row_mean(
-    cfg: DiffusionTrainConfig, data_root: str = "", probs_root: str = "", role: str | None = None
+    cfg: DiffusionTrainConfig, data_root: str = "", probs_root: str = "", role: str | None = None, encode=None
 ) -> tuple[Tensor, dict]:
     """`row_mean` of the images a net learns (x0_u for stage 1 or a u4d net's stage-1 `role`, x0 otherwise) from its
     training scans, or from `data_root` / `probs_root` when set, and where it was read: {key, data_root, sequences[,
-    probs_root]}."""
+    probs_root]}. A latent generator passes `encode` (images (N, C, H, W) -> latents (N, C_z, h, w)): the mean is
+    then its latents' (C_z, h, 1)."""
     key = row_mean_key(cfg, role)
     cfg = dataclasses.replace(cfg, data_root=data_root or cfg.data_root, probs_root=probs_root or cfg.probs_root)
     source = {"key": key, "data_root": cfg.data_root, "sequences": cfg.sequences}
     if key == "x0_u":
         source["probs_root"] = cfg.probs_root
-    return row_mean(cfg, key), source
+    if encode is None:
+        return row_mean(cfg, key), source
+    latents = torch.cat([encode(chunk) for chunk in mean_images(cfg, key).split(8)])
+    return latents.mean(dim=(0, 3)).unsqueeze(-1), source | {"latent": True}
 
 
 def batch_indices(step: int, rank: int, num_scans: int, batch_size: int, seed: int) -> list[int]:

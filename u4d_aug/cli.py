@@ -142,6 +142,7 @@ DELEGATED = (
     ("seg-eval", "mIoU, per-class IoU, ECE (per scan and pooled), reliability diagram of a checkpoint"),
     ("seg-predict", "write per-point class probabilities (float16 .npy) for U4D's uncertainty"),
     ("train-diffusion", "train a U4D stage (stage1 | stage2) or the R2DM-style baseline, torchrun-ready"),
+    ("train-autoencoder", "train the range-image autoencoder whose latent the latent generators diffuse (LiDM)"),
     ("generate", "write a bank of generated scans (U4D, baseline or completion of real scans), torchrun-ready"),
     ("gen-report", "real vs generated scans side by side: uncertainty, stage-1, stage-2, baseline; range + BEV PNG"),
     ("train-extractor", "train the FRD (range-view) or FPD (PointNet) feature extractor on labeled scans"),
@@ -190,6 +191,10 @@ def _delegated_command(name: str) -> tuple[Callable[[argparse.ArgumentParser], N
         from u4d_aug import train
 
         return train.add_train_diffusion_arguments, train.run_train_diffusion
+    elif name == "train-autoencoder":
+        from u4d_aug import train_autoencoder
+
+        return train_autoencoder.add_train_autoencoder_arguments, train_autoencoder.run_train_autoencoder
     elif name == "generate":
         from u4d_aug import generate
 
@@ -248,6 +253,8 @@ EXAMPLES = {
     "seg-predict": "u4d seg-predict runs/seg/model.pt data/sim --out runs/probs",
     "train-diffusion": "u4d train-diffusion u4d/cpu stage=stage1 data_root=data/sim probs_root=runs/probs "
     "--out runs/u4d_stage1",
+    "train-autoencoder": "u4d train-autoencoder u4d/autoencoder_hdl64 data_root=data/sim probs_root=runs/probs "
+    "--out runs/autoencoder",
     "generate": "u4d generate u4d/generate_cpu --out banks/u4d stage1=runs/u4d_stage1 stage2=runs/u4d_stage2 num=16",
     "gen-report": "u4d gen-report data/sim --bank u4d=banks/u4d --bank baseline=banks/baseline --png generated.png",
     "train-extractor": "u4d train-extractor frd extractor/cpu data.root=data/semantickitti train.steps=500",
@@ -361,8 +368,8 @@ def dataset_summary(dataset: ScanDataset | NuscenesScanDataset, root: Path, data
 # The shipped presets (u4d_aug.presets): configs/ of the checkout, or the package data of an installed wheel.
 CONFIGS_DIR = configs_root()
 # The commands whose work draws progress bars (tqdm): each takes --no-progress, which `u4d demo` passes on.
-PROGRESS_COMMANDS = ("simulate", "seg-train", "seg-eval", "seg-predict", "train-diffusion", "generate",
-                     "train-extractor", "evaluate", "experiment", "bank-real")  # fmt: skip
+PROGRESS_COMMANDS = ("simulate", "seg-train", "seg-eval", "seg-predict", "train-diffusion", "train-autoencoder",
+                     "generate", "train-extractor", "evaluate", "experiment", "bank-real")  # fmt: skip
 
 
 def run_demo(args: argparse.Namespace) -> int:

@@ -103,12 +103,14 @@ STAGES: tuple[str, ...] = ("stage1", "stage2", "baseline", "u4d")
 STAGE1_TASK, STAGE2_TASK = 0, 1  # the task ids of a u4d net's two stages (net.num_tasks = 2)
 
 
-def net_heads(stage: str) -> tuple[bool, int, int]:
-    """(mask head, condition channels, tasks) of the net a stage trains: stage 1 has the mask head, stage 2 reads
+def net_heads(stage: str, image_channels: int = 2) -> tuple[bool, int, int]:
+    """(mask head, condition channels, tasks) of the net a stage trains on images of `image_channels` (2: depth and
+    reflectance; a latent generator's: the autoencoder's latent channels): stage 1 has the mask head, stage 2 reads
     concat(x0_u, m_u), a u4d net has both and a task embedding for its two stages."""
+    cond = image_channels + 1
     if stage == "u4d":
-        return True, 3, 2
-    return stage == "stage1", 3 if stage == "stage2" else 0, 0
+        return True, cond, 2
+    return stage == "stage1", cond if stage == "stage2" else 0, 0
 
 
 def stage1_count(batch: int, share: float) -> int:
@@ -119,8 +121,9 @@ def stage1_count(batch: int, share: float) -> int:
 
 
 def empty_condition(like: Tensor) -> Tensor:
-    """The stage-1 task's condition of a u4d net, shaped like stage 2's (..., 3, H, W): no x0_u (−1), empty m_u (0)."""
-    return torch.cat([torch.full_like(like[..., :2, :, :], -1.0), torch.zeros_like(like[..., :1, :, :])], dim=-3)
+    """The stage-1 task's condition of a u4d net for images shaped like `like` (..., C, H, W): stage 2's condition
+    (..., C + 1, H, W) with no x0_u (−1) and an empty m_u (0)."""
+    return torch.cat([torch.full_like(like, -1.0), torch.zeros_like(like[..., :1, :, :])], dim=-3)
 
 
 def eps_from_v(x_t: Tensor, lam: Tensor, v: Tensor) -> Tensor:
@@ -129,14 +132,18 @@ def eps_from_v(x_t: Tensor, lam: Tensor, v: Tensor) -> Tensor:
     return sigma * x_t + alpha * v
 
 
-def noisy_condition(x0_u: Tensor, m_u: Tensor, max_std: float, generator: torch.Generator | None) -> Tensor:
-    """x0_u (B, [L,] 2, H, W) with N(0, s²) added inside m_u (B, [L,] 1, H, W), s ~ U(0, max_std) per sample, clamped
-    to [-1, 1]; pixels outside the mask stay empty (−1). Conditioning augmentation (Ho et al. 2022, §4.2)."""
+def noisy_condition(
+    x0_u: Tensor, m_u: Tensor, max_std: float, generator: torch.Generator | None, clamp: bool = True
+) -> Tensor:
+    """x0_u (B, [L,] C, H, W) with N(0, s²) added inside m_u (B, [L,] 1, H, W), s ~ U(0, max_std) per sample, clamped
+    to [-1, 1] (`clamp`; a latent's values are unbounded); pixels outside the mask stay as they are (−1 in a range
+    image). Conditioning augmentation (Ho et al. 2022, §4.2)."""
     batch = x0_u.shape[0]
     draw_device = generator.device if generator is not None else x0_u.device
     std = torch.rand(batch, generator=generator, device=draw_device).to(x0_u.device, x0_u.dtype) * max_std
     noise = torch.randn(x0_u.shape, generator=generator, device=draw_device).to(x0_u.device, x0_u.dtype)
-    noisy = (x0_u + std.view(batch, *([1] * (x0_u.dim() - 1))) * noise).clamp(-1.0, 1.0)
+    noisy = x0_u + std.view(batch, *([1] * (x0_u.dim() - 1))) * noise
+    noisy = noisy.clamp(-1.0, 1.0) if clamp else noisy
     return torch.where(m_u.bool().expand_as(x0_u), noisy, x0_u)
 
 
@@ -148,14 +155,15 @@ def stage_cond(x0_u: Tensor, m_u: Tensor) -> Tensor:
 class GaussianDiffusion(nn.Module):
     """Wraps ε_θ; forward returns the stage's training losses from clean data (R2DM `GaussianDiffusion`)."""
 
-    def __init__(self, net: nn.Module, cfg: DiffusionConfig):
+    def __init__(self, net: nn.Module, cfg: DiffusionConfig, latent: bool = False):
         super().__init__()
         self.net = net
         self.cfg = cfg
+        self.latent = latent  # x0 and the condition are an autoencoder's latents: the condition noise is not clamped
         net_cfg = getattr(net, "cfg", None)
         self.most = bool(getattr(net_cfg, "most", False))  # the net has MoST blocks: gate noise and the CV term
         if net_cfg is not None:  # catch a net built for another stage before the first step, not at step 1
-            want_mask, want_cond, want_tasks = net_heads(cfg.stage)
+            want_mask, want_cond, want_tasks = net_heads(cfg.stage, net_cfg.in_channels)
             if bool(net_cfg.mask_head) != want_mask:
                 raise InputError(f"diffusion.stage={cfg.stage} needs net.mask_head={str(want_mask).lower()}")
             if net_cfg.cond_channels != want_cond:
@@ -199,9 +207,10 @@ class GaussianDiffusion(nn.Module):
             bce_target = m_u[ones]
         lam, alpha, sigma, eps, x_t = _diffuse(x0, self.cfg.train_t_max, generator)
         if stage in ("stage2", "u4d") and self.cfg.cond_noise > 0:  # drawn after t and ε: runs without it unchanged
-            net_cond = stage_cond(noisy_condition(cond, m_u, self.cfg.cond_noise, generator), m_u)
+            noisy = noisy_condition(cond, m_u, self.cfg.cond_noise, generator, clamp=not self.latent)
+            net_cond = stage_cond(noisy, m_u)
         if stage == "u4d":
-            net_cond = torch.cat([empty_condition(net_cond[ones]), net_cond[rest]])
+            net_cond = torch.cat([empty_condition(x0[ones]), net_cond[rest]])
         if self.cfg.input_perturbation > 0:  # drawn last: runs without it draw exactly what they drew before
             x_t = x_t + sigma * self.cfg.input_perturbation * _randn_like(x_t, generator)
         kwargs = _net_kwargs(crop_offsets, poses, task, self.most, generator)

@@ -7,6 +7,7 @@ checkpoint kinds and is the only one that knows their loaders (an extractor's ha
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -14,6 +15,7 @@ from pathlib import Path
 from u4d_aug.batches import net_row_mean
 from u4d_aug.errors import InputError
 from u4d_aug.io import TEMP_PREFIX, TEMP_SUFFIX, atomic_torch_save, file_sha256, load_checkpoint, make_folder
+from u4d_aug.latent import load_latent_autoencoder, to_latent
 from u4d_aug.metrics.extractors import load_extractor
 from u4d_aug.pipeline import load_generator
 from u4d_aug.run import newest_checkpoint
@@ -51,11 +53,16 @@ def checkpoint_file(path: Path) -> Path:
 def training_row_mean(
     state: dict, source: Path, data_root: str = "", probs_root: str = "", role: str | None = None
 ) -> dict | None:
-    """A diffusion stage's `row_mean` entry (`u4d_aug.weights`): `batches.net_row_mean` of its training checkpoint;
-    None (and a warning) when its training scans cannot be read, as then `u4d generate mean_start_below=...` reads
-    them itself."""
+    """A diffusion stage's `row_mean` entry (`u4d_aug.weights`): `batches.net_row_mean` of its training checkpoint (a
+    latent generator's: of its training latents); None (and a warning) when its training scans cannot be read, as
+    then `u4d generate mean_start_below=...` reads them itself."""
     try:
-        mean, found = net_row_mean(config_from_checkpoint(state, str(source)), data_root, probs_root, role)
+        cfg = config_from_checkpoint(state, str(source))
+        encode = None
+        if cfg.autoencoder:  # a latent generator's mean start is the mean of its training latents
+            autoencoder = load_latent_autoencoder(cfg)
+            encode = functools.partial(to_latent, autoencoder)
+        mean, found = net_row_mean(cfg, data_root, probs_root, role, encode)
     except (InputError, OSError) as exc:
         logger.warning("%s: no row_mean stored, its training scans cannot be read (%s); see --data-root", source, exc)
         return None
@@ -121,6 +128,11 @@ def export_weights(
     return exported
 
 
+def _mean_name(entry: dict) -> str:
+    """'x0', or 'x0 latents' for a latent generator's stored mean."""
+    return entry["key"] + (" latents" if entry.get("source", {}).get("latent") else "")
+
+
 def check_loads_back(
     out: Path, exported: dict, kind: str, source: Path, load_segmentor: Callable[[Path], object] | None
 ) -> None:
@@ -175,6 +187,6 @@ def run_export_weights(args: argparse.Namespace, load_segmentor: Callable[[Path]
     print(
         f"{exported['kind']} weights: {args.out} ({size / 1e6:.2f} MB; checkpoint {before / 1e6:.2f} MB), "
         f"hash {exported['hash']}, step {exported['trained']['step']}"
-        + (f", row mean of {exported['row_mean']['key']}" if "row_mean" in exported else "")
+        + (f", row mean of {_mean_name(exported['row_mean'])}" if "row_mean" in exported else "")
     )
     return 0

@@ -61,7 +61,9 @@ from u4d_aug.distributed import DistInfo, barrier, cleanup, init_distributed, sh
 from u4d_aug.errors import InputError
 from u4d_aug.export_bank import export_bank
 from u4d_aug.io import append_jsonl, load_checkpoint, remove_temp_files
+from u4d_aug.latent import autoencoder_of, to_latent
 from u4d_aug.memory import check_fits
+from u4d_aug.nn.autoencoder import RangeAutoencoder
 from u4d_aug.outfolder import check_output_folder
 from u4d_aug.pipeline import (
     Loaded,
@@ -315,7 +317,7 @@ def _load_nets(cfg: GenerateConfig, paths: dict[str, Path], device: torch.device
     mean_sources = {}
     if cfg.mean_start_below is not None:
         for name, (net, net_cfg) in list(nets.items()):
-            mean, mean_sources[name] = training_mean(net_cfg, name, cfg, paths[name])  # name: the role
+            mean, mean_sources[name] = training_mean(net_cfg, name, cfg, paths[name], autoencoder_of(net))
             nets[name] = (MeanStart(net, mean.to(device), cfg.mean_start_below), net_cfg)
     return nets, mean_sources
 
@@ -582,16 +584,30 @@ def _real_sample_condition(
     return x0_u, m_u, entropy_image, (item["poses"] if frames > 1 else None)
 
 
-def training_mean(net_cfg: DiffusionTrainConfig, name: str, cfg: GenerateConfig, path: Path) -> tuple[Tensor, dict]:
-    """(C, H, 1) per-row mean of a net's training images (`batches.net_row_mean`) and where it came from: read from
-    mean_data_root when set, else the one stored in its weights file `path` (`u4d export-weights`), else read from
-    the training scans its config names; an InputError naming the keys to set when none of these is there."""
+def training_mean(
+    net_cfg: DiffusionTrainConfig,
+    name: str,
+    cfg: GenerateConfig,
+    path: Path,
+    autoencoder: RangeAutoencoder | None = None,
+) -> tuple[Tensor, dict]:
+    """(C, H, 1) per-row mean of a net's training images (`batches.net_row_mean`; `name` is the role) and where it
+    came from: read from mean_data_root when set, else the one stored in its weights file `path` (`u4d
+    export-weights`), else read from the training scans its config names; an InputError naming the keys to set when
+    none of these is there. A latent generator's (its `autoencoder` given) is the mean of its latents, (C_z, h, 1)."""
     if not cfg.mean_data_root and not Path(path).is_dir():
         stored = stored_mean(load_checkpoint(Path(path), "diffusion checkpoint"), net_cfg, name, str(path))
         if stored is not None:
             return stored[0], {**stored[1], "stored_in": str(path)}
+    encode = None
+    if autoencoder is not None:
+        device = next(autoencoder.parameters()).device
+
+        def encode(images: Tensor) -> Tensor:
+            return to_latent(autoencoder, images.to(device)).cpu()
+
     try:
-        return net_row_mean(net_cfg, cfg.mean_data_root, cfg.mean_probs_root, name)
+        return net_row_mean(net_cfg, cfg.mean_data_root, cfg.mean_probs_root, name, encode)
     except (InputError, OSError) as exc:
         raise InputError(
             f"mean_start_below: the {name} net's mean image is read from its training scans ({exc}); set "

@@ -27,7 +27,15 @@ from u4d_aug.diffusion import STAGE1_TASK, STAGE2_TASK, empty_condition, eps_fro
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.io import load_checkpoint
-from u4d_aug.nn.unet import RangeUNet
+from u4d_aug.latent import (
+    LatentNet,
+    autoencoder_of,
+    from_latent,
+    latent_mask,
+    load_latent_autoencoder,
+    pixel_mask,
+    to_latent,
+)
 from u4d_aug.propagate import warp_frame0
 from u4d_aug.range_view import RowMode, unproject
 from u4d_aug.run import newest_checkpoint
@@ -49,7 +57,7 @@ class LoadedGenerator(NamedTuple):
     `net, config = ...`. A net from exported weights also holds the training means they store (`stored_mean`) as
     buffers `row_mean_<role>`, which the mean start (`SamplingSettings.mean_start_below`) starts from."""
 
-    net: RangeUNet
+    net: nn.Module  # a RangeUNet, or a LatentNet (the net and its autoencoder) for a latent generator
     config: DiffusionTrainConfig
 
 
@@ -82,7 +90,10 @@ def load_generator(ckpt: str | Path, device: torch.device | str = "cpu") -> Load
         for name, tensor in net.state_dict().items():  # a diverged run's EMA would sample NaN scans
             if tensor.is_floating_point():
                 check_finite_weight(tensor, name, f"{path} (ema)")
-    return LoadedGenerator(net.requires_grad_(False).to(device).eval(), cfg)
+    loaded: nn.Module = net
+    if cfg.autoencoder:  # a latent generator samples latents and decodes them with its autoencoder
+        loaded = LatentNet(net, load_latent_autoencoder(cfg, "cpu", base=path.parent))
+    return LoadedGenerator(loaded.requires_grad_(False).to(device).eval(), cfg)
 
 
 def _roles(cfg: DiffusionTrainConfig) -> tuple[str, ...]:
@@ -100,10 +111,12 @@ def stored_mean(state: dict, cfg: DiffusionTrainConfig, role: str, source: str) 
         return None
     mean, info = stored
     key = row_mean_key(cfg, role)
-    if info.get("key") != key or mean.shape[1] != cfg.height:
+    rows = cfg.height // (cfg.latent_factor or 1)  # a latent generator's is the mean of its latents
+    if info.get("key") != key or mean.shape[1] != rows or bool(cfg.latent_factor) != bool(info.get("latent")):
+        what = "latent " if cfg.latent_factor else ""
         raise InputError(
-            f"{source}: row_mean: expected the {key} mean of {cfg.height} rows, got {info.get('key')} "
-            f"of shape {tuple(mean.shape)}"
+            f"{source}: row_mean: expected the {key} {what}mean of {rows} rows, got {info.get('key')} "
+            f"of shape {tuple(mean.shape)}{' (latent)' if info.get('latent') else ''}"
         )
     return mean, info
 
@@ -132,7 +145,8 @@ class MeanStart(nn.Module):
 def with_mean_start(loaded: Loaded, role: str, settings: SamplingSettings) -> Loaded:
     """`loaded` in a `MeanStart` of the training mean its weights file stores for `role` (the net's buffer
     `row_mean_<role>`, `load_generator`) when settings.mean_start_below is set; as it is when that is None or its
-    net is already in a MeanStart; an InputError naming the way out for a net without a stored mean."""
+    net is already in a MeanStart; a latent generator without a stored mean starts from the zero latent (its
+    latents are normalised to zero mean per channel); an InputError naming the way out for another net without one."""
     if not isinstance(settings, SamplingSettings):
         raise InputError(
             f"settings: expected a SamplingSettings (sampler, steps, ...: u4d_aug.SamplingSettings(steps=8)), "
@@ -142,7 +156,10 @@ def with_mean_start(loaded: Loaded, role: str, settings: SamplingSettings) -> Lo
     below = settings.mean_start_below
     if below is None or isinstance(net, MeanStart):
         return loaded
-    mean = dict(net.named_buffers(recurse=False)).get(f"row_mean_{role}")
+    holder = net.net if isinstance(net, LatentNet) else net  # the stored means are buffers of the diffusion net
+    mean = dict(holder.named_buffers(recurse=False)).get(f"row_mean_{role}")
+    if mean is None and autoencoder_of(net) is not None:  # the latents are normalised to zero mean per channel
+        mean = torch.zeros(cfg.net.in_channels, cfg.height // cfg.latent_factor, 1)
     if mean is None:
         raise InputError(
             f"mean_start_below={below}: this {cfg.diffusion.stage} net has no stored training mean for {role} (only "
@@ -214,12 +231,14 @@ def _sample(
     (*batch, 1, H, W)) pins x̂0 where mask is 1 (`replace_known`); `task`: which stage a u4d net runs."""
     net, cfg = loaded
     device = next(net.parameters()).device
-    shape = (*batch_shape, cfg.net.in_channels, cfg.height, cfg.width)
+    factor = cfg.latent_factor or 1  # a latent generator samples its autoencoder's latent
+    shape = (*batch_shape, cfg.net.in_channels, cfg.height // factor, cfg.width // factor)
     denoise = denoiser(loaded, batch_shape, motion, task)
     if known is not None:
         denoise = replace_known(denoise, known[0].to(device), known[1].to(device))
+    clip = autoencoder_of(net) is None  # x̂0 of a range image lies in [-1, 1]; a latent's is unbounded
     return sample_named(
-        settings.sampler, denoise, shape, steps, generator, cond=cond, device=device, grid=settings.grid
+        settings.sampler, denoise, shape, steps, generator, cond=cond, device=device, grid=settings.grid, clip=clip
     )
 
 
@@ -284,10 +303,16 @@ def generate_stage1(
     shape = _batch_shape(n, frames or cfg.frames)
     steps = settings.stage1_steps or settings.steps
     sample = _sample(stage1, shape, steps, generator, None, settings, motion, task=STAGE1_TASK)
-    m_u = mask_from_logits(sample.extra, cfg.diffusion.mask_pos_weight)  # (n, [L,] 1, H, W), last step
+    x0, logits = sample.x0, sample.extra
+    autoencoder = autoencoder_of(stage1[0])
+    if autoencoder is not None:  # a latent stage 1: its image decoded, its mask head's logits on the f x f pixels
+        x0, logits = from_latent(autoencoder, x0), pixel_mask(logits, cfg.latent_factor)
+    m_u = mask_from_logits(logits, cfg.diffusion.mask_pos_weight)  # (n, [L,] 1, H, W), last step
+    if autoencoder is not None:  # P_u is a set of points: the mask keeps the decoded returns only
+        m_u = m_u * (x0[..., :1, :, :] > -1.0).to(m_u.dtype)
     if settings.stage1_mask_fraction is not None:
-        m_u = cap_mask(m_u, sample.extra, settings.stage1_mask_fraction)
-    x0_u = torch.where(m_u.bool(), sample.x0, torch.full_like(sample.x0, -1.0))
+        m_u = cap_mask(m_u, logits, settings.stage1_mask_fraction)
+    x0_u = torch.where(m_u.bool(), x0, torch.full_like(x0, -1.0))
     return {"x0_u": x0_u, "m_u_pred": m_u}
 
 
@@ -318,11 +343,21 @@ def complete(
             f"(B, [L,] 1, H, W), got x0_u {tuple(x0_u.shape)}, m_u {tuple(m_u.shape)}"
         )
     device = next(net.parameters()).device
-    cond = stage_cond(x0_u.to(device), m_u.to(device))  # (B, [L,] 3, H, W)
-    known = (x0_u, m_u) if pin_known else None
+    x0_u, m_u = x0_u.to(device), m_u.to(device)
+    autoencoder = autoencoder_of(net)
+    if autoencoder is None:
+        cond = stage_cond(x0_u, m_u)  # (B, [L,] 3, H, W)
+        known = (x0_u, m_u) if pin_known else None
+    else:  # a latent stage 2 reads (z_u, m_u on the latent); pinned pixels are pinned in the decoded scan
+        cond = stage_cond(to_latent(autoencoder, x0_u), latent_mask(m_u, cfg.latent_factor))
+        known = None
     batch_shape = tuple(x0_u.shape[:-3])
     sample = _sample(stage2, batch_shape, settings.steps, generator, cond, settings, motion, known, STAGE2_TASK)
-    return {"x0": sample.x0, "x0_u": x0_u, "m_u": m_u}
+    x0 = sample.x0
+    if autoencoder is not None:
+        x0 = from_latent(autoencoder, x0)
+        x0 = torch.where(m_u.bool().expand_as(x0), x0_u, x0) if pin_known else x0
+    return {"x0": x0, "x0_u": x0_u, "m_u": m_u}
 
 
 def generate_u4d(
@@ -407,7 +442,9 @@ def generate_baseline(
     net = with_mean_start(net, "baseline", settings)
     _, cfg = net
     shape = _batch_shape(n, frames or cfg.frames)
-    return {"x0": _sample(net, shape, settings.steps, generator, None, settings, motion).x0}
+    x0 = _sample(net, shape, settings.steps, generator, None, settings, motion).x0
+    autoencoder = autoencoder_of(net[0])
+    return {"x0": x0 if autoencoder is None else from_latent(autoencoder, x0)}
 
 
 def generate_baseline_propagated(
@@ -444,6 +481,11 @@ def inpaint(
     (`replace_known`, RePaint-style without resampling) and x0_u exactly there; the single-stage counterpart of
     `complete`, with `settings` as `generate_baseline` reads them."""
     _check_stage(net, "baseline", "baseline")
+    if autoencoder_of(net[0]) is not None:
+        raise InputError(
+            "inpainting (the baseline's completion and propagated sequences) pins pixels at every sampler step; a "
+            "latent baseline has no pixels while it samples: use a range-image baseline"
+        )
     net = with_mean_start(net, "baseline", settings)
     _, cfg = net
     if (

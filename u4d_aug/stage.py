@@ -107,11 +107,16 @@ class DiffusionTrainConfig:
     # a trained net of the same stage (checkpoint, run folder or exported weights) whose EMA weights start this run
     # at step 0 (fine-tuning); what this net adds to it (MoST blocks, the pose embedding) starts as the identity
     init_from: str = ""
+    # latent diffusion (LiDM): the `u4d train-autoencoder` weights (OUT/autoencoder.pt) whose latents the net learns,
+    # and their factor f (the latent is H/f x W/f; net.in_channels = net.out_channels = its latent channels); the
+    # range images above are encoded once per step, samples are decoded back; "" / 0 = the net learns range images
+    autoencoder: str = ""
+    latent_factor: int = 0
 
     def __post_init__(self) -> None:
         # a new net config, not an edit of the given one: a config copied with another stage (dataclasses.replace)
         # shares its net config with the original, whose net may already be built from it
-        mask_head, cond_channels, num_tasks = net_heads(self.diffusion.stage)
+        mask_head, cond_channels, num_tasks = net_heads(self.diffusion.stage, self.net.in_channels)
         self.net = dataclasses.replace(self.net, mask_head=mask_head, cond_channels=cond_channels, num_tasks=num_tasks)
         if self.data_format not in DATASET_FORMATS:
             raise InputError(f"data_format must be one of {', '.join(DATASET_FORMATS)}, got {self.data_format!r}")
@@ -143,6 +148,24 @@ class DiffusionTrainConfig:
             raise InputError(
                 "key 'propagated_share': the propagated condition is stage 2's on windows of frames >= 2, got "
                 f"stage {self.diffusion.stage} with frames={self.frames}"
+            )
+        if bool(self.autoencoder) != (self.latent_factor > 0) or self.latent_factor < 0:
+            raise InputError(
+                "autoencoder and latent_factor: a latent generator sets both (the autoencoder's weights and its factor "
+                f"f >= 1), a range-image one neither; got autoencoder={self.autoencoder!r}, "
+                f"latent_factor={self.latent_factor}"
+            )
+        if self.latent_factor and self.propagated_share > 0:
+            raise InputError(
+                "propagated_share: the propagated condition is warped in range images; a latent generator "
+                "(latent_factor > 0) trains on P_u only"
+            )
+        if self.latent_factor and (
+            self.height % self.latent_factor or self.width % self.latent_factor or self.crop_width
+        ):
+            raise InputError(
+                f"latent_factor {self.latent_factor}: height/width {self.height}x{self.width} must be multiples of it, "
+                f"and crop_width 0 (the latent is learnt on the full ring), got crop_width={self.crop_width}"
             )
         check_finite_config(self)
         check_positive(self, "log_every", "checkpoint_every", "sample_steps")
@@ -181,8 +204,12 @@ def _yaml_scalar(value: object) -> str:
 
 
 def build_net(cfg: DiffusionTrainConfig, device: torch.device | str = "cpu") -> RangeUNet:
-    """RangeUNet of the config (initialised from cfg.seed), with the ray angles of its sensor for Fourier features."""
+    """RangeUNet of the config (initialised from cfg.seed), with the ray angles of its sensor for Fourier features;
+    a latent generator's are the mean angles of the f x f pixels of each latent pixel."""
     elevation, azimuth = ray_angles(get_sensor(cfg.sensor), cfg.height, cfg.width, cfg.row_mode)
+    if cfg.latent_factor:
+        elevation = elevation.view(-1, cfg.latent_factor).mean(dim=1)
+        azimuth = azimuth.view(-1, cfg.latent_factor).mean(dim=1)
     with torch.random.fork_rng(devices=[]):  # seeded init without touching the caller's global RNG
         torch.manual_seed(cfg.seed)
         net = RangeUNet(cfg.net, elevation.float(), azimuth.float())

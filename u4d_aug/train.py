@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import logging
 import math
 import time
@@ -31,6 +32,7 @@ from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, cleanup, ini
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.io import append_jsonl
+from u4d_aug.latent import LatentNet, encode_item, load_latent_autoencoder
 from u4d_aug.memory import check_net_fits
 from u4d_aug.nn.unet import RangeUNet
 from u4d_aug.progress import progress_bar
@@ -78,11 +80,13 @@ def train_locked(cfg: DiffusionTrainConfig, info: DistInfo, resume: str | Path |
     """The run of `train` once OUT is locked: set-up, loop, log, checkpoint, done."""
     out = Path(cfg.out)
     start = open_run(out, resume, info.is_main, CHECKPOINT_KIND, "u4d train-diffusion")
-    images = RangeImages(cfg)
+    autoencoder = load_latent_autoencoder(cfg, info.device) if cfg.autoencoder else None  # a latent generator's
+    encode = functools.partial(encode_item, autoencoder, cfg.latent_factor) if autoencoder is not None else None
+    images = RangeImages(cfg, encode)  # a latent generator learns the latents of the range images
     net = build_net(cfg, info.device)
     if start.checkpoint is None and cfg.init_from:  # a resumed run has its own weights
         start_from(net, cfg, info.is_main)
-    diffusion = GaussianDiffusion(net, cfg.diffusion)
+    diffusion = GaussianDiffusion(net, cfg.diffusion, latent=autoencoder is not None)
     optim = cfg.optim
     optimizer = torch.optim.AdamW(net.parameters(), lr=optim.lr, betas=optim.betas, weight_decay=optim.weight_decay)
     ema = EMA(net, cfg.ema_decay, cfg.ema_warmup_steps)
@@ -187,8 +191,10 @@ def save_figures(
     device: torch.device,
 ) -> None:
     """FOLDER/step_XXXXXXX.png, a sample of the EMA net, and with MoST blocks FOLDER/gates_XXXXXXX.png."""
-    sampler_net = build_net(cfg, device).eval()
+    sampler_net: nn.Module = build_net(cfg, device).eval()
     ema.copy_to(sampler_net)
+    if cfg.autoencoder:
+        sampler_net = LatentNet(sampler_net, load_latent_autoencoder(cfg, device))
     _save_sample_png(sampler_net, cfg, images, folder / f"step_{step:07d}.png")
     if gates:
         _save_gate_png(net, gates, step, folder / f"gates_{step:07d}.png")
@@ -235,7 +241,7 @@ def check_source_recipe(source_cfg: DiffusionTrainConfig, cfg: DiffusionTrainCon
     return differs
 
 
-def _save_sample_png(net: RangeUNet, cfg: DiffusionTrainConfig, images: RangeImages, path: Path) -> None:
+def _save_sample_png(net: nn.Module, cfg: DiffusionTrainConfig, images: RangeImages, path: Path) -> None:
     """An ancestral DDPM sample of the EMA net (stage 2: completing the first item's x0_u) as a PNG, L depth rows."""
     import matplotlib.pyplot as plt
 
@@ -257,7 +263,7 @@ def _save_sample_png(net: RangeUNet, cfg: DiffusionTrainConfig, images: RangeIma
     if cfg.diffusion.stage == "u4d":
         x0 = pipeline.generate_u4d((net, cfg), (net, cfg), 1, generator, ddpm, motion=motion)["x0"]
     elif cfg.diffusion.stage == "stage2":
-        first = images[0]
+        first = RangeImages(cfg)[0] if images.encode is not None else images[0]  # complete() takes range images
         x0_u, m_u = first["x0_u"][None].to(device), first["m_u"][None].to(device)
         motion = first["motion"][None] if "motion" in first else None  # the window's own
         x0 = pipeline.complete((net, cfg), x0_u, m_u, generator, ddpm, motion=motion)["x0"]

@@ -65,3 +65,38 @@ def test_bad_input_is_one_line(world, tmp_path, capsys):
         assert gates.main(base + extra + ["--work", str(tmp_path / "w")]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("error:") and named in err and "\n" not in err, err
+
+
+def _autoencoder(path, seed):
+    """An untrained tiny autoencoder for 64x1024 HDL-64E beam-row images (the gates' geometry)."""
+    from u4d_aug.autoencoder_stage import AutoencoderTrainConfig, build_autoencoder, save_autoencoder
+    from u4d_aug.nn.autoencoder import AutoencoderConfig
+
+    cfg = AutoencoderTrainConfig(ae=AutoencoderConfig(base_channels=8, channel_multipliers=(1, 2), z_channels=4,
+                                                      gn_groups=4))  # fmt: skip
+    save_autoencoder(path, build_autoencoder(cfg.ae, seed), cfg)
+    return path
+
+
+def test_the_real_scans_through_an_autoencoder_are_a_row_of_their_own(world, tmp_path):
+    first, second = _autoencoder(tmp_path / "a.pt", 0), _autoencoder(tmp_path / "b.pt", 1)
+    work = tmp_path / "work"
+    argv = ["--real", str(world["root"]), "--real-sequences", "00-01", "--num", "2", "--metrics", "bev_density",
+            "--work", str(work), "--autoencoder", f"a={first}", "--autoencoder", f"b={second}",
+            "--out", str(tmp_path / "g.json")]  # fmt: skip
+    assert gates.main(argv) == 0
+    result = json.loads((tmp_path / "g.json").read_text())
+    assert list(result["rows"])[3:] == ["real autoencoded (a)", "real autoencoded (b)"]
+    assert result["autoencoders"] == {"a": str(first), "b": str(second)}
+    assert result["rows"]["real autoencoded (a)"]["scans"] == 2
+    folders = sorted(p.name for p in work.glob("real_ae_*"))
+    assert len(folders) == 2  # one per autoencoder file: a retrained one never reuses another's scans
+    assert "| real autoencoded (a) |" in (tmp_path / "g.md").read_text()
+
+
+def test_an_autoencoder_that_is_not_a_file_is_one_line(world, tmp_path, capsys):
+    argv = ["--real", str(world["root"]), "--real-sequences", "00-01", "--autoencoder", f"a={tmp_path}",
+            "--work", str(tmp_path / "w"), "--out", str(tmp_path / "g.json")]  # fmt: skip
+    assert gates.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "NAME=FILE" in err and "\n" not in err

@@ -53,7 +53,7 @@ def test_u4d_net_has_both_heads_and_the_stage_embedding_changes_its_output(tiny_
     assert (cfg.net.mask_head, cfg.net.cond_channels, cfg.net.num_tasks) == (True, 3, 2)
     net = _perturbed(build_net(cfg)).eval()
     x_t = torch.randn(2, 2, cfg.height, cfg.width, generator=torch.Generator().manual_seed(0))
-    cond = empty_condition(torch.zeros(2, 3, cfg.height, cfg.width))
+    cond = empty_condition(torch.zeros(2, 2, cfg.height, cfg.width))
     lam = torch.zeros(2)
     with torch.no_grad():
         eps1, mask1 = net(x_t, lam, cond, task=STAGE1_TASK)
