@@ -16,7 +16,7 @@ NAME=${NAME:?set NAME, the pilot folder under RUNS/latent}
 METHOD=${METHOD:?set METHOD=u4d, baseline or both}
 STEPS=${STEPS:-4000}
 SEGMENT=${SEGMENT:-2000}
-read -r -a EXTRA <<< "${EXTRA:-}"
+read -r -a extra <<< "${EXTRA:-}"
 F=$RUNS/latent/$NAME
 if [ "$METHOD" = both ]; then
   for ((target = SEGMENT; target <= STEPS; target += SEGMENT)); do
@@ -31,14 +31,15 @@ last_step() {  # the last logged step of run folder $1 (0 before its first log l
   tail -n 1 "$1/log.jsonl" | python3 -c "import sys,json; print(json.loads(sys.stdin.read() or '{}').get('step', 0))"
 }
 resume_flag() { if ls "$1"/checkpoints/step_*.pt > /dev/null 2>&1; then echo --resume; fi; }
+if [ "$METHOD" = u4d ]; then stage=(stage=u4d diffusion.cond_noise=0.1); else stage=(stage=baseline); fi
 run=$F/$METHOD
 milestones=$F/${METHOD}_milestones
 mkdir -p "$milestones"
 for ((target = SEGMENT; target <= STEPS; target += SEGMENT)); do
   weights=$milestones/step_$target.pt
   if [ "$(last_step "$run")" -lt "$target" ]; then
-    u4d train-diffusion configs/u4d/latent_hdl64.yaml "steps=$target" "stage=$METHOD" "autoencoder=$AE" \
-      ${EXTRA[@]+"${EXTRA[@]}"} --out "$run" --no-progress $(resume_flag "$run")
+    u4d train-diffusion configs/u4d/latent_hdl64.yaml "steps=$target" "${stage[@]}" "autoencoder=$AE" \
+      ${extra[@]+"${extra[@]}"} --out "$run" --no-progress $(resume_flag "$run")
   fi
   [ -f "$weights" ] || { [ "$(last_step "$run")" = "$target" ] && u4d export-weights "$run" --out "$weights"; }
   bank=$milestones/bank_$target
@@ -51,7 +52,7 @@ for ((target = SEGMENT; target <= STEPS; target += SEGMENT)); do
         batch_size=4 --no-progress
     fi
   fi
-  [ -f "$milestones/gates_$target.json" ] || python3 benchmarks/gates.py --bank "${METHOD}_$target=$bank" \
+  [ -f "$milestones/gates_$target.json" ] || "${PY:-python3}" benchmarks/gates.py --bank "${METHOD}_$target=$bank" \
     --autoencoder "ae=$AE" --real data/sim_eval --real-sequences 00-11 --num 16 --work "$F/gates_work" \
     --out "$milestones/gates_$target.json" > /dev/null
 done
