@@ -205,3 +205,32 @@ def test_a_run_stopped_by_its_time_budget_leaves_its_weights(world, tmp_path):
     assert record["step"] == 1  # the budget was used after the first step
     loaded, _ = load_autoencoder(tmp_path / "budget")
     assert (tmp_path / "budget" / "reconstruction.png").is_file() and not loaded.training
+
+
+def test_two_process_training_equals_two_ranks_in_one_process(world, tmp_path):
+    from tests.tiny_nets import torchrun
+    from u4d_aug.train import learning_rate
+
+    out = tmp_path / "ddp"
+    torchrun("-m", "u4d_aug.cli", "train-autoencoder", str(PRESET), *overrides(world, "steps=2", "log_every=1"),
+             "--out", str(out), "--no-progress")  # fmt: skip
+    assert [r["step"] for r in read_jsonl(out / "log.jsonl")] == [1, 2]  # rank 0 logs once per logging step
+    ckpt = torch.load(out / "checkpoints" / "step_0000002.pt", weights_only=True)
+    cfg = tiny_config(world, out, "steps=2")
+    images = image_source(cfg)
+    net = build_autoencoder(cfg.ae, cfg.seed)
+    optimizer = torch.optim.AdamW(net.parameters(), lr=cfg.optim.lr, betas=cfg.optim.betas,
+                                  weight_decay=cfg.optim.weight_decay)  # fmt: skip
+    for step in range(2):
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate(step, cfg.optim, cfg.steps)
+        optimizer.zero_grad(set_to_none=True)
+        for rank in range(2):  # DDP's gradient is the mean of the ranks'
+            x, generator = training_images(images, cfg, step, rank, CPU)
+            loss = net(x, generator, cfg.kl_weight, cfg.mask_weight, column_weight(cfg, CPU), cfg.value_weights)
+            (loss["loss"] / 2).backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.optim.grad_clip)
+        optimizer.step()
+    for name, value in net.state_dict().items():
+        torch.testing.assert_close(ckpt["model"][name], value, rtol=1e-5, atol=1e-6, msg=name)
+    assert (out / "autoencoder.pt").is_file()
