@@ -11,6 +11,7 @@ import pytest
 from segmentation.config import SegTrainConfig
 from segmentation.experiment import ExperimentConfig, run_config
 from tests.tiny_nets import REPO
+from u4d_aug.autoencoder_stage import AutoencoderTrainConfig
 from u4d_aug.config import load_config
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.data.sim.config import SimConfig
@@ -35,6 +36,8 @@ def config_class(path: Path) -> type:
     elif folder == "extractor":
         return ExtractorConfig
     elif folder == "u4d":
+        if path.stem.startswith("autoencoder"):
+            return AutoencoderTrainConfig
         return GenerateConfig if path.stem.startswith("generate") else DiffusionTrainConfig
     raise AssertionError(f"{path}: no config class known for folder {folder!r}; add it to config_class")
 
