@@ -135,9 +135,10 @@ def projected_points(bank: Path, geometry: dict) -> float:
     return float(np.mean(counts))
 
 
-def projected_bank(bank: Path, geometry: dict, out: Path) -> Path:
+def projected_bank(bank: Path, geometry: dict, out: Path, through=None) -> Path:
     """`bank`'s scans as a generator makes its own: projected to its range image, encoded, unprojected at the
-    bin-centre rays (`range_view.project` -> `to_image` -> `pipeline.to_points`), one folder in SemanticKITTI layout."""
+    bin-centre rays (`range_view.project` -> `to_image` -> `pipeline.to_points`), one folder in SemanticKITTI layout;
+    `through` (images (1, 2, H, W) -> images) changes each range image before it is unprojected."""
     sensor = get_sensor(geometry["sensor"])
     paths = sorted(bank.glob("sequences/*/velodyne/*.bin"))
     if not paths:
@@ -149,13 +150,14 @@ def projected_bank(bank: Path, geometry: dict, out: Path) -> Path:
                 read_kitti_scan(path), sensor, geometry["height"], geometry["width"], geometry["row_mode"]
             )
             image = to_image(projection, sensor)[None]  # (1, 2, H, W)
+            image = image if through is None else through(image)
             write_kitti_scan(target, to_points(image, sensor, geometry["row_mode"])[0])
     return out
 
 
 def autoencoded_bank(bank: Path, autoencoder_path: Path, geometry: dict, out: Path) -> Path:
-    """`bank`'s scans through a latent generator's autoencoder: projected to the range image, encoded to the latent,
-    decoded and unprojected (the best a latent generator with it can do), one folder in SemanticKITTI layout."""
+    """`bank`'s scans through a latent generator's autoencoder (`projected_bank` with the range image encoded to the
+    latent and decoded): the best a latent generator with it can do."""
     import torch
 
     from u4d_aug.autoencoder_stage import load_autoencoder
@@ -168,21 +170,12 @@ def autoencoded_bank(bank: Path, autoencoder_path: Path, geometry: dict, out: Pa
             f"{autoencoder_path}: trained on {ae_cfg.sensor} {ae_cfg.height}x{ae_cfg.width} ({ae_cfg.row_mode}) "
             f"images; this score uses {geometry}"
         )
-    sensor = get_sensor(geometry["sensor"])
-    paths = sorted(bank.glob("sequences/*/velodyne/*.bin"))
-    if not paths:
-        raise InputError(f"{bank}: no scans to encode")
-    for path in paths:
-        target = out / path.relative_to(bank)
-        if not target.exists():
-            projection = project(
-                read_kitti_scan(path), sensor, geometry["height"], geometry["width"], geometry["row_mode"]
-            )
-            image = to_image(projection, sensor)[None]  # (1, 2, H, W)
-            with torch.no_grad():
-                decoded = autoencoder.from_latent(autoencoder.to_latent(image))
-            write_kitti_scan(target, to_points(decoded, sensor, geometry["row_mode"])[0])
-    return out
+
+    @torch.no_grad()
+    def through(image):
+        return autoencoder.from_latent(autoencoder.to_latent(image))
+
+    return projected_bank(bank, geometry, out, through)
 
 
 def parse_bench_metrics(text: str) -> tuple[str, ...]:

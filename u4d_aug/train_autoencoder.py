@@ -25,7 +25,7 @@ from u4d_aug.autoencoder_stage import (
     build_autoencoder,
     save_autoencoder,
 )
-from u4d_aug.batches import RangeImages, batch_indices, crop_batch, make_batch
+from u4d_aug.batches import RangeImages, batch_indices, crop_batch, crop_loss_weight, make_batch
 from u4d_aug.config import add_run_arguments, load_config
 from u4d_aug.diffusion import DiffusionConfig
 from u4d_aug.distributed import DistInfo, all_reduce_mean, barrier, cleanup, init_distributed
@@ -148,13 +148,9 @@ def _train_locked(cfg: AutoencoderTrainConfig, info: DistInfo, resume: str | Pat
 
 
 def column_weight(cfg: AutoencoderTrainConfig, device: torch.device) -> Tensor | None:
-    """(crop_width,) weights of the loss per column: 0 on the crop's margins, else 1 (None: no margin)."""
-    if not (cfg.crop_width and cfg.crop_margin):
-        return None
-    weight = torch.ones(cfg.crop_width, device=device)
-    weight[: cfg.crop_margin] = 0.0
-    weight[-cfg.crop_margin :] = 0.0
-    return weight
+    """(crop_width,) weights of the loss per column: 0 on the crop's margins, else 1 (None: no crop or no margin);
+    `batches.crop_loss_weight` of the crop."""
+    return crop_loss_weight(cfg, device) if cfg.crop_width else None  # type: ignore[arg-type]
 
 
 def statistic_images(images: RangeImages, cfg: AutoencoderTrainConfig) -> Tensor:
