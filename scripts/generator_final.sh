@@ -3,18 +3,28 @@
 # (scripts/generator_pilots.sh, benchmarks/results/generation/pilots.md): one U4D net for both stages and the
 # R2DM-style baseline, the same net size, batch and step budget, the plain ε-loss (no min-SNR weighting), constant lr.
 # Each run trains in segments of SEGMENT steps up to STEPS; after each segment its EMA weights are exported
-# (RUNS/final/NAME_milestones/step_N.pt) and scored like the pilots (16 scans: the gates and the denoising probe), so
-# the learning curve (FPD and the teacher's building share against the step) grows as it trains. Resumable; one core each:
+# (RUNS/NAME/METHOD_milestones/step_N.pt), 16 scans generated (both stages 20 steps of DPM-Solver++(2M) SDE, the mean
+# start) and scored by benchmarks/gates.py against held-out places, so the learning curve (FPD and the teacher's
+# building share against the step) grows as it trains. Resumable; one core each:
 #   METHOD=u4d nohup bash scripts/generator_final.sh > ../runs/final_u4d.log 2>&1 &
 #   METHOD=baseline nohup bash scripts/generator_final.sh > ../runs/final_baseline.log 2>&1 &
 # or both on one core, segment by segment, so that their budgets are equal whenever the queue stops:
 #   METHOD=both nohup bash scripts/generator_final.sh > ../runs/final_both.log 2>&1 &
+# NAME (default final): the folder under RUNS. EXTRA: more train-diffusion overrides, e.g. the data-scarce generators
+# of the downstream experiment (trained on its 18 places only, the scarce segmentor's probabilities):
+#   NAME=scarce STEPS=8000 EXTRA='sequences=["05","11",...] probs_root=data/scarce_probs' METHOD=both bash ...
+# AE: latent diffusion (LiDM-style) on that range-image autoencoder (OUT/autoencoder.pt of u4d train-autoencoder):
+# configs/u4d/latent_hdl64.yaml, runs in RUNS/latent/NAME, the gates with the real scans through AE beside them (the
+# best a generator on AE can do):
+#   AE=../runs/latent/ae16/autoencoder.pt NAME=ae16 METHOD=both STEPS=4000 SEGMENT=2000 bash scripts/generator_final.sh
 set -euo pipefail
 RUNS=${RUNS:-../runs}
-F=$RUNS/final
+NAME=${NAME:-final}
+AE=${AE:-}
 METHOD=${METHOD:?set METHOD=u4d, baseline or both}
 STEPS=${STEPS:-60000}
 SEGMENT=${SEGMENT:-4000}
+read -r -a extra <<< "${EXTRA:-}"
 if [ "$METHOD" = both ]; then
   for ((target = SEGMENT; target <= STEPS; target += SEGMENT)); do
     for m in u4d baseline; do METHOD=$m STEPS=$target bash "$0"; done
@@ -22,8 +32,20 @@ if [ "$METHOD" = both ]; then
   exit 0
 fi
 export OMP_NUM_THREADS=1
-RECIPE=(data_root=data/sim_seg probs_root=data/sim_seg_probs sample_every=0 log_every=50 checkpoint_every=500
-  keep_checkpoints=2 diffusion.min_snr_gamma=null)
+if [ -n "$AE" ]; then
+  F=$RUNS/latent/$NAME
+  CONFIG=configs/u4d/latent_hdl64.yaml
+  RECIPE=("autoencoder=$AE")
+  COND_NOISE=0.1
+  GATES=(--autoencoder "ae=$AE")
+else
+  F=$RUNS/$NAME
+  CONFIG=configs/u4d/cpu_hdl64.yaml
+  RECIPE=(data_root=data/sim_seg probs_root=data/sim_seg_probs sample_every=0 log_every=50 checkpoint_every=500
+    keep_checkpoints=2 diffusion.min_snr_gamma=null)
+  COND_NOISE=0.05
+  GATES=()
+fi
 
 last_step() {  # the last logged step of run folder $1 (0 before its first log line)
   [ -f "$1/log.jsonl" ] || { echo 0; return; }
@@ -34,14 +56,14 @@ run=$F/$METHOD
 milestones=$F/${METHOD}_milestones
 mkdir -p "$milestones"
 if [ "$METHOD" = u4d ]; then
-  stage=(stage=u4d diffusion.cond_noise=0.05)
+  stage=(stage=u4d "diffusion.cond_noise=$COND_NOISE")
 else
   stage=(stage=baseline)
 fi
 for ((target = SEGMENT; target <= STEPS; target += SEGMENT)); do
   weights=$milestones/step_$target.pt
   if [ "$(last_step "$run")" -lt "$target" ]; then
-    u4d train-diffusion configs/u4d/cpu_hdl64.yaml "steps=$target" "${RECIPE[@]}" "${stage[@]}" --out "$run" \
+    u4d train-diffusion "$CONFIG" "steps=$target" "${RECIPE[@]}" "${stage[@]}" ${extra[@]+"${extra[@]}"} --out "$run" \
       --no-progress $(resume_flag "$run")
   fi
   [ -f "$weights" ] || { [ "$(last_step "$run")" = "$target" ] && u4d export-weights "$run" --out "$weights"; }
@@ -55,7 +77,8 @@ for ((target = SEGMENT; target <= STEPS; target += SEGMENT)); do
         batch_size=4 --no-progress
     fi
   fi
-  [ -f "$milestones/gates_$target.json" ] || python3 benchmarks/gates.py --bank "${METHOD}_$target=$bank" \
-    --real data/sim_eval --real-sequences 00-11 --num 16 --work "$F/gates_work" --out "$milestones/gates_$target.json" > /dev/null
+  [ -f "$milestones/gates_$target.json" ] || "${PY:-python3}" benchmarks/gates.py --bank "${METHOD}_$target=$bank" \
+    ${GATES[@]+"${GATES[@]}"} --real data/sim_eval --real-sequences 00-11 --num 16 --work "$F/gates_work" \
+    --out "$milestones/gates_$target.json" > /dev/null
 done
-echo "final $METHOD done"
+echo "$NAME $METHOD done"
