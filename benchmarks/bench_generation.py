@@ -6,8 +6,9 @@
     python benchmarks/bench_generation.py ... --quick            # 8 scans, seeds 0 1, ddpm 8 steps (stage 1: 4)
 
 The nets and extractors default to the shipped ones in weights/ (`--stage1 --stage2 --baseline --extractor-frd
---extractor-fpd` take run folders, checkpoints or other weights). Train the generators with one budget for each
-method (U4D's budget = stage 1 + stage 2 = the baseline's steps x batch on the same net); the training budgets
+--extractor-fpd` take run folders, checkpoints or other weights; `--net` a one-net U4D for both stages instead of
+--stage1/--stage2). Train the generators with one budget for each method (U4D's budget = stage 1 + stage 2, or its one
+net's steps, = the baseline's steps x batch on the same net); the training budgets
 read from the checkpoints (or the weights' training record) are printed with the table.
 Per sampler setting and seed s: each method generates `--num` scans (sample i uses seed s * 100000 + i) into
 WORK/<method>_<sampler tag>_s<s>, scored by `u4d_aug.metrics.evaluate.evaluate` against the reference sequences;
@@ -270,7 +271,11 @@ def generate(method: str, args: argparse.Namespace, spec: SamplerSpec, seed: int
     if spec.grid != "time":
         overrides.append(f"sampler_grid={spec.grid}")
     if method == "u4d":
-        overrides += [f"stage1={args.stage1}", f"stage2={args.stage2}", f"stage1_steps={spec.stage1_steps}"]
+        if args.net:  # one net for both stages
+            overrides += [f"net={args.net}", "stage1=", "stage2="]
+        else:
+            overrides += [f"stage1={args.stage1}", f"stage2={args.stage2}"]
+        overrides.append(f"stage1_steps={spec.stage1_steps}")
         overrides.append(f"stage1_mask_fraction={'null' if args.mask_fraction is None else args.mask_fraction}")
     else:
         overrides.append(f"baseline={args.baseline}")
@@ -450,6 +455,11 @@ def main(argv: list[str] | None = None) -> int:
         help="(default: the shipped net) U4D stage-2 run folder, checkpoint or weights",
     )
     parser.add_argument(
+        "--net", type=Path, default=None,
+        help="a one-net U4D (train-diffusion stage=u4d: both stages, its task embedding) run folder, checkpoint or "
+        "weights; replaces --stage1 and --stage2",
+    )  # fmt: skip
+    parser.add_argument(
         "--baseline",
         type=Path,
         default=WEIGHTS / "baseline.pt",
@@ -497,11 +507,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         metrics = parse_bench_metrics(args.metrics)
         teacher = load_teacher(args.teacher) if "teacher" in metrics else None
-        training = {
-            "u4d stage 1": training_budget(args.stage1),
-            "u4d stage 2": training_budget(args.stage2),
-            "baseline": training_budget(args.baseline),
-        }
+        if args.net:  # one net for both U4D stages
+            training = {"u4d": training_budget(args.net)}
+        else:
+            training = {"u4d stage 1": training_budget(args.stage1), "u4d stage 2": training_budget(args.stage2)}
+        training["baseline"] = training_budget(args.baseline)
         geometry = range_geometry(args.baseline)
         structure = any(m in STRUCTURE for m in metrics)
         floor_rows: dict[str, list] = {}

@@ -7,7 +7,8 @@
     python benchmarks/bench_generation_speed.py --stage1 runs/hdl64_stage1 --stage2 runs/hdl64_stage2 \
         --baseline runs/hdl64_baseline             # trained nets (EMA weights) instead of preset-built ones
 
-Nets: a `--stage1/--stage2/--baseline` checkpoint or run folder if given, else the shipped trained net
+Nets: a `--stage1/--stage2/--baseline` checkpoint or run folder if given (`--net`: one U4D net for both stages,
+timed and sized once as "u4d"), else the shipped trained net
 weights/u4d_stage1.pt, weights/u4d_stage2.pt, weights/baseline.pt when present (`--weights DIR`, `--no-weights`;
 not used by --quick), else built from the preset (`u4d_aug.train.build_net`, untrained: the cost does not depend
 on the weights; `--stage1-overrides key=value ..` applies to a preset-built stage 1). All nets share one resolution.
@@ -50,7 +51,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from u4d_aug.batches import crop_batch, crop_offsets, stage_inputs
 from u4d_aug.config import load_config
-from u4d_aug.diffusion import GaussianDiffusion
+from u4d_aug.diffusion import STAGE2_TASK, GaussianDiffusion
 from u4d_aug.ema import EMA
 from u4d_aug.errors import InputError
 from u4d_aug.host import host_info
@@ -103,6 +104,9 @@ def checkpoint_sources(args: argparse.Namespace) -> dict[str, Path | None]:
     """stage -> its --stage checkpoint, else the shipped weights file when present, else None (preset-built)."""
     sources: dict[str, Path | None] = {}
     for stage in STAGES:
+        if args.net is not None and stage != "baseline":  # one net for both U4D stages
+            sources[stage] = args.net
+            continue
         shipped = None if args.weights is None else args.weights / WEIGHT_FILES[stage]
         overridden = stage == "stage1" and bool(args.stage1_overrides)
         if getattr(args, stage) is not None:
@@ -116,11 +120,15 @@ def checkpoint_sources(args: argparse.Namespace) -> dict[str, Path | None]:
 
 def load_nets(args: argparse.Namespace, sources: dict[str, Path | None]) -> dict[str, Loaded]:
     """stage -> (net in eval mode without grads, its config): from its checkpoint if any, else from the preset."""
-    nets = {}
+    nets: dict[str, Loaded] = {}
     for stage, ckpt in sources.items():
+        if ckpt is not None and stage == "stage2" and ckpt == sources["stage1"]:
+            nets[stage] = nets["stage1"]  # a one-net U4D: the same net (object) serves both stages
+            continue
         if ckpt is not None:
             net, cfg = load_generator(ckpt)
-            if cfg.diffusion.stage != stage:
+            one_net = cfg.diffusion.stage == "u4d" and stage in ("stage1", "stage2")
+            if cfg.diffusion.stage != stage and not one_net:
                 raise InputError(f"{ckpt}: is a {cfg.diffusion.stage} checkpoint, expected {stage}")
         else:
             cfg = preset_config(args.config, stage, args.stage1_overrides if stage == "stage1" else [])
@@ -129,6 +137,13 @@ def load_nets(args: argparse.Namespace, sources: dict[str, Path | None]) -> dict
     sizes = {stage: (cfg.height, cfg.width) for stage, (_, cfg) in nets.items()}
     if len(set(sizes.values())) != 1:
         raise InputError(f"the nets must share one resolution, got {sizes}")
+    return nets
+
+
+def distinct_nets(nets: dict[str, Loaded]) -> dict[str, Loaded]:
+    """The nets to time and size once each: a one-net U4D (stage 1 and stage 2 the same net) as "u4d"."""
+    if nets["stage1"] is nets["stage2"]:
+        return {"u4d": nets["stage1"], "baseline": nets["baseline"]}
     return nets
 
 
@@ -143,11 +158,15 @@ def sampler_runs(args: argparse.Namespace) -> list[dict]:
 
 
 def net_inputs(net: nn.Module, batch: int, height: int, width: int, device: str = "cpu") -> tuple:
-    """(x_t, log_snr, cond) of a forward of `net` on `batch` scans of height x width."""
+    """(x_t, log_snr, cond) of a forward of `net` on `batch` scans of height x width; a one-net U4D's forward also
+    names its task (stage 2's: the condition is read by both tasks, so the cost is the same)."""
     cfg = net.cfg
     x_t = torch.zeros(batch, cfg.in_channels, height, width, device=device)
     cond = torch.zeros(batch, cfg.cond_channels, height, width, device=device) if cfg.cond_channels else None
-    return x_t, torch.zeros(batch, device=device), cond
+    inputs = (x_t, torch.zeros(batch, device=device), cond)
+    if cfg.num_tasks:  # RangeUNet.forward(x_t, log_snr, cond, generator, crop_offsets, poses, task)
+        inputs = (*inputs, None, None, None, STAGE2_TASK)
+    return inputs
 
 
 def forward_flops(net: nn.Module, batch: int, height: int, width: int, device: str = "cpu") -> int:
@@ -300,7 +319,7 @@ def time_training(nets: dict[str, Loaded], args: argparse.Namespace) -> list[dic
     """Steps/s of each stage at its config's batch size and crop width; reps interleave the stages."""
     if args.train_steps < 1:
         return []
-    steps = {stage: TrainStep(cfg) for stage, (_, cfg) in nets.items()}
+    steps = {stage: TrainStep(cfg) for stage, (_, cfg) in distinct_nets(nets).items()}
     flops = {stage: step.count_flops() for stage, step in steps.items()}
     for step in steps.values():
         step()  # warm-up (and the first AdamW step allocates its state)
@@ -342,7 +361,7 @@ def matmul_gflops(size: int, reps: int) -> dict:
 def time_unet(nets: dict[str, Loaded], args: argparse.Namespace, matmul: float) -> list[dict]:
     """Achieved GFLOP/s of a no-grad forward of each net at each batch size, as a fraction of the matmul's."""
     tasks = {}
-    for stage, (net, cfg) in nets.items():
+    for stage, (net, cfg) in distinct_nets(nets).items():
         for batch in args.batches:
             inputs = net_inputs(net, batch, cfg.height, cfg.width)
             tasks[(stage, batch)] = (lambda n=net, i=inputs: n(*i), forward_flops(net, batch, cfg.height, cfg.width))
@@ -416,9 +435,10 @@ def time_anchor(nets: dict[str, Loaded], args: argparse.Namespace) -> dict | Non
 def net_sizes(nets: dict[str, Loaded], sources: dict[str, str]) -> list[dict]:
     """Params and GFLOP of a one-scan forward: each net at its size and at 64x1024, each anchor-preset stage."""
     cases = {}
-    for stage, (_, cfg) in nets.items():
+    for stage, (_, cfg) in distinct_nets(nets).items():
         for height, width in ((cfg.height, cfg.width), (64, 1024)):
-            cases[(stage, sources[stage], height, width)] = cfg
+            source = sources["stage1"] if stage == "u4d" else sources[stage]  # a one-net U4D: both stages' file
+            cases[(stage, source, height, width)] = cfg
     return [size_row(stage, source, cfg, height, width) for (stage, source, height, width), cfg in cases.items()]
 
 
@@ -636,6 +656,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """Command line, with the defaults of the full run or of --quick."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, default=None, help="preset (default configs/u4d/cpu_hdl64.yaml)")
+    parser.add_argument(
+        "--net", type=Path, default=None,
+        help="a one-net U4D (train-diffusion stage=u4d) checkpoint, run folder or weights for both stages",
+    )  # fmt: skip
     parser.add_argument("--stage1", type=Path, default=None, help="stage-1 checkpoint or run folder")
     parser.add_argument("--stage2", type=Path, default=None, help="stage-2 checkpoint or run folder")
     parser.add_argument("--baseline", type=Path, default=None, help="baseline checkpoint or run folder")
@@ -689,6 +713,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.weights = None
     elif args.weights is None:
         args.weights = WEIGHTS
+    if args.net is not None and (args.stage1 is not None or args.stage2 is not None or args.stage1_overrides):
+        parser.error("--net is one net for both U4D stages: drop --stage1, --stage2 and --stage1-overrides")
     if args.stage1_overrides and args.stage1 is not None:
         parser.error("--stage1-overrides applies to a preset-built stage 1, not to a --stage1 checkpoint")
     counts = (args.steps, args.stage1_steps, args.compare_stage1_steps, args.reps, args.forward_calls, *args.batches)

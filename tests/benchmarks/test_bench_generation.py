@@ -189,3 +189,23 @@ def test_floor_bank_refills_its_own_folder_and_refuses_one_another_draw_wrote(to
     (out / "sequences" / "00" / "velodyne" / "000000.bin").write_bytes(b"x")
     with pytest.raises(InputError, match="did not write"):
         bench.floor_bank(toy_root, ["00", "01"], 3, 0, out)
+
+
+def test_a_one_net_u4d_samples_both_stages_and_reports_its_budget(tmp_path):
+    rng = np.random.default_rng(0)
+    for seq in ("00", "01"):
+        points = np.concatenate([rng.uniform(-30, 30, (2000, 3)), rng.uniform(0, 1, (2000, 1))], 1)
+        write_kitti_scan(tmp_path / "real" / "sequences" / seq / "velodyne" / "000000.bin", points.astype("f4"))
+    net = save_checkpoint(tmp_path / "u4d.pt", overrides=("diffusion.stage=u4d",), step=7)
+    baseline = save_checkpoint(tmp_path / "baseline.pt", overrides=("diffusion.stage=baseline",))
+    out = tmp_path / "gen.json"
+    argv = ["--root", str(tmp_path / "real"), "--net", str(net), "--baseline", str(baseline), "--reference", "00"]
+    argv += ["--floor", "01", "--num", "1", "--seeds", "0", "--samplers", "ddpm:2:1", "--metrics", "points"]
+    argv += ["--work", str(tmp_path / "work"), "--out", str(out), "--device", "cpu"]
+    assert run_one_thread(argv) == 0
+    result = json.loads(out.read_text())
+    assert set(result["training"]) == {"u4d", "baseline"}
+    assert result["training"]["u4d"]["stage"] == "u4d" and result["training"]["u4d"]["steps"] == 7
+    assert result["methods"]["u4d"]["points"]["mean"] > 0
+    manifest = json.loads((tmp_path / "work" / "u4d_ddpm_2_1_s0" / "manifest.json").read_text())
+    assert str(net) in json.dumps(manifest)

@@ -102,3 +102,26 @@ def test_default_samplers_are_dpmpp2m_then_ddpm_32():
         {"sampler": "ddpm", "steps": 32, "stage1_steps": 16}
     ]
     assert len(bench.sampler_runs(bench.parse_args(["--compare-ddpm-steps", "0"]))) == 1
+
+
+def test_a_one_net_u4d_serves_both_stages_and_is_timed_and_sized_once(tmp_path):
+    net = save_checkpoint(tmp_path / "u4d.pt", TINY, ("diffusion.stage=u4d",))
+    baseline = save_tiny_baseline(tmp_path / "baseline.pt")
+    out = tmp_path / "speed.json"
+    argv = ["--quick", "--threads", "1", "--net", str(net), "--baseline", str(baseline), "--out", str(out)]
+    argv += ["--anchor-reps", "0", "--batches", "1", "--compare-ddpm-steps", "0"]
+    threads = torch.get_num_threads()
+    try:
+        assert bench.main(argv) == 0
+    finally:
+        torch.set_num_threads(threads)
+    result = json.loads(out.read_text())
+    assert result["net_sources"]["stage1"] == result["net_sources"]["stage2"] == str(net)
+    assert [row["stage"] for row in result["training"]] == ["u4d", "baseline"]
+    assert {row["stage"] for row in result["nets"] if "source" in row and row["source"] == str(net)} == {"u4d"}
+    assert result["u4d_s_per_scan"] > 0 and result["baseline_s_per_scan"] > 0
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--net", str(net), "--stage1", str(net)])
+    two = bench.parse_args(["--stage1", str(net), "--stage2", str(baseline), "--baseline", str(baseline)])
+    with pytest.raises(bench.InputError, match="is a baseline checkpoint, expected stage2"):
+        bench.load_nets(two, bench.checkpoint_sources(two))

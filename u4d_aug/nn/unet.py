@@ -289,9 +289,17 @@ class RangeUNet(nn.Module):
         if (task is None) != (self.task_embed is None):
             raise ValueError(f"RangeUNet: net.num_tasks = {self.cfg.num_tasks} needs task exactly when it is > 0")
         if task is not None:
+            # an int is checked as it is (so that a forward on the meta device, which sizes the net, never reads a
+            # tensor's values); a tensor by its values
+            out_of_range = (
+                not 0 <= task < self.cfg.num_tasks
+                if isinstance(task, int)
+                else bool(((task < 0) | (task >= self.cfg.num_tasks)).any())
+            )
+            if out_of_range:
+                shown = task if isinstance(task, int) else task.tolist()
+                raise ValueError(f"RangeUNet: task must be in 0..{self.cfg.num_tasks - 1}, got {shown}")
             task = torch.as_tensor(task, device=x_t.device, dtype=torch.long).reshape(-1).expand(batch)
-            if bool(((task < 0) | (task >= self.cfg.num_tasks)).any()):
-                raise ValueError(f"RangeUNet: task must be in 0..{self.cfg.num_tasks - 1}, got {task.tolist()}")
         frames = 1
         if sequence:
             # (B, L) is folded into the batch, frames of a sequence adjacent, and unfolded at the end; only the

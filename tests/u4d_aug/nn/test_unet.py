@@ -130,6 +130,21 @@ def test_bad_inputs_raise_clear_errors():
         RangeUNet(tiny(base_channels=6))
 
 
+def test_task_is_checked_as_an_int_or_by_a_tensors_values_and_an_int_sizes_the_net_on_meta():
+    net = RangeUNet(tiny(num_tasks=2))
+    x_t = torch.zeros(2, 2, H, W)
+    with pytest.raises(ValueError, match="needs task"):
+        net(x_t, torch.zeros(2))
+    with pytest.raises(ValueError, match=r"task must be in 0..1, got 2"):
+        net(x_t, torch.zeros(2), task=2)
+    with pytest.raises(ValueError, match=r"task must be in 0..1, got \[0, -1\]"):
+        net(x_t, torch.zeros(2), task=torch.tensor([0, -1]))
+    assert net(x_t, torch.zeros(2), task=torch.tensor([0, 1]))[0].shape == x_t.shape
+    on_meta = RangeUNet(tiny(num_tasks=2)).to("meta")
+    eps, _ = on_meta(x_t.to("meta"), torch.zeros(2, device="meta"), task=1)  # as FLOP counting on meta does
+    assert eps.shape == x_t.shape and eps.device.type == "meta"
+
+
 def test_config_defaults_and_checks():
     cfg = UNetConfig()
     assert cfg.num_res_blocks == (2, 2, 2, 2) and cfg.downsampling_factor == 8
