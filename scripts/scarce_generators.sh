@@ -29,8 +29,11 @@ splits = glob.glob(f"{folder}/splits/*.json")
 if len(splits) != 1:
     sys.exit(f"{folder}/splits: expected one split file, found {len(splits)}")
 labelled = {seq for seq, _ in json.load(open(splits[0]))["labeled"]}
-with open(f"{folder}/config.yaml") as f:
-    pool = yaml.safe_load(f)["data"].get("unlabeled_sequences")
+try:
+    with open(f"{folder}/config.yaml") as f:
+        pool = (yaml.safe_load(f) or {}).get("data", {}).get("unlabeled_sequences")
+except OSError as exc:
+    sys.exit(f"{folder}/config.yaml: cannot read the segmentor's run config ({exc.strerror})")
 if not pool:
     sys.exit(f"{folder}/config.yaml: data.unlabeled_sequences is empty: not a run of the data-scarce setting")
 print(" ".join(sorted(labelled | {str(p) for p in pool})))

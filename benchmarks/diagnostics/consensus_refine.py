@@ -28,6 +28,7 @@ from u4d_aug.data.formats import write_kitti_scan
 from u4d_aug.diffusion import alpha_sigma
 from u4d_aug.errors import InputError
 from u4d_aug.pipeline import denoiser, generate_baseline, load_generator, to_points
+from u4d_aug.progress import progress_bar
 from u4d_aug.sampling import DenoiseFn
 from u4d_aug.sampling_settings import DEFAULT_SAMPLING
 
@@ -69,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.num < 1 or args.k < 1:
             raise InputError(f"--num and --k must be >= 1, got {args.num} and {args.k}")
+        if args.out.exists() and any(args.out.iterdir()):
+            raise InputError(f"--out {args.out}: not empty (the variants' folders go into a new folder)")
         loaded = load_generator(args.net)
         cfg = loaded.config
         if cfg.diffusion.stage != "baseline" or cfg.latent_factor:
@@ -76,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         settings = dataclasses.replace(DEFAULT_SAMPLING, mean_start_below=None if args.no_mean_start else -10.0)
         samples = [
             generate_baseline(loaded, 1, [torch.Generator().manual_seed(args.seed + i)], settings)["x0"]
-            for i in range(args.num)
+            for i in progress_bar(range(args.num), desc="sampling", unit="scan")
         ]
         x0 = torch.cat(samples)  # (N, 2, H, W)
         denoise = denoiser(loaded, (args.num,))

@@ -55,5 +55,6 @@ def test_run_writes_every_variant_as_a_scan_folder(untrained_checkpoints, tmp_pa
         files = sorted((out / name / "sequences" / "00" / "velodyne").glob("*.bin"))
         assert [f.name for f in files] == ["000000.bin", "000001.bin"]
         assert read_kitti_scan(files[0]).shape[1] == 4
-    assert bench.main([*argv[:2], "--k", "0", "--out", str(out)]) == 2
+    assert bench.main(argv) == 2  # its own folder again: not empty, nothing overwritten
+    assert bench.main([*argv[:2], "--k", "0", "--out", str(tmp_path / "new")]) == 2
     assert bench.main(["--net", str(untrained_checkpoints["stage2"]), "--out", str(out)]) == 2
