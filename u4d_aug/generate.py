@@ -191,12 +191,11 @@ class GenerateConfig:
 def _checkpoint_paths(cfg: GenerateConfig) -> dict[str, Path]:
     needed = {"u4d": ("stage1", "stage2"), "baseline": ("baseline",), "complete": ("stage2",)}[cfg.mode]
     paths = {}
-    if cfg.net and cfg.mode == "baseline":
-        raise InputError("net: a one-net u4d checkpoint serves modes u4d and complete; baseline mode reads baseline")
-    if cfg.net and (cfg.stage1 or cfg.stage2):
+    one_net = cfg.net if cfg.mode != "baseline" else ""  # baseline mode reads `baseline` only, as it ignores stage1/2
+    if one_net and (cfg.stage1 or cfg.stage2):
         raise InputError("net: a one-net u4d checkpoint replaces stage1 and stage2; set one or the other")
     for name in needed:
-        value = cfg.net or getattr(cfg, name)
+        value = one_net or getattr(cfg, name)
         if not value:
             raise InputError(f"{name}: mode {cfg.mode} needs the {name} checkpoint path")
         path = resolve_weights(value)  # `weights/NAME.pt`: the installed shipped net (u4d_aug.weights_store)

@@ -24,7 +24,7 @@ from u4d_aug.diffusion import (
     stage1_count,
 )
 from u4d_aug.errors import InputError
-from u4d_aug.generate import GenerateConfig, generate_bank
+from u4d_aug.generate import GenerateConfig, _checkpoint_paths, generate_bank
 from u4d_aug.pipeline import generate_u4d, load_generator
 from u4d_aug.stage import DiffusionOptimConfig, build_net
 from u4d_aug.train import learning_rate, train
@@ -112,6 +112,9 @@ def test_u4d_stage_trains_checkpoints_and_samples_two_stages_from_one_net(tiny_w
     assert manifest["complete"] and manifest["checkpoints"]["stage1"] == manifest["checkpoints"]["stage2"]
     with pytest.raises(InputError, match="net: a one-net u4d checkpoint replaces stage1 and stage2"):
         generate_bank(gen_config({"stage1": out, "stage2": out, "baseline": out}, f"net={out}"), tmp_path / "b2")
+    # a preset's default `net` does not stop baseline mode, which reads `baseline` only
+    as_baseline = load_config(GenerateConfig, None, [*overrides, "mode=baseline", f"baseline={out}"])
+    assert _checkpoint_paths(as_baseline) == {"baseline": sorted((out / "checkpoints").glob("step_*.pt"))[-1]}
 
 
 def test_u4d_needs_two_samples_per_batch(tiny_world, tmp_path):
