@@ -5,11 +5,11 @@
         --out benchmarks/results/generation/generation_64x1024.json
     python benchmarks/bench_generation.py ... --quick            # 8 scans, seeds 0 1, ddpm 8 steps (stage 1: 4)
 
-The nets and extractors default to the shipped ones in weights/ (`--stage1 --stage2 --baseline --extractor-frd
---extractor-fpd` take run folders, checkpoints or other weights; `--net` a one-net U4D for both stages instead of
---stage1/--stage2). Train the generators with one budget for each method (U4D's budget = stage 1 + stage 2, or its one
-net's steps, = the baseline's steps x batch on the same net); the training budgets
-read from the checkpoints (or the weights' training record) are printed with the table.
+The nets and extractors default to the shipped ones in weights/, U4D's the one net `weights/u4d.pt` for both stages
+(`--net --baseline --extractor-frd --extractor-fpd` take run folders, checkpoints or other weights; `--stage1 --stage2`
+a two-net U4D, one net per stage, instead of --net). Train the generators with one budget for each method (U4D's
+budget = its one net's steps, or stage 1 + stage 2, = the baseline's steps x batch on the same net); the training
+budgets read from the checkpoints (or the weights' training record) are printed with the table.
 Per sampler setting and seed s: each method generates `--num` scans (sample i uses seed s * 100000 + i) into
 WORK/<method>_<sampler tag>_s<s>, scored by `u4d_aug.metrics.evaluate.evaluate` against the reference sequences;
 the floor draws `--num` real scans of the `--floor` sequences (disjoint from the reference) with seed s and
@@ -443,21 +443,17 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--root", type=Path, required=True, help="SemanticKITTI root of the reference and floor scans")
     parser.add_argument(
-        "--stage1",
-        type=Path,
-        default=WEIGHTS / "u4d_stage1.pt",
-        help="(default: the shipped net) U4D stage-1 run folder, checkpoint or weights",
-    )
-    parser.add_argument(
-        "--stage2",
-        type=Path,
-        default=WEIGHTS / "u4d_stage2.pt",
-        help="(default: the shipped net) U4D stage-2 run folder, checkpoint or weights",
-    )
-    parser.add_argument(
         "--net", type=Path, default=None,
-        help="a one-net U4D (train-diffusion stage=u4d: both stages, its task embedding) run folder, checkpoint or "
-        "weights; replaces --stage1 and --stage2",
+        help="(default: the shipped net weights/u4d.pt) a one-net U4D (train-diffusion stage=u4d: both stages, its "
+        "task embedding) run folder, checkpoint or weights",
+    )  # fmt: skip
+    parser.add_argument(
+        "--stage1", type=Path, default=None,
+        help="with --stage2, in place of --net: a two-net U4D's stage-1 run folder, checkpoint or weights",
+    )  # fmt: skip
+    parser.add_argument(
+        "--stage2", type=Path, default=None,
+        help="with --stage1, in place of --net: a two-net U4D's stage-2 run folder, checkpoint or weights",
     )  # fmt: skip
     parser.add_argument(
         "--baseline",
@@ -502,6 +498,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="8 scans, seeds 0 1, ddpm 8 steps (stage 1: 4)")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "generation" / "generation.json")
     args = parser.parse_args(argv)
+    if args.stage1 is None and args.stage2 is None:
+        args.net = args.net or WEIGHTS / "u4d.pt"  # the shipped one-net U4D
+    elif args.net is not None or args.stage1 is None or args.stage2 is None:
+        parser.error("--stage1 and --stage2 name a two-net U4D together, in place of --net")
     if args.quick:
         args.num, args.seeds, args.samplers = 8, [0, 1], [SamplerSpec("ddpm", 8, 4)]
     try:

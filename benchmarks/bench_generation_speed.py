@@ -8,9 +8,9 @@
         --baseline runs/hdl64_baseline             # trained nets (EMA weights) instead of preset-built ones
 
 Nets: a `--stage1/--stage2/--baseline` checkpoint or run folder if given (`--net`: one U4D net for both stages,
-timed and sized once as "u4d"), else the shipped trained net
-weights/u4d_stage1.pt, weights/u4d_stage2.pt, weights/baseline.pt when present (`--weights DIR`, `--no-weights`;
-not used by --quick), else built from the preset (`u4d_aug.train.build_net`, untrained: the cost does not depend
+timed and sized once as "u4d"), else the shipped trained net when present: weights/u4d.pt (one net for both U4D
+stages, also timed and sized once as "u4d"), weights/baseline.pt (`--weights DIR`, `--no-weights`; not used by
+--quick), else built from the preset (`u4d_aug.train.build_net`, untrained: the cost does not depend
 on the weights; `--stage1-overrides key=value ..` applies to a preset-built stage 1). All nets share one resolution.
 Generation: seconds per scan of `generate_u4d` (stage 1 with `--stage1-steps`, then stage 2 with `--steps`), of
 `generate_stage1` alone (stage 2 = U4D - stage 1) and of `generate_baseline` (`--steps`), with `--sampler` and, in
@@ -67,7 +67,7 @@ QUICK_PRESET = REPO / "configs" / "u4d" / "tiny.yaml"
 ANCHOR_PRESET = REPO / "configs" / "u4d" / "full_hdl64.yaml"
 ANCHOR_STEPS = 256  # R2DM's DDPM sampling steps
 WEIGHTS = REPO / "weights"
-WEIGHT_FILES = {"stage1": "u4d_stage1.pt", "stage2": "u4d_stage2.pt", "baseline": "baseline.pt"}
+WEIGHT_FILES = {"stage1": "u4d.pt", "stage2": "u4d.pt", "baseline": "baseline.pt"}  # the shipped U4D: one net
 DEFAULT_STEPS = {"ddpm": (32, 16), "ddim": (32, 16), "dpmpp2m": (20, 10), "dpmpp2m-sde": (20, 10)}  # (steps, stage 1)
 QUICK_STEPS = (4, 2)
 GOAL_RATIO = 1.3

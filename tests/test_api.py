@@ -54,10 +54,9 @@ def readme_api_code() -> str:
 
 
 def test_readme_api_section_runs(tmp_path, monkeypatch):
-    """Files at the paths the README names: a labelled scan, two U4D run folders, a bank."""
+    """Files at the paths the README names: a labelled scan, a U4D run folder (one net for both stages), a bank."""
     write_toy_root(tmp_path / "data", sequences=("00",), frames=1)
-    for stage in ("stage1", "stage2"):
-        save_random_checkpoint(tmp_path / "runs" / f"u4d_{stage}" / "checkpoints" / "step_0000004.pt", stage)
+    save_random_checkpoint(tmp_path / "runs" / "u4d" / "checkpoints" / "step_0000004.pt", "u4d")
     write_toy_bank(tmp_path / "banks" / "u4d")
     monkeypatch.chdir(tmp_path)
     namespace: dict = {}

@@ -141,7 +141,7 @@ DELEGATED = (
     ("seg-train", "train a segmentation net (supervised or semi-supervised), torchrun-ready"),
     ("seg-eval", "mIoU, per-class IoU, ECE (per scan and pooled), reliability diagram of a checkpoint"),
     ("seg-predict", "write per-point class probabilities (float16 .npy) for U4D's uncertainty"),
-    ("train-diffusion", "train a U4D stage (stage1 | stage2) or the R2DM-style baseline, torchrun-ready"),
+    ("train-diffusion", "train U4D (stage=u4d one net | stage1 | stage2) or the R2DM-style baseline, torchrun-ready"),
     ("train-autoencoder", "train the range-image autoencoder whose latent the latent generators diffuse (LiDM)"),
     ("generate", "write a bank of generated scans (U4D, baseline or completion of real scans), torchrun-ready"),
     ("gen-report", "real vs generated scans side by side: uncertainty, stage-1, stage-2, baseline; range + BEV PNG"),
@@ -251,20 +251,19 @@ EXAMPLES = {
     "seg-train": "u4d seg-train seg/cpu_minkunet data.root=data/sim --out runs/seg optim.steps=100",
     "seg-eval": "u4d seg-eval runs/seg/model.pt data/sim --sequences 02 --png reliability.png",
     "seg-predict": "u4d seg-predict runs/seg/model.pt data/sim --out runs/probs",
-    "train-diffusion": "u4d train-diffusion u4d/cpu stage=stage1 data_root=data/sim probs_root=runs/probs "
-    "--out runs/u4d_stage1",
+    "train-diffusion": "u4d train-diffusion u4d/cpu stage=u4d data_root=data/sim probs_root=runs/probs --out runs/u4d",
     "train-autoencoder": "u4d train-autoencoder u4d/autoencoder_hdl64 data_root=data/sim probs_root=runs/probs "
     "--out runs/autoencoder",
-    "generate": "u4d generate u4d/generate_cpu --out banks/u4d stage1=runs/u4d_stage1 stage2=runs/u4d_stage2 num=16",
+    "generate": "u4d generate u4d/generate_cpu --out banks/u4d net=runs/u4d stage1= stage2= num=16",
     "gen-report": "u4d gen-report data/sim --bank u4d=banks/u4d --bank baseline=banks/baseline --png generated.png",
     "train-extractor": "u4d train-extractor frd extractor/cpu data.root=data/semantickitti train.steps=500",
-    "export-weights": "u4d export-weights runs/u4d_stage2 --out weights/u4d_stage2.pt",
+    "export-weights": "u4d export-weights runs/u4d --out weights/u4d.pt",
     "gates": "u4d gates runs/u4d_most_stage2 --png gates.png --json",
     "evaluate": "u4d evaluate --bank banks/u4d --real data/sim --real-sequences 02 --metrics jsd,mmd,ctc --md "
     "--out runs/eval_u4d",
     "experiment": "u4d experiment experiment/downstream_10pct --arms sup-only 'seeds=[0]'",
     "export": "u4d export banks/u4d --labels --mmdet3d-infos",
-    "bank-real": "u4d bank-real data/sim_seg --sequences 100-163 --out banks/real_hdl64 --generator runs/u4d_stage2",
+    "bank-real": "u4d bank-real data/sim_seg --sequences 100-163 --out banks/real_hdl64 --generator runs/u4d",
     "weights": "u4d weights install ~/src/u4d-aug",
 }
 

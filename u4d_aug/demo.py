@@ -118,15 +118,15 @@ def _segmentation_steps(out: Path, world: Path, seed: int) -> list[Step]:
 
 
 def _diffusion_steps(out: Path, world: Path, seed: int, weights: dict[str, Path] | None) -> list[Step]:
-    """Train U4D's two stages and the baseline for seconds (the training loops run; shipped nets make the banks)."""
+    """Train U4D (one net for both stages) and the baseline for seconds (the training loops run; shipped nets make
+    the banks)."""
     diffusion = [DEMO_PRESETS["diffusion"], f"data_root={world}", 'sequences=["00", "01"]', f"seed={seed}"]
     probs = f"probs_root={out / 'probs'}"
     check = "training loop check, seconds; the banks below use the shipped nets" if weights else "seconds"
     return [
-        Step("train-stage1", f"U4D stage 1: diffusion of the uncertain region P_u + mask head ({check})",
-             ["train-diffusion", *diffusion, "stage=stage1", probs, "--out", str(out / "u4d_stage1")]),
-        Step("train-stage2", f"U4D stage 2: completion conditioned on (x0_u, m_u) ({check})",
-             ["train-diffusion", *diffusion, "stage=stage2", probs, "--out", str(out / "u4d_stage2")]),
+        Step("train-u4d", f"U4D, one net for both stages (task embedding): stage 1 the uncertain region P_u + mask "
+             f"head, stage 2 the completion conditioned on (x0_u, m_u) ({check})",
+             ["train-diffusion", *diffusion, "stage=u4d", probs, "--out", str(out / "u4d")]),
         Step("train-baseline", f"R2DM-style baseline: one unconditional stage ({check})",
              ["train-diffusion", *diffusion, "stage=baseline", "--out", str(out / "baseline")]),
     ]  # fmt: skip
@@ -139,12 +139,12 @@ def _generation_steps(
     unused places for the ceiling arm."""
     if weights:
         generate = [DEMO_PRESETS["generate"], f"num={BANK_SCANS}", f"seed={seed}"]
-        nets = {"u4d": [f"stage1={weights['u4d_stage1']}", f"stage2={weights['u4d_stage2']}"],
+        nets = {"u4d": [f"net={weights['u4d']}", "stage1=", "stage2="],
                 "baseline": [f"baseline={weights['baseline']}"]}  # fmt: skip
         size = f"{BANK_SCANS} scans at 64x1024 with the shipped nets"
     else:
         generate = [DEMO_PRESETS["generate_toy"], "steps=16", "stage1_steps=8", f"num={TOY_BANK_SCANS}", f"seed={seed}"]
-        nets = {"u4d": [f"stage1={out / 'u4d_stage1'}", f"stage2={out / 'u4d_stage2'}"],
+        nets = {"u4d": [f"net={out / 'u4d'}", "stage1=", "stage2="],
                 "baseline": [f"baseline={out / 'baseline'}"]}  # fmt: skip
         size = f"{TOY_BANK_SCANS} scans with the seconds-trained nets (no shipped nets found)"
     return [
@@ -189,7 +189,7 @@ def ceiling_geometry(out: Path, weights: dict[str, Path] | None) -> list[str]:
         "--like",
         str(out / "baseline"),
         "--generator",
-        str(out / "u4d_stage2"),
+        str(out / "u4d"),
         "--generator",
         str(out / "baseline"),
     ]

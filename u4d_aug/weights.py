@@ -215,7 +215,7 @@ def stored_row_mean(state: dict, source: str, role: str | None = None) -> tuple[
 # The nets committed under the checkout's weights/ (weights/README.md), by role. A wheel does not carry them: `u4d
 # weights install` copies them where `u4d_aug.weights_store` looks.
 SHIPPED_DIR = Path(__file__).resolve().parents[1] / "weights"
-SHIPPED_GENERATORS = ("u4d_stage1", "u4d_stage2", "baseline")
+SHIPPED_GENERATORS = ("u4d", "baseline")  # u4d: one net for both stages (train-diffusion stage=u4d)
 SHIPPED_OPTIONAL = ("extractor_frd", "extractor_fpd", "uncertainty_segmentor")
 # the 4D sequence nets (configs/u4d/cpu_hdl64_most.yaml: MoST + ego-motion input), optional as well
 SHIPPED_SEQUENCE = ("u4d_most_stage1", "u4d_most_stage2", "baseline_most")
@@ -223,7 +223,7 @@ SHIPPED_SEQUENCE = ("u4d_most_stage1", "u4d_most_stage2", "baseline_most")
 
 def shipped_weights(root: Path | None = None) -> dict[str, Path] | None:
     """{role: file} of the shipped nets under `root` (None: wherever `weights_store.find_weights` finds each), or None
-    when any of the three generators is absent."""
+    when either generator is absent."""
     from u4d_aug.weights_store import find_weights
 
     found: dict[str, Path] = {}

@@ -1,4 +1,4 @@
-"""Where the shipped nets are on this machine: a name like `weights/u4d_stage1.pt` resolved to a file.
+"""Where the shipped nets are on this machine: a name like `weights/u4d.pt` resolved to a file.
 
 A config or a call names a shipped net as `weights/NAME.pt` (or `NAME.pt`). A path that exists as written is used as
 it is; otherwise the name is looked up, first hit wins, in

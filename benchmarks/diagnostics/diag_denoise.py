@@ -3,11 +3,12 @@
     python benchmarks/diagnostics/diag_denoise.py --root data/sim_eval --probs data/sim_eval_probs --sequences 00 \
         --num 4 --out benchmarks/results/generation/denoise_64x1024.json
 
-Each net (`--nets NAME=WEIGHTS ...`; default the shipped baseline, U4D stage 2 and stage 1; a one-net u4d checkpoint
-as `NAME=WEIGHTS@stage1` or `@stage2` for one of its two tasks) reads the first `--num` scans of ROOT's SEQUENCES as
-its training target: the scan's range image x0 (the baseline; stage 2, conditioned on the scan's own P_u from
---probs) or x0_u, the P_u pixels (stage 1). The target is noised to x_t = α x0 + σ ε at each
-log-SNR of --log-snr (ε drawn from --seed, the same for every net) and the net called once: x̂0 = clamp((x_t − σ ε̂)/α).
+Each net (`--nets NAME=WEIGHTS ...`; a one-net u4d checkpoint as `NAME=WEIGHTS@stage1` or `@stage2` for one of its
+two tasks; default the shipped baseline and the shipped one-net U4D's stage-2 and stage-1 tasks) reads the first
+`--num` scans of ROOT's SEQUENCES as its training target: the scan's range image x0 (the baseline; stage 2,
+conditioned on the scan's own P_u from --probs) or x0_u, the P_u pixels (stage 1). The target is noised to
+x_t = α x0 + σ ε at each log-SNR of --log-snr (ε drawn from --seed, the same for every net) and the net called
+once: x̂0 = clamp((x_t − σ ε̂)/α).
 Reported on the pixels holding a return: the mean |x̂0 − x0| beside the noise it started from, mean |x_t/α − x0| (a
 net that removes nothing scores the same), and the roughness (`range_view.image_roughness`) of x̂0 against x0's.
 The samplers hand back the x̂0 of their last call, whose log-SNR the table states for 20 and 32 steps.
@@ -45,8 +46,12 @@ from u4d_aug.sampling import SAMPLER_NAMES, check_grid, log_snr_grid, replace_kn
 
 REPO = Path(__file__).resolve().parents[2]
 SHIPPED = [
-    f"{name}={REPO / 'weights' / file}"
-    for name, file in (("baseline", "baseline.pt"), ("u4d stage 2", "u4d_stage2.pt"), ("u4d stage 1", "u4d_stage1.pt"))
+    f"{name}={REPO / 'weights' / file}{role}"
+    for name, file, role in (
+        ("baseline", "baseline.pt", ""),
+        ("u4d stage 2", "u4d.pt", "@stage2"),  # the one net's two tasks
+        ("u4d stage 1", "u4d.pt", "@stage1"),
+    )
 ]
 LOG_SNRS = [0.0, 2.0, 5.0, 8.0, 11.0, 14.0]
 

@@ -26,13 +26,13 @@ from u4d_aug.sampling import mean_start
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--below", type=float, required=True, help="log-SNR under which stage 2's x0 is the mean")
-    parser.add_argument("--data-root", default="data/sim_seg", help="the stage-2 net's training scans")
+    parser.add_argument("--data-root", default="data/sim_seg", help="the U4D net's training scans")
     parser.add_argument("--num", type=int, default=16)
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    cfg = pipeline.load_generator("weights/u4d_stage2.pt").config
-    mean = row_mean(dataclasses.replace(cfg, data_root=args.data_root), "x0")  # (2, H, 1)
+    cfg = pipeline.load_generator("weights/u4d.pt").config  # the one net of generate_hdl64.yaml, both stages
+    mean = row_mean(dataclasses.replace(cfg, data_root=args.data_root), "x0")  # (2, H, 1): its stage-2 target
     original = pipeline.sample_named
 
     def patched(name, denoise, shape, steps, generator, **kw):

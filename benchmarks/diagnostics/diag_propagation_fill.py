@@ -8,8 +8,9 @@ the pixels) plus what the net fills in; U4D's stage 2 was trained to complete ar
 Here real held-out windows are the truth (the first --frames frames of each sequence, their real poses). Two known
 regions per window, each filled by every net (`--nets`; default the shipped 4D and single-frame nets) from the same
 seed: "propagated", real frame 0 moved into frames 1..L-1 (`warp_frame0`, as propagation does with a generated
-frame 0), and "uncertain", each frame's own P_u (top-k entropy from --probs, as stage 2 trains). Stage-2 nets fill
-with `pipeline.complete`, baselines with `pipeline.inpaint` (x̂0 pinned where known); the known pixels are kept
+frame 0), and "uncertain", each frame's own P_u (top-k entropy from --probs, as stage 2 trains). Stage-2 nets (a
+one-net u4d checkpoint as `NAME=WEIGHTS@stage2`, its stage-2 task) fill with `pipeline.complete`, baselines with
+`pipeline.inpaint` (x̂0 pinned where known); the known pixels are kept
 exactly, as propagation keeps them. Scored on frames 1..L-1, on the pixels left unknown, against the real frame:
 `returns` the share where generated and real agree on return / no return, `mae_m` the mean |depth error| (m) where
 both return, `seam_m` the mean depth step across a known-unknown horizontal neighbour pair (real: `seam_real_m`, the
@@ -45,7 +46,7 @@ SHIPPED = [
     for name, file in (
         ("u4d_most_stage2", "u4d_most_stage2.pt"),
         ("baseline_most", "baseline_most.pt"),
-        ("u4d_stage2", "u4d_stage2.pt"),
+        ("u4d", "u4d.pt@stage2"),  # the one net's stage-2 task
         ("baseline", "baseline.pt"),
     )
 ]
@@ -86,7 +87,7 @@ def fill(
     generator = torch.Generator().manual_seed(seed)
     settings = SamplingSettings(sampler=sampler, steps=steps, mean_start_below=None)  # `loaded`: in its MeanStart
     with torch.no_grad():
-        if cfg.diffusion.stage == "stage2":
+        if cfg.diffusion.stage in ("stage2", "u4d"):  # a u4d net: its stage-2 task (`complete`)
             x0 = complete(loaded, batch_u, batch_m, generator, settings, pose, pin)["x0"]
         else:  # `inpaint` refuses any net but a baseline
             x0 = inpaint(loaded, batch_u, batch_m, generator, settings, pose)["x0"]
@@ -154,7 +155,10 @@ def to_markdown(result: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--nets", nargs="+", default=SHIPPED, metavar="NAME=WEIGHTS", help="stage-2 / baseline nets")
+    parser.add_argument(
+        "--nets", nargs="+", default=SHIPPED, metavar="NAME=WEIGHTS",
+        help="stage-2 / baseline nets; a one-net u4d checkpoint as NAME=WEIGHTS@stage2",
+    )  # fmt: skip
     parser.add_argument("--root", type=Path, required=True, help="SemanticKITTI root with poses (held-out places)")
     parser.add_argument("--probs", type=Path, required=True, help="seg-predict probabilities of ROOT (P_u)")
     parser.add_argument("--sequences", nargs="+", default=["88-93"], help="sequences of ROOT (names, A-B ranges)")
@@ -176,14 +180,18 @@ def main(argv: list[str] | None = None) -> int:
         firsts = [(seq, i) for i, (seq, start) in enumerate(dataset.windows) if start == 0]  # a window per sequence
         nets = {}
         for spec in args.nets:
-            name, sep, path = spec.rpartition("=")
-            if not sep or not name or not path:
-                raise InputError(f"--nets {spec!r}: expected NAME=WEIGHTS")
+            name, sep, weights = spec.rpartition("=")
+            if not sep or not name or not weights:
+                raise InputError(f"--nets {spec!r}: expected NAME=WEIGHTS[@stage2]")
+            path, _, role = weights.partition("@")
             net, cfg = load_generator(path)
-            if cfg.diffusion.stage not in ("stage2", "baseline"):
+            if cfg.diffusion.stage not in ("stage2", "baseline", "u4d"):
                 raise InputError(f"--nets {name}: a {cfg.diffusion.stage} net; expected stage2 or baseline nets")
-            mean, _ = training_mean(cfg, name, GenerateConfig(mean_data_root=args.mean_data_root), Path(path))
-            nets[name] = ((MeanStart(net, mean, args.mean_start_below), cfg), path)
+            if (cfg.diffusion.stage == "u4d") != (role == "stage2"):
+                raise InputError(f"--nets {spec!r}: @stage2 names the stage-2 task of a one-net u4d checkpoint")
+            role = role or cfg.diffusion.stage  # the mean of the images it fills: x0
+            mean, _ = training_mean(cfg, role, GenerateConfig(mean_data_root=args.mean_data_root), Path(path))
+            nets[name] = ((MeanStart(net, mean, args.mean_start_below), cfg), weights)
         shapes = {(cfg.sensor, cfg.height, cfg.width, cfg.row_mode) for (_, cfg), _ in nets.values()}
         if len(shapes) != 1:
             raise InputError(f"--nets: every net must share sensor, image size and row mode, got {sorted(shapes)}")

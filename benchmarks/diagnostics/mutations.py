@@ -50,7 +50,7 @@ MUTATIONS = (
     Mutation(
         "2",
         "a shipped tensor zeroed, its hashes kept",
-        "weights/u4d_stage1.pt",
+        "weights/u4d.pt",
         "out_conv.weight",
         "",
         ("tests/u4d_aug/test_weights_hashes.py",),

@@ -77,6 +77,14 @@ def test_bad_sampler_setting_is_refused(capsys):
     assert "expected NAME:STEPS:STAGE1_STEPS" in capsys.readouterr().err
 
 
+def test_a_two_net_u4d_names_both_stages_in_place_of_the_one_net(capsys):
+    """--net defaults to the shipped one net weights/u4d.pt; --stage1 and --stage2 replace it together."""
+    for two_net in (["--stage1", "a"], ["--stage2", "b"], ["--net", "n", "--stage1", "a", "--stage2", "b"]):
+        with pytest.raises(SystemExit):
+            bench.main(["--root", "x", *two_net])
+        assert "--stage1 and --stage2 name a two-net U4D together, in place of --net" in capsys.readouterr().err
+
+
 def test_mean_start_banks_are_their_own_and_recorded(tmp_path):
     """--mean-start-below: the banks carry it in their manifest, sit beside (not over) the plain ones, json says so."""
     from tests.tiny_worlds import write_tiny_world

@@ -76,11 +76,14 @@ def test_paired_ratio_is_the_median_of_per_repetition_ratios():
 
 
 def test_checkpoint_sources_prefer_flags_then_weights_then_the_preset(tmp_path):
-    for name in ("u4d_stage1.pt", "baseline.pt"):
+    for name in ("u4d.pt", "baseline.pt"):
         (tmp_path / name).touch()
+    shipped = bench.checkpoint_sources(bench.parse_args(["--weights", str(tmp_path)]))
+    one_net = {"stage1": tmp_path / "u4d.pt", "stage2": tmp_path / "u4d.pt"}  # the shipped U4D serves both stages
+    assert shipped == {**one_net, "baseline": tmp_path / "baseline.pt"}
     args = bench.parse_args(["--weights", str(tmp_path), "--stage2", "runs/s2"])
     assert bench.checkpoint_sources(args) == {
-        "stage1": tmp_path / "u4d_stage1.pt",
+        "stage1": tmp_path / "u4d.pt",  # the shipped one net's stage-1 task
         "stage2": Path("runs/s2"),
         "baseline": tmp_path / "baseline.pt",
     }

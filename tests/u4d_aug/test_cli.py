@@ -116,7 +116,7 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     for name in ["frame0.png", "reliability.png", "seg/model.pt", "seg/log.jsonl", "probs/manifest.json"]:
         assert (out / name).is_file(), name
     assert len(list((out / "probs" / "sequences" / "00" / "probs").glob("*.npy"))) == 6
-    for name in ["generated.png", "u4d_stage1/checkpoints", "u4d_stage2/checkpoints", "baseline/checkpoints"]:
+    for name in ["generated.png", "u4d/checkpoints", "baseline/checkpoints"]:  # U4D: one net for both stages
         assert (out / name).exists(), name
     disjoint = np.sqrt(np.log(2))  # the JS distance of BEV histograms with disjoint supports
     for method in ["u4d", "baseline"]:
@@ -271,7 +271,8 @@ def test_a_shipped_weights_path_from_another_folder_finds_the_checkouts_file(tmp
 
     monkeypatch.chdir(tmp_path)  # configs/u4d/generate_hdl64.yaml names weights/*.pt (u4d_aug.weights_store)
     cfg = load_config(GenerateConfig, resolve_config_path("u4d/generate_hdl64"), [])
-    assert _checkpoint_paths(cfg) == {name: REPO / "weights" / f"u4d_{name}.pt" for name in ("stage1", "stage2")}
+    one_net = REPO / "weights" / "u4d.pt"  # the shipped U4D: one net for both stages
+    assert _checkpoint_paths(cfg) == {"stage1": one_net, "stage2": one_net}
 
 
 def test_unknown_flag_is_still_refused_in_one_line(capsys):

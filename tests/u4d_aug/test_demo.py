@@ -34,7 +34,7 @@ def write_outputs(out: Path) -> None:
 
 def test_report_tables_say_what_ran_and_why_a_metric_is_absent(tmp_path):
     write_outputs(tmp_path)
-    shipped = {"u4d_stage1": Path("a.pt"), "extractor_frd": Path("f.pt")}  # no FPD extractor shipped
+    shipped = {"u4d": Path("a.pt"), "extractor_frd": Path("f.pt")}  # no FPD extractor shipped
     timings = [(Step("simulate", "simulate a small world", ["simulate"]), 5.25), (Step("x", "downstream", []), 44.8)]
     report = demo_report(tmp_path, timings, shipped)
     lines = report.splitlines()
@@ -70,7 +70,7 @@ def test_sequence_table_and_steps(tmp_path):
     assert "| generated (U4D+MoST, propagated) | 0.021 | 0.038 | 0.260 | 0.350 | 0.470 | 0.630 |" in lines
     assert "| real (sequence 02) | 0.031 | - | 0.060 | - | - | - |" in lines
     # the steps run only with the shipped 4D nets, and generate along the motion file the demo writes
-    weights = {"u4d_stage1": Path("a.pt"), "u4d_stage2": Path("b.pt"), "baseline": Path("c.pt")}
+    weights = {"u4d": Path("a.pt"), "baseline": Path("c.pt")}
     keys = [step.key for step in demo_steps(tmp_path, 0, tmp_path / "none", weights)]
     assert "generate-4d" not in keys
     weights |= {"u4d_most_stage1": Path("m1.pt"), "u4d_most_stage2": Path("m2.pt")}
@@ -81,3 +81,16 @@ def test_sequence_table_and_steps(tmp_path):
     motion = sequence_motion()  # 1.2 m per frame, 3 degrees left per frame
     assert motion.shape == (5, 4) and np.allclose(np.diff(motion[:, 3]), np.deg2rad(3.0))
     assert np.allclose(np.linalg.norm(np.diff(motion[:, :2], axis=0), axis=1), 1.2)
+
+
+def test_u4d_is_one_net_for_both_stages(tmp_path):
+    shipped = {"u4d": Path("u.pt"), "baseline": Path("c.pt")}
+    steps = {step.key: step for step in demo_steps(tmp_path, 0, tmp_path / "none", shipped)}
+    assert "stage=u4d" in steps["train-u4d"].command and steps["train-u4d"].command[-1] == str(tmp_path / "u4d")
+    assert not [key for key in steps if key.startswith("train-stage")]
+    generate = steps["generate-u4d"].command
+    assert "net=u.pt" in generate and "stage1=" in generate and "stage2=" in generate  # the preset's own cleared
+    # without shipped nets: the seconds-trained one net generates, and the ceiling's bank avoids its places
+    own = {step.key: step for step in demo_steps(tmp_path, 0, tmp_path / "none", None)}
+    assert f"net={tmp_path / 'u4d'}" in own["generate-u4d"].command
+    assert own["bank-real"].command.count(str(tmp_path / "u4d")) == 1

@@ -84,11 +84,11 @@ def test_presets_that_name_presets_resolve_from_any_folder(elsewhere):
 
 def test_demo_presets_resolve_outside_the_repository(elsewhere):
     assert load_config(SegTrainConfig, DEMO_PRESETS["seg"]).model.name == "minkunet"
-    assert load_config(DiffusionTrainConfig, DEMO_PRESETS["diffusion"], ["diffusion.stage=stage1"]).height > 0
+    assert load_config(DiffusionTrainConfig, DEMO_PRESETS["diffusion"], ["diffusion.stage=u4d"]).height > 0
     assert load_config(GenerateConfig, DEMO_PRESETS["generate"]).num > 0
     assert load_config(GenerateConfig, DEMO_PRESETS["generate_toy"]).num > 0
     assert load_config(GenerateConfig, DEMO_PRESETS["generate_4d"]).propagate
-    roles = ("u4d_stage1", "u4d_stage2", "baseline", "u4d_most_stage1", "u4d_most_stage2")  # the 4D step's nets too
+    roles = ("u4d", "baseline", "u4d_most_stage1", "u4d_most_stage2")  # the 4D step's nets too
     shipped = {name: elsewhere / f"{name}.pt" for name in roles}
     steps = [*demo_steps(elsewhere / "demo", 0, elsewhere / "no-real", shipped)]
     steps += demo_steps(elsewhere / "demo", 0, elsewhere / "no-real", None)  # no weights/: the seconds-trained nets

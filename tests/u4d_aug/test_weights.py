@@ -248,29 +248,28 @@ def test_diffusion_export_stores_the_row_mean_of_its_training_images(diffusion, 
 def test_shipped_generators_carry_their_row_mean():
     shipped = shipped_weights(SHIPPED_DIR)
     assert shipped is not None
-    nets = [("u4d_stage1", "x0_u"), ("u4d_stage2", "x0"), ("baseline", "x0")]
-    sequence = [("u4d_most_stage1", "x0_u"), ("u4d_most_stage2", "x0"), ("baseline_most", "x0")]  # the 4D nets
-    nets += [(name, key) for name, key in sequence if name in shipped]
-    for name, key in nets:
+    # (file, role, images): the one U4D net stores its stage-1 task's x0_u mean beside its x0 mean
+    nets = [("u4d", "stage1", "x0_u"), ("u4d", "stage2", "x0"), ("baseline", None, "x0")]
+    sequence = [("u4d_most_stage1", None, "x0_u"), ("u4d_most_stage2", None, "x0"), ("baseline_most", None, "x0")]
+    nets += [(name, role, key) for name, role, key in sequence if name in shipped]  # the 4D nets
+    for name, role, key in nets:
         state = torch.load(shipped[name], weights_only=True)
-        mean, info = weights.stored_row_mean(state, name)
+        mean, info = weights.stored_row_mean(state, name, role)
         assert info["key"] == key and mean.shape == (2, state["config"]["height"], 1), name
         assert torch.isfinite(mean).all() and float(mean.abs().max()) <= 1.0, name  # range-encoded images
 
 
 def test_shipped_weights_are_found_by_role(tmp_path):
     assert shipped_weights(tmp_path) is None  # a wheel install: no weights/ folder
-    for name in ("u4d_stage1", "u4d_stage2", "extractor_frd"):
+    for name in ("u4d", "extractor_frd", "u4d_stage1", "u4d_stage2"):  # a two-net U4D's files fill no role
         (tmp_path / f"{name}.pt").write_bytes(b"x")
     assert shipped_weights(tmp_path) is None  # a generator missing: the demo falls back to its own nets
     (tmp_path / "baseline.pt").write_bytes(b"x")
     found = shipped_weights(tmp_path)
-    assert found == {
-        name: tmp_path / f"{name}.pt" for name in ("u4d_stage1", "u4d_stage2", "baseline", "extractor_frd")
-    }
-    # the checkout's own weights/ folder holds the three generators and both extractors
+    assert found == {name: tmp_path / f"{name}.pt" for name in ("u4d", "baseline", "extractor_frd")}
+    # the checkout's own weights/ folder holds the two generators (U4D one net for both stages) and both extractors
     shipped = shipped_weights(SHIPPED_DIR)
-    roles = {"u4d_stage1", "u4d_stage2", "baseline", "extractor_frd", "extractor_fpd"}
+    roles = {"u4d", "baseline", "extractor_frd", "extractor_fpd"}
     assert shipped is not None and roles <= set(shipped)
 
 

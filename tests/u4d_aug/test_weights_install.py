@@ -71,9 +71,9 @@ API_SCAN = """
 import numpy as np, torch, u4d_aug
 from u4d_aug import SamplingSettings, generate_u4d, load_generator, to_points
 assert "site-packages" in u4d_aug.__file__, u4d_aug.__file__  # the installed copy, not the checkout
-stage1, stage2 = load_generator("weights/u4d_stage1.pt"), load_generator("weights/u4d_stage2.pt")  # the installed nets
-x0 = generate_u4d(stage1, stage2, 1, [torch.Generator().manual_seed(0)], SamplingSettings())["x0"]  # seed 0 + sample 0
-points = to_points(x0, stage2.config.sensor, stage2.config.row_mode)[0]
+net = load_generator("weights/u4d.pt")  # the installed U4D: one net for both stages
+x0 = generate_u4d(net, net, 1, [torch.Generator().manual_seed(0)], SamplingSettings())["x0"]  # seed 0 + sample 0
+points = to_points(x0, net.config.sensor, net.config.row_mode)[0]
 bank = np.fromfile("bank/sequences/00/velodyne/000000.bin", np.float32).reshape(-1, 4)
 assert points.shape == bank.shape, (points.shape, bank.shape)
 assert np.array_equal(points, bank), float(np.abs(points - bank).max())

@@ -31,20 +31,21 @@ def test_the_table_is_the_checkouts_weights_byte_for_byte():
 
 
 def test_shipped_names_are_recognised_in_every_spelling():
-    assert shipped_name("weights/u4d_stage1.pt") == "u4d_stage1.pt"
-    assert shipped_name("u4d_stage1.pt") == shipped_name("u4d_stage1") == "u4d_stage1.pt"
+    assert shipped_name("weights/u4d.pt") == "u4d.pt"
+    assert shipped_name("u4d.pt") == shipped_name("u4d") == "u4d.pt"
     assert shipped_name("weights/not_shipped.pt") is None
-    assert shipped_name("runs/weights/u4d_stage1.pt") is None  # another folder's file of that name
-    assert shipped_name("/abs/weights/u4d_stage1.pt") is None
+    assert shipped_name("weights/u4d_stage1.pt") is None  # the two-net U4D's files are shipped no more
+    assert shipped_name("runs/weights/u4d.pt") is None  # another folder's file of that name
+    assert shipped_name("/abs/weights/u4d.pt") is None
 
 
 def test_a_shipped_name_resolves_to_the_checkout_from_any_folder(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv(WEIGHTS_ENV, "")  # recorded, so what main sets is undone
-    assert resolve_weights("weights/u4d_stage1.pt") == CHECKOUT_DIR / "u4d_stage1.pt"
+    assert resolve_weights("weights/u4d.pt") == CHECKOUT_DIR / "u4d.pt"
     (tmp_path / "weights").mkdir()
-    (tmp_path / "weights" / "u4d_stage1.pt").write_bytes(b"mine")  # a path that exists is used as written
-    assert resolve_weights("weights/u4d_stage1.pt") == Path("weights/u4d_stage1.pt")
+    (tmp_path / "weights" / "u4d.pt").write_bytes(b"mine")  # a path that exists is used as written
+    assert resolve_weights("weights/u4d.pt") == Path("weights/u4d.pt")
     assert resolve_weights("runs/missing.pt") == Path("runs/missing.pt")  # not a shipped name: unchanged
 
 

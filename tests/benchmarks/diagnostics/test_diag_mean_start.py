@@ -1,6 +1,6 @@
 """benchmarks/diagnostics/diag_mean_start.py: generation with the mean start on stage 2 only, run in a tmp folder
-whose weights/ and configs/u4d/generate_hdl64.yaml are the tiny untrained nets (the script reads both by relative
-path)."""
+whose weights/ and configs/u4d/generate_hdl64.yaml are tiny untrained nets, U4D one net for both stages as shipped
+(the script reads both by relative path)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 import torch
 
 import u4d_aug.pipeline as pipeline
-from tests.tiny_nets import load_script
+from tests.tiny_nets import TINY, load_script, save_checkpoint
 from tests.tiny_worlds import write_tiny_world
 
 bench = load_script("diagnostics/diag_mean_start")
@@ -27,11 +27,11 @@ def keep_threads():
 
 def test_stage_two_alone_starts_from_the_mean(untrained_checkpoints, tmp_path, monkeypatch, keep_threads):
     (tmp_path / "weights").mkdir()
-    for stage in ("stage1", "stage2", "baseline"):
-        shutil.copy(untrained_checkpoints[stage], tmp_path / "weights" / f"u4d_{stage}.pt")
+    save_checkpoint(tmp_path / "weights" / "u4d.pt", TINY, ("diffusion.stage=u4d",))
+    shutil.copy(untrained_checkpoints["baseline"], tmp_path / "weights" / "baseline.pt")
     config = tmp_path / "configs" / "u4d" / "generate_hdl64.yaml"
     config.parent.mkdir(parents=True)
-    lines = [f"{stage}: weights/u4d_{stage}.pt" for stage in ("stage1", "stage2", "baseline")]
+    lines = ["net: weights/u4d.pt", "baseline: weights/baseline.pt"]
     config.write_text("\n".join([*lines, "steps: 2", "device: cpu", "batch_size: 1", ""]))
     write_tiny_world(tmp_path / "world", tmp_path / "probs", num_scans=2)
     calls = []

@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from tests.tiny_nets import load_script
+from tests.tiny_nets import TINY, load_script, save_checkpoint
 from tests.tiny_worlds import write_posed_world
 from u4d_aug.range_view import decode_depth, encode_depth
 
@@ -56,8 +56,10 @@ def test_the_summary_skips_windows_without_a_score():
 def test_run_on_tiny_nets_and_a_posed_world(untrained_checkpoints, untrained_sequence_checkpoints, tmp_path):
     world, probs = tmp_path / "world", tmp_path / "probs"
     write_posed_world(world, probs, num_scans=3)
+    one_net = save_checkpoint(tmp_path / "u4d.pt", TINY, ("diffusion.stage=u4d",))
     nets = [
         f"stage2={untrained_checkpoints['stage2']}",
+        f"u4d={one_net}@stage2",  # a one-net u4d fills with its stage-2 task
         f"baseline={untrained_checkpoints['baseline']}",
         f"baseline_most={untrained_sequence_checkpoints['baseline']}",
     ]
@@ -66,7 +68,8 @@ def test_run_on_tiny_nets_and_a_posed_world(untrained_checkpoints, untrained_seq
     argv += ["--mean-data-root", str(world), "--out", str(out)]
     assert bench.main([*argv, "--nets", *nets]) == 0
     result = json.loads(out.with_suffix(".json").read_text())
-    assert result["windows"] == 1 and set(result["nets"]) == {"stage2", "baseline", "baseline_most"}
+    assert result["windows"] == 1 and set(result["nets"]) == {"stage2", "u4d", "baseline", "baseline_most"}
+    assert result["nets"]["u4d"]["weights"] == f"{one_net}@stage2"
     for net in result["nets"].values():
         propagated, uncertain = net["propagated"], net["uncertain"]
         # the frames drive 2 m apart: most of frame 0 lands in frames 1-2, far more than the top 10 % of P_u
@@ -79,3 +82,5 @@ def test_run_on_tiny_nets_and_a_posed_world(untrained_checkpoints, untrained_seq
     assert bench.main([*argv, "--nets", *nets, "--frames", "1"]) == 2
     stage1 = f"stage1={untrained_checkpoints['stage1']}"
     assert bench.main([*argv, "--nets", stage1]) == 2
+    assert bench.main([*argv, "--nets", f"u4d={one_net}"]) == 2  # which task of the one net: @stage2
+    assert bench.main([*argv, "--nets", f"stage2={untrained_checkpoints['stage2']}@stage2"]) == 2
