@@ -114,7 +114,7 @@ random_arm() {  # SEED: the random-P_u bank arm of a 10 % seed (the bank from th
   wait_file weights/u4d_random_stage1.pt
   wait_file weights/u4d_random_stage2.pt
   if [ "$CORE" = A ]; then
-    bank "$BANKS/u4d_random_hdl64_ms" u4d stage1=weights/u4d_random_stage1.pt stage2=weights/u4d_random_stage2.pt
+    bank "$BANKS/u4d_random_hdl64_ms" u4d net= stage1=weights/u4d_random_stage1.pt stage2=weights/u4d_random_stage2.pt
   fi
   wait_bank "$BANKS/u4d_random_hdl64_ms"
   exp10 "$1" mt+u4d-random
@@ -144,7 +144,7 @@ arms_1pct() {  # SEED: the four 1 % arms (the U4D bank from the exported 1 % net
   wait_file weights/u4d_1pct_stage1.pt
   wait_file weights/u4d_1pct_stage2.pt
   if [ "$CORE" = A ]; then
-    bank "$BANKS/u4d_1pct_hdl64_ms" u4d stage1=weights/u4d_1pct_stage1.pt stage2=weights/u4d_1pct_stage2.pt
+    bank "$BANKS/u4d_1pct_hdl64_ms" u4d net= stage1=weights/u4d_1pct_stage1.pt stage2=weights/u4d_1pct_stage2.pt
   else
     bank "$BANKS/r2dm_hdl64_ms" baseline
   fi

@@ -58,7 +58,7 @@ two_nets() {  # NAME STEPS [overrides...]: today's two nets, STEPS / 2 each
   shift 2
   train "$P/$name/stage1" "$half" stage=stage1 "$@"
   train "$P/$name/stage2" "$half" stage=stage2 "$@"
-  bank "$P/$name/bank" mode=u4d "stage1=$P/$name/stage1" "stage2=$P/$name/stage2"
+  bank "$P/$name/bank" mode=u4d net= "stage1=$P/$name/stage1" "stage2=$P/$name/stage2"
   score "$name" "stage1=$P/$name/stage1" "stage2=$P/$name/stage2"
 }
 baseline() {  # NAME STEPS [overrides...]: the R2DM-style single net

@@ -6,7 +6,7 @@
 # claims of queues that ended are taken over and every task resumes from its checkpoints. From the repository root:
 #   CORE=A nohup bash scripts/temporal_queue.sh > temporal_A.log 2>&1 &
 #   CORE=B nohup bash scripts/temporal_queue.sh > temporal_B.log 2>&1 &
-# Every sequence net is the shipped single-frame net of its stage (weights/) fine-tuned on L = 4 frame windows by
+# Every sequence net is the single-frame net of its stage (SOURCE_STAGES, default weights/) fine-tuned on L = 4 frame windows by
 # configs/u4d/cpu_hdl64_most.yaml (MoST blocks and the ego-motion input start as the identity), STEPS per U4D stage
 # and 2 x STEPS for the baseline, so each method gets the same budget:
 #   u4d_most         U4D stage 1 + stage 2 with MoST (gating fusion), seeds 0 and 1
@@ -50,6 +50,13 @@ WAIT=${WAIT:-120}  # seconds between looks for a task whose inputs the other que
 ONE_NET=${ONE_NET:-0}
 SOURCE_U4D=${SOURCE_U4D:-weights/u4d.pt}
 SOURCE_BASELINE=${SOURCE_BASELINE:-weights/baseline.pt}
+SOURCE_STAGES=${SOURCE_STAGES:-weights}  # the two-net mode's folder of u4d_stage1.pt / u4d_stage2.pt
+if [ "$ONE_NET" != 1 ] && { [ ! -f "$SOURCE_STAGES/u4d_stage1.pt" ] || [ ! -f "$SOURCE_STAGES/u4d_stage2.pt" ]; }; then
+  echo "temporal_queue.sh: the two-net mode fine-tunes $SOURCE_STAGES/u4d_stage1.pt and u4d_stage2.pt, which are not" \
+    "there (the shipped U4D is one net, weights/u4d.pt): run with ONE_NET=1, or set SOURCE_STAGES to a folder" \
+    "holding two stage nets (git show 3fe7096:weights/u4d_stage1.pt > DIR/u4d_stage1.pt, likewise stage 2)" >&2
+  exit 2
+fi
 if [ "$ONE_NET" = 1 ]; then MODE=_one_net; else MODE=; fi
 T=$RUNS/temporal$MODE
 PROPAGATE=${PROPAGATE:-0}
@@ -75,7 +82,7 @@ finetune() {  # RUN STAGE STEPS [overrides...]: one sequence net from the shippe
   local run=$1 stage=$2 steps=$3
   shift 3
   [ "$(last_step "$run")" = "$steps" ] && return 0
-  u4d train-diffusion "$PRESET" "stage=$stage" "steps=$steps" "init_from=weights/u4d_$stage.pt" \
+  u4d train-diffusion "$PRESET" "stage=$stage" "steps=$steps" "init_from=$SOURCE_STAGES/u4d_$stage.pt" \
     "data_root=$DATA/sim_seg" "probs_root=$DATA/sim_seg_probs" sample_every=0 "$@" --out "$run" --no-progress \
     $(resume_flag "$run")
 }
@@ -150,7 +157,7 @@ method() {  # NAME SEED: generate and score one trained U4D-like method (u4d_mos
   if [ "$ONE_NET" = 1 ]; then
     sequences "$T/banks/$name$BANK$seed" u4d "$seed" "net=$run/u4d" stage1= stage2=
   else
-    sequences "$T/banks/$name$BANK$seed" u4d "$seed" "stage1=$run/stage1" "stage2=$run/stage2"
+    sequences "$T/banks/$name$BANK$seed" u4d "$seed" net= "stage1=$run/stage1" "stage2=$run/stage2"
   fi
   score "$T/banks/$name$BANK$seed" "$E/${name}_s$seed"
   if [ "$name" = u4d_most ] && [ "$seed" = 0 ] && [ "$PROPAGATE" = 0 ]; then  # the gate figures of the trained model (+ json beside)

@@ -193,7 +193,10 @@ def _checkpoint_paths(cfg: GenerateConfig) -> dict[str, Path]:
     paths = {}
     one_net = cfg.net if cfg.mode != "baseline" else ""  # baseline mode reads `baseline` only, as it ignores stage1/2
     if one_net and (cfg.stage1 or cfg.stage2):
-        raise InputError("net: a one-net u4d checkpoint replaces stage1 and stage2; set one or the other")
+        raise InputError(
+            "net: a one-net u4d checkpoint replaces stage1 and stage2; set one or the other "
+            "(two stage nets with a preset that names a one net: add net=)"
+        )
     for name in needed:
         value = one_net or getattr(cfg, name)
         if not value:

@@ -27,7 +27,13 @@ def queue_env(tmp_path: Path) -> dict:
     for seq in range(88, 100):
         (tmp_path / "data" / "sim_seg" / "sequences" / str(seq)).mkdir(parents=True)
     folders = {name: str(tmp_path / name.lower()) for name in ("RUNS", "DATA", "RESULTS")}
-    return stand_in_env(tmp_path, STEPS="20", WAIT="0.1", PY=sys.executable, **folders)
+    stages = (
+        tmp_path / "two_net"
+    )  # the two-net mode's stage nets (the shipped U4D is one net); the stand-in never reads them
+    stages.mkdir()
+    for stage in ("stage1", "stage2"):
+        (stages / f"u4d_{stage}.pt").write_bytes(b"stand-in")
+    return stand_in_env(tmp_path, STEPS="20", WAIT="0.1", PY=sys.executable, SOURCE_STAGES=str(stages), **folders)
 
 
 def option(argv: list[str], flag: str) -> str:
@@ -42,7 +48,9 @@ def test_every_call_is_valid_budgets_are_equal_and_the_table_is_written(queue_en
         args, cfg = check_call(argv, REPO)
         if argv[0] == "train-diffusion":
             assert args.config == Path("configs/u4d/cpu_hdl64_most.yaml")
-            assert (REPO / cfg.init_from).is_file(), cfg.init_from  # the shipped net of this stage
+            source = Path(cfg.init_from) if cfg.diffusion.stage != "baseline" else REPO / cfg.init_from
+            assert source.is_file(), cfg.init_from  # SOURCE_STAGES' net of this stage, the shipped baseline
+            assert cfg.diffusion.stage == "baseline" or source.parent == tmp_path / "two_net"
             assert Path(cfg.init_from).stem.endswith(cfg.diffusion.stage)
             assert cfg.data_root == f"{tmp_path}/data/sim_seg" and cfg.frames == 4
             steps[str(args.out)] = cfg.steps
@@ -119,6 +127,12 @@ def test_propagate_reuses_the_trained_nets_and_writes_its_own_table(queue_env, t
     table = json.loads((results / "temporal_propagated.json").read_text())
     assert table["methods"]["u4d_most"]["seeds"] == 2 and table["methods"]["floor"]["seeds"] == 1  # the one floor
     assert set(table["fusion"]) == {"gating", "cascade", "add", "concat"}
+
+
+def test_the_two_net_mode_names_its_missing_stage_nets(queue_env, tmp_path):
+    env = {**queue_env, "CORE": "A", "SOURCE_STAGES": str(tmp_path / "nowhere")}
+    done = subprocess.run(["bash", str(SCRIPT)], cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "nowhere/u4d_stage1.pt" in done.stderr and "ONE_NET=1" in done.stderr
 
 
 def test_the_script_needs_a_core(queue_env):
