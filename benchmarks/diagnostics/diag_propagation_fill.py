@@ -186,7 +186,9 @@ def main(argv: list[str] | None = None) -> int:
             path, _, role = weights.partition("@")
             net, cfg = load_generator(path)
             if cfg.diffusion.stage not in ("stage2", "baseline", "u4d"):
-                raise InputError(f"--nets {name}: a {cfg.diffusion.stage} net; expected stage2 or baseline nets")
+                raise InputError(
+                    f"--nets {name}: a {cfg.diffusion.stage} net; expected stage2, baseline or u4d@stage2 nets"
+                )
             if (cfg.diffusion.stage == "u4d") != (role == "stage2"):
                 raise InputError(f"--nets {spec!r}: @stage2 names the stage-2 task of a one-net u4d checkpoint")
             role = role or cfg.diffusion.stage  # the mean of the images it fills: x0

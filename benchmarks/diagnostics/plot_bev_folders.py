@@ -26,6 +26,8 @@ from u4d_aug.errors import InputError, exit_code_of  # noqa: E402
 from u4d_aug.range_view import project  # noqa: E402
 from u4d_aug.viz import draw_bev, draw_range_image, save_figure  # noqa: E402
 
+LOG_DEPTH_RANGE = (0.0, float(np.log(80.0)))  # the range images' colour scale: 1 m to 80 m
+
 
 def scan_of(folder: Path, index: int) -> Path:
     """The index-th scan (sorted) of a SemanticKITTI-layout folder."""
@@ -62,9 +64,11 @@ def run(argv: list[str] | None = None) -> int:
     for column, (name, folder) in enumerate(folders.items()):
         path = scan_of(folder, args.index)
         points = read_kitti_scan(path)
+        last = column == len(folders) - 1  # one colour bar per row: every panel of a row shares its scale
         draw_bev(axes[0, column], points, extent=args.extent, title=f"{name}\n{path.name}", point_size=0.4,
-                 height_colorbar=False)  # fmt: skip
-        draw_range_image(axes[1, column], depth_image(points), "log depth")
+                 height_colorbar=last)  # fmt: skip
+        draw_range_image(axes[1, column], depth_image(points), "log depth", vmin=LOG_DEPTH_RANGE[0],
+                         vmax=LOG_DEPTH_RANGE[1], unit="ln(depth / 1 m)" if last else None)  # fmt: skip
         print(f"{name}: {path} ({len(points)} points)")
     save_figure(fig, args.png)
     return 0
