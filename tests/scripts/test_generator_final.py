@@ -30,7 +30,8 @@ def trained_runs(calls: list[list[str]], runs: Path) -> list[tuple]:
         if argv[0] == "train-diffusion":
             trained.append((cfg.diffusion.stage, cfg.steps, args.out.relative_to(runs).as_posix(), cfg))
         elif argv[0] == "generate":
-            assert cfg.num == 16 and (cfg.net or cfg.baseline).startswith(str(runs))
+            sampled = cfg.baseline if cfg.mode == "baseline" else cfg.net  # baseline mode ignores the preset's net
+            assert cfg.num == 16 and sampled.startswith(str(runs))
         else:
             assert argv[0] == "export-weights", argv
     return trained

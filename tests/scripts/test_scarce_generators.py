@@ -54,7 +54,7 @@ def test_probabilities_nets_and_banks_cover_the_scarce_places_only(tmp_path):
         elif argv[0] == "generate":
             args, cfg = check_call(argv, REPO)
             if cfg.num == 8:
-                banks[args.out.name] = cfg.net or cfg.baseline
+                banks[args.out.name] = cfg.baseline if cfg.mode == "baseline" else cfg.net
     assert trained == [("u4d", 2), ("baseline", 2)]
     assert banks == {
         "scarce_u4d_hdl64": str(runs / "scarce" / "u4d_milestones" / "step_2.pt"),
