@@ -25,7 +25,7 @@ class SamplingSettings:
     # `u4d generate`'s sampler_grid; "logsnr": steps uniform in log-SNR (dpmpp2m and dpmpp2m-sde only)
     grid: Grid = "time"
     steps: int = 20
-    stage1_steps: int | None = 20  # U4D's stage 1; None = steps
+    stage1_steps: int | None = 6  # U4D's stage 1, which draws only the uncertain region; None = steps
     # U4D's stage-1 mask keeps at most this share of each frame's pixels (`pipeline.cap_mask`); None = no cap
     stage1_mask_fraction: float | None = 0.1
     # below this log-SNR x̂0 is the net's stored per-row training mean (`pipeline.MeanStart`); None = the net's own

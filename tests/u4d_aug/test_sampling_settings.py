@@ -24,7 +24,7 @@ def test_the_defaults_are_the_shipped_preset_s():
     preset = yaml.safe_load(PRESET.read_text(encoding="utf-8"))
     assert SamplingSettings(**{field: preset[key] for field, key in KEYS.items()}) == SamplingSettings()
     assert SamplingSettings() == DEFAULT_SAMPLING
-    assert SamplingSettings() == SamplingSettings("dpmpp2m-sde", "time", 20, 20, 0.1, -10.0)  # the golden values
+    assert SamplingSettings() == SamplingSettings("dpmpp2m-sde", "time", 20, 6, 0.1, -10.0)  # the golden values
     assert load_config(GenerateConfig, PRESET).sampling() == SamplingSettings()
 
 
