@@ -68,7 +68,8 @@ ANCHOR_PRESET = REPO / "configs" / "u4d" / "full_hdl64.yaml"
 ANCHOR_STEPS = 256  # R2DM's DDPM sampling steps
 WEIGHTS = REPO / "weights"
 WEIGHT_FILES = {"stage1": "u4d.pt", "stage2": "u4d.pt", "baseline": "baseline.pt"}  # the shipped U4D: one net
-DEFAULT_STEPS = {"ddpm": (32, 16), "ddim": (32, 16), "dpmpp2m": (20, 10), "dpmpp2m-sde": (20, 10)}  # (steps, stage 1)
+# (steps, stage 1); dpmpp2m-sde: generate_hdl64.yaml's
+DEFAULT_STEPS = {"ddpm": (32, 16), "ddim": (32, 16), "dpmpp2m": (20, 10), "dpmpp2m-sde": (20, 6)}
 QUICK_STEPS = (4, 2)
 GOAL_RATIO = 1.3
 GOAL_FRACTION = 0.5
@@ -672,7 +673,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--sampler", choices=["ddpm", "ddim", "dpmpp2m", "dpmpp2m-sde"], default="dpmpp2m", help="timed sampler"
     )
     parser.add_argument("--steps", type=int, default=None, help="steps of stage 2 and the baseline (dpmpp2m 20)")
-    parser.add_argument("--stage1-steps", type=int, default=None, help="steps of stage 1 (dpmpp2m 10)")
+    parser.add_argument("--stage1-steps", type=int, default=None, help="steps of stage 1 (dpmpp2m 10, its SDE 6)")
     parser.add_argument("--compare-ddpm-steps", type=int, default=None, help="also DDPM with these steps (32; 0 off)")
     parser.add_argument("--compare-stage1-steps", type=int, default=None, help="its stage-1 steps (half of them)")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 8], help="generation batch sizes")

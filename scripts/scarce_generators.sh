@@ -50,7 +50,7 @@ NAME=scarce METHOD=both STEPS=$STEPS SEGMENT=$SEGMENT RUNS=$RUNS EXTRA="sequence
 done_bank() { python3 -c "import json,sys; sys.exit(0 if json.load(open('$1/manifest.json')).get('complete') else 1)" 2>/dev/null; }
 F=$RUNS/scarce
 done_bank "$BANKS/scarce_u4d_hdl64" || u4d generate configs/u4d/generate_hdl64.yaml --out "$BANKS/scarce_u4d_hdl64" \
-  mode=u4d "net=$F/u4d_milestones/step_$STEPS.pt" stage1= stage2= stage1_steps=6 "num=$NUM" --no-progress
+  mode=u4d "net=$F/u4d_milestones/step_$STEPS.pt" stage1= stage2= "num=$NUM" --no-progress
 done_bank "$BANKS/scarce_r2dm_hdl64" || u4d generate configs/u4d/generate_hdl64.yaml --out "$BANKS/scarce_r2dm_hdl64" \
   mode=baseline "baseline=$F/baseline_milestones/step_$STEPS.pt" "num=$NUM" --no-progress
 echo "scarce generators done"

@@ -3,8 +3,8 @@ sampler_grid, steps, stage1_steps, stage1_mask_fraction, mean_start_below), `pip
 `pipeline.generate_baseline` and `GeneratedScans`, so the API and the CLI make the same scans.
 
 The defaults are those of the shipped preset configs/u4d/generate_hdl64.yaml (tests/u4d_aug/test_sampling_settings.py
-keeps them equal): DPM-Solver++(2M) SDE at 20 steps for both stages, stage 1's mask capped at the 10 % of the
-pixels P_u covers, and each net's stored training mean as x̂0 below log-SNR -10 (`pipeline.MeanStart`).
+keeps them equal): DPM-Solver++(2M) SDE at 20 steps, 6 for stage 1 (the uncertain region), its mask capped at the
+10 % of the pixels P_u covers, and each net's stored training mean as x̂0 below log-SNR -10 (`pipeline.MeanStart`).
 """
 
 from __future__ import annotations

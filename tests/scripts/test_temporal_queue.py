@@ -27,9 +27,8 @@ def queue_env(tmp_path: Path) -> dict:
     for seq in range(88, 100):
         (tmp_path / "data" / "sim_seg" / "sequences" / str(seq)).mkdir(parents=True)
     folders = {name: str(tmp_path / name.lower()) for name in ("RUNS", "DATA", "RESULTS")}
-    stages = (
-        tmp_path / "two_net"
-    )  # the two-net mode's stage nets (the shipped U4D is one net); the stand-in never reads them
+    # the two-net mode's stage nets (the shipped U4D is one net); the stand-in never reads them
+    stages = tmp_path / "two_net"
     stages.mkdir()
     for stage in ("stage1", "stage2"):
         (stages / f"u4d_{stage}.pt").write_bytes(b"stand-in")
