@@ -44,7 +44,8 @@ last_step() { tail -n 1 "$1/log.jsonl" 2>/dev/null | python3 -c "import sys,json
 
 world() {  # the simulated world the nets and segmentors train on (places 00-87) and are scored on (88-99)
   if [ ! -f "$DATA/sim_seg/done" ]; then
-    u4d simulate --out "$DATA/sim_seg" --sequences 100 --frames 8 --seed 10 --config configs/sim/seg_rich.yaml
+    # 164 places: 00-87 train, 88-99 held out, 100-163 the ceiling arm's real bank (configs/experiment/design_*.yaml)
+    u4d simulate --out "$DATA/sim_seg" --sequences 164 --frames 8 --seed 10 --config configs/sim/seg_rich.yaml
     touch "$DATA/sim_seg/done"
   fi
 }

@@ -120,7 +120,8 @@ sequences() {  # OUT MODE SEED [overrides...]: 24 sequences of 5 frames along mo
 }
 world() {  # the simulated world and the uncertainty segmentor's probabilities of its training places
   if [ ! -f "$DATA/sim_seg/done" ]; then
-    u4d simulate --out "$DATA/sim_seg" --sequences 100 --frames 8 --seed 10 --config configs/sim/seg_rich.yaml
+    # 164 places: 00-87 train, 88-99 held out, 100-163 the ceiling arm's real bank (configs/experiment/design_*.yaml)
+    u4d simulate --out "$DATA/sim_seg" --sequences 164 --frames 8 --seed 10 --config configs/sim/seg_rich.yaml
     touch "$DATA/sim_seg/done"
   fi
   if [ ! -f "$DATA/sim_seg_probs/done" ]; then
