@@ -1,7 +1,9 @@
 """What a diffusion stage trains on: the range images of the scans (or L-frame windows) and the batch of each step.
 
 Item i of `RangeImages` is scan i projected to x0 (2, H, W) with, for stages 1 and 2, its uncertain region x0_u
-(2, H, W) and mask m_u (1, H, W) (U4D paper §2.1); with `frames` = L > 1 the L scans of window i, (L, C, H, W).
+(2, H, W) and mask m_u (1, H, W) (U4D paper §2.1), for a cascade's detail net the scan's layout (its projection at
+W / s columns) as x0_u on every s-th column and m_u those columns (`u4d_aug.cascade`); with `frames` = L > 1 the L
+scans of window i, (L, C, H, W).
 The scans of step s and the noise of step s depend only on (seed, step, rank) (`training_batch`), so a resumed
 run draws what an uninterrupted one would; `crop_batch` cuts azimuth crops for training on part of the ring.
 """
@@ -15,6 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from u4d_aug.cascade import check_stride, place_columns
 from u4d_aug.data.beams import check_beams
 from u4d_aug.data.datasets import (
     NuscenesScanDataset,
@@ -25,7 +28,7 @@ from u4d_aug.data.datasets import (
     open_sequences,
 )
 from u4d_aug.data.sensors import Sensor, get_sensor
-from u4d_aug.diffusion import stage1_count
+from u4d_aug.diffusion import CONDITIONED, stage1_count
 from u4d_aug.errors import InputError
 from u4d_aug.nn.unet import crop_columns
 from u4d_aug.propagate import warp_frame0
@@ -107,14 +110,18 @@ class RangeImages:
         return out
 
     def scan_images(self, seq: str, frame: str, generator: torch.Generator | None = None) -> dict[str, Tensor]:
-        """x0 (2, H, W) and, for stages 1 and 2, x0_u (2, H, W), m_u (1, H, W) of one scan (cached)."""
+        """x0 (2, H, W) and, for stages 1, 2 and detail, x0_u (2, H, W), m_u (1, H, W) of one scan (cached)."""
         if (seq, frame) in self.cache:
             return self.cache[(seq, frame)]
         cfg = self.cfg
         points = torch.from_numpy(self.scans.load_points(seq, frame))
         x0 = to_image(project(points, self.sensor, cfg.height, cfg.width, cfg.row_mode), self.sensor)
         out = {"x0": x0}
-        if cfg.diffusion.stage != "baseline":
+        if cfg.diffusion.stage == "detail":  # the condition: the scan's layout, its projection at width / s columns
+            low_width = check_stride(cfg.width, cfg.detail_stride)
+            x_low = to_image(project(points, self.sensor, cfg.height, low_width, cfg.row_mode), self.sensor)
+            out["x0_u"], out["m_u"] = place_columns(x_low, cfg.detail_stride)
+        elif cfg.diffusion.stage != "baseline":
             if self.needs_probs:
                 path = probs_path(cfg.probs_root, seq, frame)
                 probs = load_probs(path, points.shape[0])
@@ -219,10 +226,11 @@ def crop_batch(batch: dict[str, Tensor], offsets: Tensor, crop_width: int) -> di
 
 
 def stage_inputs(stage: str, batch: dict) -> tuple[Tensor, Tensor | None, Tensor | None]:
-    """(x0, cond, m_u) of GaussianDiffusion.forward: stage 1 learns x0 := x0_u; stage 2 and u4d read x0_u, m_u."""
+    """(x0, cond, m_u) of GaussianDiffusion.forward: stage 1 learns x0 := x0_u; stage 2, u4d and detail read x0_u,
+    m_u (a detail net's: the layout's columns)."""
     if stage == "stage1":
         return batch["x0_u"], None, batch["m_u"]
-    if stage in ("stage2", "u4d"):
+    if stage in CONDITIONED:
         return batch["x0"], batch["x0_u"], batch["m_u"]
     return batch["x0"], None, None
 

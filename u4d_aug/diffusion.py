@@ -53,8 +53,10 @@ class DiffusionConfig:
     """Diffusion stage and loss terms (paper §2: L_u for stage 1, L_c for stage 2; R2DM for the baseline)."""
 
     # stage1 / stage2: one U4D stage per net; u4d: one net for both stages (the paper's unified latent
-    # representation), told apart by a task embedding, both tasks in every batch; baseline: R2DM's single stage
-    stage: Literal["stage1", "stage2", "baseline", "u4d"] = "baseline"
+    # representation), told apart by a task embedding, both tasks in every batch; baseline: R2DM's single stage;
+    # detail: a cascade's second net, which completes a full-width scan given every s-th column (`u4d_aug.cascade`),
+    # conditioned as stage 2 is
+    stage: Literal["stage1", "stage2", "baseline", "u4d", "detail"] = "baseline"
     # what the net predicts: eps (ε, R2DM) or v = α ε − σ x0 (Salimans & Ho 2022); samplers read ε̂ either way
     parameterization: Literal["eps", "v"] = "eps"
     min_snr_gamma: float | None = 5.0  # None turns Min-SNR weighting off
@@ -89,9 +91,9 @@ class DiffusionConfig:
             raise InputError("diffusion.mask_weight must be >= 0 and diffusion.mask_pos_weight > 0")
         if self.most_cv_weight < 0:
             raise InputError(f"diffusion.most_cv_weight must be >= 0, got {self.most_cv_weight}")
-        if self.cond_noise < 0 or (self.cond_noise > 0 and self.stage not in ("stage2", "u4d")):
+        if self.cond_noise < 0 or (self.cond_noise > 0 and self.stage not in CONDITIONED):
             raise InputError(
-                f"diffusion.cond_noise must be >= 0, and 0 unless stage=stage2 or u4d, got {self.cond_noise}"
+                f"diffusion.cond_noise must be >= 0, and 0 unless stage=stage2, u4d or detail, got {self.cond_noise}"
             )
         if not 0.0 <= self.input_perturbation < 1.0:
             raise InputError(f"diffusion.input_perturbation must be in [0, 1), got {self.input_perturbation}")
@@ -99,18 +101,20 @@ class DiffusionConfig:
             raise InputError(f"diffusion.train_t_max must be in (0, 1], got {self.train_t_max}")
 
 
-STAGES: tuple[str, ...] = ("stage1", "stage2", "baseline", "u4d")
+STAGES: tuple[str, ...] = ("stage1", "stage2", "baseline", "u4d", "detail")
+CONDITIONED: tuple[str, ...] = ("stage2", "u4d", "detail")  # the stages whose net reads concat(x0_u, m_u)
 STAGE1_TASK, STAGE2_TASK = 0, 1  # the task ids of a u4d net's two stages (net.num_tasks = 2)
 
 
 def net_heads(stage: str, image_channels: int = 2) -> tuple[bool, int, int]:
     """(mask head, condition channels, tasks) of the net a stage trains on images of `image_channels` (2: depth and
     reflectance; a latent generator's: the autoencoder's latent channels): stage 1 has the mask head, stage 2 reads
-    concat(x0_u, m_u), a u4d net has both and a task embedding for its two stages."""
+    concat(x0_u, m_u) (a detail net: the layout's columns and their mask), a u4d net has both and a task embedding
+    for its two stages."""
     cond = image_channels + 1
     if stage == "u4d":
         return True, cond, 2
-    return stage == "stage1", cond if stage == "stage2" else 0, 0
+    return stage == "stage1", cond if stage in ("stage2", "detail") else 0, 0
 
 
 def stage1_count(batch: int, share: float) -> int:
@@ -191,6 +195,7 @@ class GaussianDiffusion(nn.Module):
         loss_weight (W,): per-column weight of the losses (0 on the columns of a crop's margin), None = all 1.
         stage1: x0 is x0_u, m_u (B, [L,] 1, H, W) is the BCE target; the net sees only x_t.
         stage2: x0 is the full scan, cond is x0_u and m_u its mask; the net sees concat(x_t, x0_u, m_u).
+        detail: as stage2, with cond the layout scan's columns and m_u their mask (`u4d_aug.cascade`).
         u4d: x0 is the full scan, cond x0_u, m_u its mask; the first `stage1_count` samples train stage 1 (target
         x0_u, an empty condition, task 0, the BCE), the others stage 2 (target x0 given x0_u, m_u, task 1).
         baseline: x0 is the full scan, no condition.
@@ -206,7 +211,7 @@ class GaussianDiffusion(nn.Module):
             x0, task, ones, rest = _split_tasks(x0, cond, self.cfg.stage1_share)
             bce_target = m_u[ones]
         lam, alpha, sigma, eps, x_t = _diffuse(x0, self.cfg.train_t_max, generator)
-        if stage in ("stage2", "u4d") and self.cfg.cond_noise > 0:  # drawn after t and ε: runs without it unchanged
+        if stage in CONDITIONED and self.cfg.cond_noise > 0:  # drawn after t and ε: runs without it unchanged
             noisy = noisy_condition(cond, m_u, self.cfg.cond_noise, generator, clamp=not self.latent)
             net_cond = stage_cond(noisy, m_u)
         if stage == "u4d":
@@ -253,7 +258,7 @@ class GaussianDiffusion(nn.Module):
 
 def _stage_inputs(stage: str, cond: Tensor | None, m_u: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
     """(the net's condition concat(x0_u, m_u) or None, the BCE target m_u or None) of a stage's inputs, checked."""
-    if stage in ("stage2", "u4d"):
+    if stage in CONDITIONED:
         if cond is None or m_u is None:
             raise ValueError(f"GaussianDiffusion({stage}): needs cond=x0_u and m_u")
         return stage_cond(cond, m_u), None

@@ -13,6 +13,8 @@ motion (net.pose_dim > 0) gets, for sample i, the motion of an L-frame window of
 the real frames' own motion. The bank also gets config.yaml (the run's resolved config), log.jsonl (a line per
 finished block), identity calib/poses and times.txt where its sequences have no poses of their own, and unless
 labels=false the all-ignore labels of `u4d export --layout semantickitti` (a bank is a training set).
+With `detail`, a two-level cascade (`u4d_aug.cascade`): the u4d or baseline nets generate each scan's layout at W / s
+columns and the detail net completes it to W columns.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from u4d_aug.bank import (
     write_sequence_poses,
 )
 from u4d_aug.batches import net_row_mean
+from u4d_aug.cascade import spread_columns
 from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.beams import check_beams
 from u4d_aug.data.datasets import (
@@ -75,6 +78,7 @@ from u4d_aug.pipeline import (
     generate_u4d,
     generate_u4d_propagated,
     load_generator,
+    refine,
     stored_mean,
     to_points,
 )
@@ -109,6 +113,10 @@ class GenerateConfig:
     stage1: str = ""  # u4d mode
     stage2: str = ""  # u4d and complete modes
     baseline: str = ""  # baseline mode
+    # u4d and baseline modes, a two-level cascade (`u4d_aug.cascade`): the nets above make single scans at W / s
+    # columns (the layout) and this detail net (train-diffusion stage=detail, at W columns) completes them, at
+    # `steps`; "" = no cascade, the scans are the nets' own
+    detail: str = ""
     # ddpm: ancestral, as R2DM; ddim: DDIM at few steps keeps x_1 noise with briefly trained nets; dpmpp2m:
     # DPM-Solver++(2M), deterministic 2nd order, the same t grid and one net call per step; dpmpp2m-sde: its
     # stochastic (SDE, η = 1) form, which like ddpm adds fresh noise at every step. The six sampling keys make
@@ -197,8 +205,12 @@ def _checkpoint_paths(cfg: GenerateConfig) -> dict[str, Path]:
             "net: a one-net u4d checkpoint replaces stage1 and stage2; set one or the other "
             "(two stage nets with a preset that names a one net: add net=)"
         )
+    if cfg.detail:
+        if cfg.mode == "complete":
+            raise InputError("detail: a cascade's detail net completes generated layouts (mode u4d or baseline)")
+        needed = (*needed, "detail")
     for name in needed:
-        value = one_net or getattr(cfg, name)
+        value = getattr(cfg, name) if name == "detail" else one_net or getattr(cfg, name)
         if not value:
             raise InputError(f"{name}: mode {cfg.mode} needs the {name} checkpoint path")
         path = resolve_weights(value)  # `weights/NAME.pt`: the installed shipped net (u4d_aug.weights_store)
@@ -243,6 +255,9 @@ def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info
     identity = _bank_identity(cfg, hashes, config)
     nets, mean_sources = _load_nets(cfg, paths, info.device)
     main = nets["stage2"] if "stage2" in nets else nets["baseline"]
+    if "detail" in nets:
+        _check_cascade(cfg, main[1], nets["detail"][1])
+        main = nets["detail"]  # the final stage: the scans' image, sensor and row mode
     frames = cfg.frames or main[1].frames  # L: 1 = single scans in sequence 00, > 1 = one sequence per sample
     # configs of the nets with an ego-motion input, the final stage's first (its training sequences give the motion)
     posed = [loaded[1] for loaded in (main, *nets.values()) if loaded[1].net.pose_dim > 0] if frames > 1 else []
@@ -278,7 +293,7 @@ class _Generation:
     """What every block of a bank's samples is generated with (`generate_locked`)."""
 
     cfg: GenerateConfig
-    nets: dict[str, Loaded]  # by role: stage1, stage2, baseline (in MeanStart with mean_start_below)
+    nets: dict[str, Loaded]  # by role: stage1, stage2, baseline, detail (in MeanStart with mean_start_below)
     train_cfg: DiffusionTrainConfig  # the final stage's: sensor, range image, row mode, frame stride
     frames: int  # L: 1 = single scans in sequence 00, > 1 = one sequence per sample
     posed: bool  # the nets take each frame's ego motion
@@ -322,6 +337,21 @@ def _load_nets(cfg: GenerateConfig, paths: dict[str, Path], device: torch.device
             mean, mean_sources[name] = training_mean(net_cfg, name, cfg, paths[name], autoencoder_of(net))
             nets[name] = (MeanStart(net, mean.to(device), cfg.mean_start_below), net_cfg)
     return nets, mean_sources
+
+
+def _check_cascade(cfg: GenerateConfig, layout: DiffusionTrainConfig, detail: DiffusionTrainConfig) -> None:
+    """A detail net completes single scans of its layout nets' sensor, rows and W / s columns; InputError else."""
+    if detail.diffusion.stage != "detail":
+        raise InputError(f"detail: {cfg.detail} is a {detail.diffusion.stage} net, not a detail net (stage=detail)")
+    want = (detail.sensor, detail.height, detail.width // detail.detail_stride, detail.row_mode)
+    got = (layout.sensor, layout.height, layout.width, layout.row_mode)
+    if got != want:
+        raise InputError(
+            f"detail: {cfg.detail} completes layouts of sensor {want[0]}, {want[1]}x{want[2]} ({want[3]} rows); the "
+            f"{cfg.mode} nets make {got[0]}, {got[1]}x{got[2]} ({got[3]} rows)"
+        )
+    if (cfg.frames or layout.frames) > 1 or cfg.propagate:
+        raise InputError("detail: a cascade generates single scans; frames must be 1 and propagate false")
 
 
 def _bank_motions(
@@ -461,10 +491,17 @@ def _sample_block(run: _Generation, block: list[int], generators: list[torch.Gen
     """The scans x0 of a block's samples, (n[·L], 2, H, W), and the side images written beside them."""
     motion = None if run.motions is None else torch.from_numpy(run.motions[block])  # (n, L, 4)
     if run.cfg.mode == "u4d":
-        return _generate_u4d(run, block, generators, motion)
-    if run.cfg.mode == "baseline":
-        return _generate_baseline(run, block, generators, motion)
-    return _complete_block(run, block, generators)
+        x0, side = _generate_u4d(run, block, generators, motion)
+    elif run.cfg.mode == "baseline":
+        x0, side = _generate_baseline(run, block, generators, motion)
+    else:
+        return _complete_block(run, block, generators)
+    if "detail" not in run.nets:
+        return x0, side
+    # the cascade's second level: the full-width scans, with the layout's side images spread over them
+    stride = run.train_cfg.detail_stride
+    x0 = refine(run.nets["detail"], x0, generators, run.cfg.sampling())["x0"]
+    return x0, tuple(None if part is None else spread_columns(part, stride) for part in side)
 
 
 def _block_poses(run: _Generation, block: list[int]) -> np.ndarray:

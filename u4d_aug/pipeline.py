@@ -2,7 +2,8 @@
 
 U4D (paper §2): x0_u ~ stage 1 with its mask head deciding which pixels are returns, then x0 ~ stage 2 given
 concat(x0_u, m_u). Completion mode takes x0_u, m_u from real scans (so the frames keep those scans' poses).
-The baseline is R2DM's single unconditional stage. Nets are loaded with their EMA weights.
+The baseline is R2DM's single unconditional stage. A cascade's detail net (`refine`) completes the full-width scan
+from the columns a layout net (either method's) generated at W / s. Nets are loaded with their EMA weights.
 A net trained with `frames` = L > 1 generates L-frame sequences at once: tensors (n, L, C, H, W) instead of
 (n, C, H, W) (its MoST blocks, if any, mix the frames). `frames=` asks for another length: the temporal convs
 slide along L, so any L works, and a single-frame net then makes L independent frames.
@@ -22,6 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from u4d_aug.batches import row_mean_key
+from u4d_aug.cascade import place_columns
 from u4d_aug.data.sensors import Sensor, get_sensor
 from u4d_aug.diffusion import STAGE1_TASK, STAGE2_TASK, empty_condition, eps_from_v, stage_cond
 from u4d_aug.ema import EMA
@@ -358,6 +360,28 @@ def complete(
         x0 = from_latent(autoencoder, x0)
         x0 = torch.where(m_u.bool().expand_as(x0), x0_u, x0) if pin_known else x0
     return {"x0": x0, "x0_u": x0_u, "m_u": m_u}
+
+
+def refine(
+    detail: Loaded, x_low: Tensor, generator: Generators, settings: SamplingSettings = DEFAULT_SAMPLING
+) -> dict[str, Tensor]:
+    """A cascade's second level: x0 (B, 2, H, W) ~ p(x0 | the layout x_low (B, 2, H, W / s) on every s-th column)
+    from a detail net (train-diffusion stage=detail, `u4d_aug.cascade`) at settings.steps -> dict(x0, x0_u, m_u),
+    x0_u and m_u the placed layout columns."""
+    _check_stage(detail, "detail", "detail")
+    detail = with_mean_start(detail, "detail", settings)
+    net, cfg = detail
+    low_width = cfg.width // cfg.detail_stride
+    if x_low.dim() != 4 or x_low.shape[1:] != (2, cfg.height, low_width):
+        raise InputError(
+            f"detail: this net completes {cfg.height}x{cfg.width} scans from layouts of {cfg.height}x{low_width} "
+            f"(every {cfg.detail_stride}th column): expected x_low (B, 2, {cfg.height}, {low_width}), got "
+            f"{tuple(x_low.shape)}"
+        )
+    device = next(net.parameters()).device
+    x0_u, m = place_columns(x_low.to(device), cfg.detail_stride)
+    sample = _sample(detail, (x_low.shape[0],), settings.steps, generator, stage_cond(x0_u, m), settings)
+    return {"x0": sample.x0, "x0_u": x0_u, "m_u": m}
 
 
 def generate_u4d(

@@ -13,6 +13,7 @@ from typing import Literal
 
 import torch
 
+from u4d_aug.cascade import check_stride
 from u4d_aug.config import config_from_dict
 from u4d_aug.data.datasets import DATASET_FORMATS
 from u4d_aug.data.nuscenes import NUSCENES_VERSION
@@ -80,6 +81,9 @@ class DiffusionTrainConfig:
     # crops: the columns at each edge of a crop that the losses skip. A crop is padded as a ring of its own, so its
     # edges meet at a seam that the full panorama never has; the margin keeps that seam out of what the net learns
     crop_margin: int = 0
+    # stage detail (a cascade's second net, `u4d_aug.cascade`): s, the layout net generates every s-th column
+    # (width / s columns) and this net completes the others given them
+    detail_stride: int = 4
     frames: int = 1  # L: scans per item; > 1 trains on L-frame windows of one sequence, (B, L, C, H, W)
     frame_stride: int = 1  # frames between the scans of a window
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
@@ -136,6 +140,13 @@ class DiffusionTrainConfig:
             )
         if self.crop_margin and not self.crop_width:
             raise InputError("crop_margin: the margin of azimuth crops needs crop_width > 0")
+        if self.diffusion.stage == "detail":
+            check_stride(self.width, self.detail_stride)
+            if self.frames > 1 or self.latent_factor:
+                raise InputError(
+                    "stage detail completes single range-image scans: frames must be 1 and latent_factor 0, got "
+                    f"frames={self.frames}, latent_factor={self.latent_factor}"
+                )
         if self.diffusion.stage == "u4d" and self.batch_size < 2:
             raise InputError(
                 f"stage u4d trains both stages in every batch: batch_size must be >= 2, got {self.batch_size}"

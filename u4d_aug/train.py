@@ -1,7 +1,8 @@
-"""Training of one diffusion stage: `u4d train-diffusion CONFIG stage=stage1|stage2|baseline [key=value ..]`.
+"""Training of one diffusion stage: `u4d train-diffusion CONFIG stage=stage1|stage2|u4d|baseline|detail [key=value ..]`.
 
 Stage 1 learns x0_u (the projected uncertain region P_u) with a mask head (L_u), stage 2 learns the full scan x0
-given concat(x0_u, m_u) (L_c), the baseline learns x0 unconditionally (R2DM); U4D paper §2.
+given concat(x0_u, m_u) (L_c), the baseline learns x0 unconditionally (R2DM); U4D paper §2. A cascade's detail
+net learns x0 given every s-th column of it, as stage 2 does given P_u (`u4d_aug.cascade`).
 The loop reads top to bottom (nanoGPT `train.py`): batch -> loss = diffusion(x0, cond, m_u) -> AdamW -> EMA, on
 the run layer (`u4d_aug.run`: output folder, resolved config, log, checkpoints, clock) and the batches of
 `u4d_aug.batches`, whose scans and noise of step s depend only on (seed, step, rank), so a resumed run ends as an
@@ -267,6 +268,9 @@ def _save_sample_png(net: nn.Module, cfg: DiffusionTrainConfig, images: RangeIma
         x0_u, m_u = first["x0_u"][None].to(device), first["m_u"][None].to(device)
         motion = first["motion"][None] if "motion" in first else None  # the window's own
         x0 = pipeline.complete((net, cfg), x0_u, m_u, generator, ddpm, motion=motion)["x0"]
+    elif cfg.diffusion.stage == "detail":  # the first training scan's layout, completed
+        x_low = images[0]["x0_u"][None, :, :, :: cfg.detail_stride].to(device)
+        x0 = pipeline.refine((net, cfg), x_low, generator, ddpm)["x0"]
     elif cfg.diffusion.stage == "stage1":
         x0 = pipeline.generate_stage1((net, cfg), 1, generator, ddpm, motion=motion)["x0_u"]
     else:
@@ -303,8 +307,11 @@ def split_stage_override(overrides: list[str]) -> list[str]:
 
 
 def add_train_diffusion_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of `u4d train-diffusion CONFIG stage=stage1|stage2|baseline [key=value ..] [--resume] [--out]`."""
-    add_run_arguments(parser, "configs/u4d/cpu.yaml", "stage=stage1 steps=100 (stage=stage1|stage2|baseline)")
+    """Arguments of `u4d train-diffusion CONFIG stage=stage1|stage2|u4d|baseline|detail [key=value ..] [--resume]
+    [--out]`."""
+    add_run_arguments(
+        parser, "configs/u4d/cpu.yaml", "stage=stage1 steps=100 (stage=stage1|stage2|u4d|baseline|detail)"
+    )
 
 
 def run_train_diffusion(args: argparse.Namespace) -> int:
