@@ -17,11 +17,21 @@
 # configs/u4d/latent_hdl64.yaml, runs in RUNS/latent/NAME, the gates with the real scans through AE beside them (the
 # best a generator on AE can do):
 #   AE=../runs/latent/ae16/autoencoder.pt NAME=ae16 METHOD=both STEPS=4000 SEGMENT=2000 bash scripts/generator_final.sh
+# The two-level cascade (u4d_aug.cascade): both methods learn whole rings at a quarter of the columns (the layout),
+# METHOD=detail trains the one detail net both share (milestones exported, no bank: it needs a layout), and DETAIL
+# makes each milestone's 16 scans through that detail net at full width (cascade_bank_N, cascade_gates_N.json), so a
+# finished layout run re-run with DETAIL only adds its cascade banks:
+#   LAYOUT="height=64 width=256 crop_width=0 net.attention=true net.attention_heads=4 batch_size=4"
+#   NAME=cascade METHOD=both STEPS=6000 SEGMENT=2000 EXTRA="$LAYOUT" bash scripts/generator_final.sh
+#   NAME=cascade METHOD=detail STEPS=4000 SEGMENT=2000 EXTRA="detail_stride=4 crop_width=256 crop_margin=16 \
+#     net.attention=true net.attention_heads=4 batch_size=4" bash scripts/generator_final.sh
+#   DETAIL=RUNS/cascade/detail_milestones/step_4000.pt NAME=cascade METHOD=both ... EXTRA="$LAYOUT" bash ...
 set -euo pipefail
 RUNS=${RUNS:-../runs}
 NAME=${NAME:-final}
 AE=${AE:-}
-METHOD=${METHOD:?set METHOD=u4d, baseline or both}
+DETAIL=${DETAIL:-}
+METHOD=${METHOD:?set METHOD=u4d, baseline, both or detail}
 STEPS=${STEPS:-60000}
 SEGMENT=${SEGMENT:-4000}
 read -r -a extra <<< "${EXTRA:-}"
@@ -57,8 +67,16 @@ milestones=$F/${METHOD}_milestones
 mkdir -p "$milestones"
 if [ "$METHOD" = u4d ]; then
   stage=(stage=u4d "diffusion.cond_noise=$COND_NOISE")
+elif [ "$METHOD" = detail ]; then
+  stage=(stage=detail "diffusion.cond_noise=$COND_NOISE")
 else
   stage=(stage=baseline)
+fi
+cascade=()
+prefix=""
+if [ -n "$DETAIL" ]; then
+  cascade=("detail=$DETAIL")
+  prefix=cascade_
 fi
 for ((target = SEGMENT; target <= STEPS; target += SEGMENT)); do
   weights=$milestones/step_$target.pt
@@ -67,18 +85,20 @@ for ((target = SEGMENT; target <= STEPS; target += SEGMENT)); do
       --no-progress $(resume_flag "$run")
   fi
   [ -f "$weights" ] || { [ "$(last_step "$run")" = "$target" ] && u4d export-weights "$run" --out "$weights"; }
-  bank=$milestones/bank_$target
+  [ "$METHOD" = detail ] && continue  # a detail net samples only given a layout (DETAIL= of the other methods)
+  bank=$milestones/${prefix}bank_$target
   if ! python3 -c "import json,sys; sys.exit(0 if json.load(open('$bank/manifest.json')).get('complete') else 1)" 2>/dev/null; then
     if [ "$METHOD" = u4d ]; then
       u4d generate configs/u4d/generate_hdl64.yaml --out "$bank" mode=u4d "net=$weights" stage1= stage2= num=16 \
-        batch_size=4 stage1_steps=20 --no-progress
+        batch_size=4 stage1_steps=20 ${cascade[@]+"${cascade[@]}"} --no-progress
     else
       u4d generate configs/u4d/generate_hdl64.yaml --out "$bank" mode=baseline "baseline=$weights" num=16 \
-        batch_size=4 --no-progress
+        batch_size=4 ${cascade[@]+"${cascade[@]}"} --no-progress
     fi
   fi
-  [ -f "$milestones/gates_$target.json" ] || "${PY:-python3}" benchmarks/gates.py --bank "${METHOD}_$target=$bank" \
+  gates=$milestones/${prefix}gates_$target.json
+  [ -f "$gates" ] || "${PY:-python3}" benchmarks/gates.py --bank "${prefix}${METHOD}_$target=$bank" \
     ${GATES[@]+"${GATES[@]}"} --real data/sim_eval --real-sequences 00-11 --num 16 --work "$F/gates_work" \
-    --out "$milestones/gates_$target.json" > /dev/null
+    --out "$gates" > /dev/null
 done
 echo "$NAME $METHOD done"

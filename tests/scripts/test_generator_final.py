@@ -1,7 +1,8 @@
 """scripts/generator_final.sh run end to end with the stand-in `u4d` (tests/scripts/stand_in.py): both methods segment
 by segment at equal budgets, every call one the real commands accept, each milestone exported, sampled and scored, a
-second run starts nothing; EXTRA reaches the training config (the data-scarce generators) and AE switches to the
-latent preset with the autoencoder's row beside the gates."""
+second run starts nothing; EXTRA reaches the training config (the data-scarce generators), AE switches to the
+latent preset with the autoencoder's row beside the gates, and the cascade trains a detail net and samples finished
+layout milestones through it."""
 
 from __future__ import annotations
 
@@ -87,3 +88,29 @@ def test_an_autoencoder_switches_to_the_latent_preset_with_its_gates_row(tmp_pat
     assert cfg.diffusion.cond_noise == 0.1
     gates = [argv for argv in calls if argv[0] == "py"]
     assert len(gates) == 2 and all(f"ae={ae}" in argv for argv in gates)
+
+
+def test_the_cascade_trains_a_detail_net_and_reruns_a_layout_run_through_it(tmp_path):
+    runs = tmp_path / "runs"
+    detail = "detail_stride=4 crop_width=256 crop_margin=16"
+    env = stand_in_env(tmp_path, RUNS=str(runs), NAME="c", METHOD="detail", STEPS="2", SEGMENT="2", EXTRA=detail)
+    run_queue(env)
+    calls = recorded_calls(tmp_path)
+    (trained,) = trained_runs(calls, runs)
+    stage, steps, folder, cfg = trained
+    assert (stage, steps, folder) == ("detail", 2, "c/detail") and cfg.detail_stride == 4
+    assert cfg.diffusion.cond_noise == 0.05 and cfg.crop_margin == 16
+    assert [argv[0] for argv in calls] == ["train-diffusion", "export-weights"]  # no bank without a layout
+
+    layout = "height=64 width=256 crop_width=0"
+    env = stand_in_env(tmp_path, RUNS=str(runs), NAME="c", METHOD="baseline", STEPS="2", SEGMENT="2", EXTRA=layout)
+    run_queue(env)
+    before = len(recorded_calls(tmp_path))
+    weights = runs / "c" / "detail_milestones" / "step_2.pt"
+    run_queue({**env, "DETAIL": str(weights)})
+    added = recorded_calls(tmp_path)[before:]
+    assert [argv[0] for argv in added] == ["generate", "py"]  # the trained layout net, only sampled through it
+    assert f"detail={weights}" in added[0] and "--out" in added[0]
+    assert added[0][added[0].index("--out") + 1].endswith("baseline_milestones/cascade_bank_2")
+    assert added[1][-1].endswith("baseline_milestones/cascade_gates_2.json")
+    assert f"cascade_baseline_2={added[0][added[0].index('--out') + 1]}" in added[1]
