@@ -179,6 +179,45 @@ def autoencoded_bank(bank: Path, autoencoder_path: Path, geometry: dict, out: Pa
     return projected_bank(bank, geometry, out, through)
 
 
+def detailed_bank(bank: Path, detail_path: Path, geometry: dict, out: Path, seed: int = 0) -> Path:
+    """`bank`'s scans as a cascade with a perfect layout makes them: projected at the detail net's W / s columns (the
+    layout net's image), completed to W by the detail net (`pipeline.refine`, `u4d generate`'s default sampling, scan
+    i drawn with seed + i), unprojected: the best a cascade with this detail net can do."""
+    import torch
+
+    from u4d_aug.pipeline import refine
+
+    detail = load_generator(detail_path)
+    cfg = detail.config
+    if cfg.diffusion.stage != "detail":
+        raise InputError(f"{detail_path}: a {cfg.diffusion.stage} net, not a cascade's detail net (stage=detail)")
+    if (cfg.sensor, cfg.height, cfg.width, cfg.row_mode) != (
+        geometry["sensor"], geometry["height"], geometry["width"], geometry["row_mode"]
+    ):  # fmt: skip
+        raise InputError(
+            f"{detail_path}: completes {cfg.sensor} {cfg.height}x{cfg.width} ({cfg.row_mode}) images; this score uses "
+            f"{geometry}"
+        )
+    if not hasattr(detail.net, "row_mean_detail"):
+        raise InputError(
+            f"{detail_path}: no stored training mean (the default sampling starts from it); export the net with "
+            "`u4d export-weights RUN --out FILE`"
+        )
+    sensor = get_sensor(cfg.sensor)
+    paths = sorted(bank.glob("sequences/*/velodyne/*.bin"))
+    if not paths:
+        raise InputError(f"{bank}: no scans to complete")
+    for index, path in enumerate(paths):
+        target = out / path.relative_to(bank)
+        if not target.exists():
+            layout = project(read_kitti_scan(path), sensor, cfg.height, cfg.width // cfg.detail_stride, cfg.row_mode)
+            generator = torch.Generator().manual_seed(seed + index)
+            with torch.no_grad():
+                image = refine(detail, to_image(layout, sensor)[None], [generator])["x0"]
+            write_kitti_scan(target, to_points(image, sensor, cfg.row_mode)[0])
+    return out
+
+
 def parse_bench_metrics(text: str) -> tuple[str, ...]:
     """'frd,teacher' -> ('frd', 'teacher'): `u4d evaluate`'s metrics and STRUCTURE; one line naming both otherwise."""
     names = tuple(dict.fromkeys(part.strip().lower() for part in text.split(",") if part.strip()))

@@ -15,6 +15,8 @@ those labels (building share the headline), bev_density = above-ground points pe
 roughness = mean |encoded depth step| along a ring and down a column (`u4d_aug.metrics.structure`), frd / fpd =
 `u4d evaluate` against the reference with the shipped extractors. The teacher, density and roughness describe a
 row's own scans, so the reference row has them too; FRD / FPD of the reference against itself are not computed.
+`--autoencoder` adds the real row's scans through a latent generator's autoencoder, `--detail` the real row's
+layouts (their projection at W / s columns) completed by a cascade's detail net: the best either can do.
 Writes OUT (json: `rows.<name>.<key>`, the keys of bench_generation's `methods`, plus `scans` and `seconds`) and
 OUT with .md; prints the table. 16 scans per bank take ~1 min on one core (FPD's point net is most of it).
 """
@@ -33,6 +35,7 @@ from bench_generation import (
     STRUCTURE,
     WEIGHTS,
     autoencoded_bank,
+    detailed_bank,
     floor_bank,
     parse_bench_metrics,
     projected_bank,
@@ -58,6 +61,9 @@ COLUMNS = (  # (json key, markdown header, scale, digits)
     ("fpd", "FPD ↓", 1.0, 1),
 )
 REFERENCE, REAL, PROJECTED, AUTOENCODED = "reference", "real", "real projected", "real autoencoded"
+DETAILED = "real layout detailed"
+AE_FILE = "the OUT/autoencoder.pt of `u4d train-autoencoder`"
+DETAIL_FILE = "the weights of a cascade's detail net (`u4d train-diffusion stage=detail`, `u4d export-weights`)"
 
 
 def score_row(
@@ -70,15 +76,13 @@ def score_row(
     return values | {"scans": len(list_scans(bank, args.num)), "seconds": round(time.perf_counter() - start, 1)}
 
 
-def parse_autoencoders(texts: list[str]) -> dict[str, Path]:
-    """--autoencoder NAME=FILE, repeatable: {name: file}."""
+def parse_autoencoders(texts: list[str], option: str = "--autoencoder", what: str = AE_FILE) -> dict[str, Path]:
+    """`option` NAME=FILE, repeatable (--autoencoder, --detail): {name: file}."""
     found = {}
     for text in texts:
         name, sep, file = text.partition("=")
         if not sep or not name or not Path(file).is_file():
-            raise InputError(
-                f"--autoencoder {text!r}: expected NAME=FILE, FILE the OUT/autoencoder.pt of `u4d train-autoencoder`"
-            )
+            raise InputError(f"{option} {text!r}: expected NAME=FILE, FILE {what}")
         found[name] = Path(file)
     return found
 
@@ -111,9 +115,15 @@ def gate_rows(
         )
         for name, path in getattr(args, "autoencoders", {}).items()
     }
+    detailed = {  # likewise keyed by the detail net's digest
+        f"{DETAILED} ({name})": detailed_bank(
+            real, path, geometry, work / f"real_detail_{file_digest(path)}_n{args.num}"
+        )
+        for name, path in getattr(args, "details", {}).items()
+    }
     own = tuple(m for m in metrics if m in STRUCTURE)  # the reference against itself: no FRD / FPD
     rows = {REFERENCE: score_row(reference, reference, own, args, geometry, teacher) if own else {}}
-    for name, bank in {REAL: real, PROJECTED: projected, **encoded, **banks}.items():
+    for name, bank in {REAL: real, PROJECTED: projected, **encoded, **detailed, **banks}.items():
         rows[name] = score_row(bank, reference, metrics, args, geometry, teacher)
         print(f"{name}: {summary_line(rows[name])}", flush=True)
     return rows
@@ -189,6 +199,10 @@ def run(argv: list[str] | None = None) -> int:
         "--autoencoder", action="append", default=[], metavar="NAME=FILE",
         help="a latent generator's autoencoder (OUT/autoencoder.pt): adds the row of the real scans through it",
     )  # fmt: skip
+    parser.add_argument(
+        "--detail", action="append", default=[], metavar="NAME=FILE",
+        help="a cascade's detail net: adds the row of the real scans' layouts (W / s columns) completed by it",
+    )  # fmt: skip
     parser.add_argument("--metrics", default=DEFAULT_METRICS, help=f"subset of {DEFAULT_METRICS} (bench_generation's)")
     add_scoring_arguments(parser, "the real row's sequences (default: the other ones)",
                           "the range image of the real-projected row and roughness", "runs/gates")  # fmt: skip
@@ -198,6 +212,7 @@ def run(argv: list[str] | None = None) -> int:
     metrics = parse_bench_metrics(args.metrics)
     banks = parse_banks(args.bank)
     args.autoencoders = parse_autoencoders(args.autoencoder)
+    args.details = parse_autoencoders(args.detail, "--detail", DETAIL_FILE)
     args.floor_sequences = args.floor_sequences or other_sequences(args.real, args.real_sequences)
     make_folder(args.out.parent)  # a file in the way: one line before the long computation
     torch.set_num_threads(1)
@@ -220,6 +235,7 @@ def run(argv: list[str] | None = None) -> int:
         "geometry": geometry,
         "banks": {name: str(path) for name, path in banks.items()},
         "autoencoders": {name: str(path) for name, path in args.autoencoders.items()},
+        "details": {name: str(path) for name, path in args.details.items()},
         "rows": rows,
     }
     text = to_markdown(result)

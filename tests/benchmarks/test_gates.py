@@ -100,3 +100,30 @@ def test_an_autoencoder_that_is_not_a_file_is_one_line(world, tmp_path, capsys):
     assert gates.main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and "NAME=FILE" in err and "\n" not in err
+
+
+def test_the_real_layouts_completed_by_a_detail_net_are_a_row_of_their_own(world, tmp_path, capsys):
+    from tests.tiny_nets import TINY
+    from u4d_aug.config import load_config
+    from u4d_aug.export_weights import export_weights
+    from u4d_aug.stage import DiffusionTrainConfig
+    from u4d_aug.train import train
+
+    overrides = [f"data_root={world['root']}", "diffusion.stage=detail", "height=64", "width=1024", "row_mode=beam",
+                 "steps=2", "batch_size=1", f"out={tmp_path / 'run'}"]  # fmt: skip
+    train(load_config(DiffusionTrainConfig, TINY, overrides), progress=False)
+    weights = tmp_path / "detail.pt"
+    export_weights(tmp_path / "run", weights)
+    work = tmp_path / "work"
+    argv = ["--real", str(world["root"]), "--real-sequences", "00-01", "--num", "2", "--metrics", "bev_density",
+            "--work", str(work), "--detail", f"d={weights}", "--out", str(tmp_path / "g.json")]  # fmt: skip
+    assert gates.main(argv) == 0
+    result = json.loads((tmp_path / "g.json").read_text())
+    assert list(result["rows"])[3:] == ["real layout detailed (d)"] and result["details"] == {"d": str(weights)}
+    assert result["rows"]["real layout detailed (d)"]["scans"] == 2
+    (folder,) = work.glob("real_detail_*")
+    assert len(list(folder.glob("sequences/*/velodyne/*.bin"))) == 2
+    # a training checkpoint holds no training mean to start the default sampling from: one line naming the way out
+    argv[argv.index(f"d={weights}")] = f"d={sorted((tmp_path / 'run' / 'checkpoints').glob('*.pt'))[-1]}"
+    assert gates.main(argv) == 2
+    assert "export the net with `u4d export-weights" in capsys.readouterr().err
