@@ -19,8 +19,9 @@
 #   AE=../runs/latent/ae16/autoencoder.pt NAME=ae16 METHOD=both STEPS=4000 SEGMENT=2000 bash scripts/generator_final.sh
 # The two-level cascade (u4d_aug.cascade): both methods learn whole rings at a quarter of the columns (the layout),
 # METHOD=detail trains the one detail net both share (milestones exported, no bank: it needs a layout), and DETAIL
-# makes each milestone's 16 scans through that detail net at full width (cascade_bank_N, cascade_gates_N.json), so a
-# finished layout run re-run with DETAIL only adds its cascade banks:
+# makes each milestone's 16 scans through that detail net at full width (cascade_bank_N, cascade_gates_N.json), or with
+# DETAIL=nearest through no net (each layout column repeated 4 times), so a finished layout run re-run with DETAIL only
+# adds its cascade banks:
 #   LAYOUT="height=64 width=256 crop_width=0 net.attention=true net.attention_heads=4 batch_size=4"
 #   NAME=cascade METHOD=both STEPS=6000 SEGMENT=2000 EXTRA="$LAYOUT" bash scripts/generator_final.sh
 #   NAME=cascade METHOD=detail STEPS=4000 SEGMENT=2000 EXTRA="detail_stride=4 crop_width=256 crop_margin=16 \

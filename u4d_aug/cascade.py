@@ -4,7 +4,8 @@ A layout net (the baseline, or U4D's one net) generates whole rings at a quarter
 sees the street corridor; a detail net (train-diffusion stage=detail) completes the full-width scan given those
 columns, as stage 2 completes a scan given P_u: concat(x0_u, m) with m = the columns 0, s, 2s, … (cascaded diffusion
 models, Ho et al. 2022; SR3, Saharia et al. 2022). In training the condition is the W/s-column projection of the
-real scan, the very images the layout net learns, so the detail net reads what the layout net makes.
+real scan, the very images the layout net learns, so the detail net reads what the layout net makes. Without a
+detail net, the layout's columns are repeated s times (`upsample_nearest`).
 """
 
 from __future__ import annotations
@@ -36,6 +37,16 @@ def place_columns(x_low: Tensor, stride: int) -> tuple[Tensor, Tensor]:
     m = torch.zeros((*lead, 1, height, width * stride), dtype=x_low.dtype, device=x_low.device)
     m[..., ::stride] = 1.0
     return x0_u, m
+
+
+NEAREST = "nearest"  # `u4d generate detail=nearest`: the detail level without a net
+
+
+def upsample_nearest(x_low: Tensor, stride: int) -> Tensor:
+    """x_low (..., C, H, w) -> (..., C, H, w·s), each column repeated s times: the detail level without a net (the
+    real scans' layouts come back this way with their teacher view and FPD nearly intact,
+    benchmarks/results/generation/pilots.md)."""
+    return x_low.repeat_interleave(stride, dim=-1)
 
 
 def spread_columns(image: np.ndarray, stride: int) -> np.ndarray:

@@ -14,12 +14,13 @@ the real frames' own motion. The bank also gets config.yaml (the run's resolved 
 finished block), identity calib/poses and times.txt where its sequences have no poses of their own, and unless
 labels=false the all-ignore labels of `u4d export --layout semantickitti` (a bank is a training set).
 With `detail`, a two-level cascade (`u4d_aug.cascade`): the u4d or baseline nets generate each scan's layout at W / s
-columns and the detail net completes it to W columns.
+columns and a detail net completes it to W columns (or detail=nearest repeats each column s times).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -47,7 +48,7 @@ from u4d_aug.bank import (
     write_sequence_poses,
 )
 from u4d_aug.batches import net_row_mean
-from u4d_aug.cascade import spread_columns
+from u4d_aug.cascade import NEAREST, spread_columns, upsample_nearest
 from u4d_aug.config import config_to_dict, load_config, save_config
 from u4d_aug.data.beams import check_beams
 from u4d_aug.data.datasets import (
@@ -113,9 +114,10 @@ class GenerateConfig:
     stage1: str = ""  # u4d mode
     stage2: str = ""  # u4d and complete modes
     baseline: str = ""  # baseline mode
-    # u4d and baseline modes, a two-level cascade (`u4d_aug.cascade`): the nets above make single scans at W / s
-    # columns (the layout) and this detail net (train-diffusion stage=detail, at W columns) completes them, at
-    # `steps`; "" = no cascade, the scans are the nets' own
+    # u4d and baseline modes, a two-level cascade (`u4d_aug.cascade`): the nets above make scans at W / s columns (the
+    # layout) and a detail net (train-diffusion stage=detail, at W columns; single scans) completes them at `steps`,
+    # or "nearest": each layout column repeated s times up to the sensor's own width (no net; sequences too);
+    # "" = no cascade, the scans are the nets' own
     detail: str = ""
     # ddpm: ancestral, as R2DM; ddim: DDIM at few steps keeps x_1 noise with briefly trained nets; dpmpp2m:
     # DPM-Solver++(2M), deterministic 2nd order, the same t grid and one net call per step; dpmpp2m-sde: its
@@ -208,7 +210,8 @@ def _checkpoint_paths(cfg: GenerateConfig) -> dict[str, Path]:
     if cfg.detail:
         if cfg.mode == "complete":
             raise InputError("detail: a cascade's detail net completes generated layouts (mode u4d or baseline)")
-        needed = (*needed, "detail")
+        if cfg.detail != NEAREST:
+            needed = (*needed, "detail")
     for name in needed:
         value = getattr(cfg, name) if name == "detail" else one_net or getattr(cfg, name)
         if not value:
@@ -255,9 +258,14 @@ def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info
     identity = _bank_identity(cfg, hashes, config)
     nets, mean_sources = _load_nets(cfg, paths, info.device)
     main = nets["stage2"] if "stage2" in nets else nets["baseline"]
+    detail_stride = 1
     if "detail" in nets:
         _check_cascade(cfg, main[1], nets["detail"][1])
         main = nets["detail"]  # the final stage: the scans' image, sensor and row mode
+        detail_stride = main[1].detail_stride
+    elif cfg.detail == NEAREST:
+        detail_stride = nearest_stride(main[1])
+        main = (main[0], dataclasses.replace(main[1], width=main[1].width * detail_stride))  # the scans' image
     frames = cfg.frames or main[1].frames  # L: 1 = single scans in sequence 00, > 1 = one sequence per sample
     # configs of the nets with an ego-motion input, the final stage's first (its training sequences give the motion)
     posed = [loaded[1] for loaded in (main, *nets.values()) if loaded[1].net.pose_dim > 0] if frames > 1 else []
@@ -266,7 +274,7 @@ def generate_locked(cfg: GenerateConfig, paths: dict[str, Path], out: Path, info
     check_compatible(Path(out), identity)
     layout, old = _open_layout(Path(out), frames)
     scans = _real_scans(cfg, main[1], frames) if cfg.mode == "complete" else None
-    run = _Generation(cfg, nets, main[1], frames, bool(posed), motions, layout, scans)
+    run = _Generation(cfg, nets, main[1], frames, bool(posed), motions, layout, scans, detail_stride)
     manifest = _new_manifest(run, identity, config, paths, mean_sources, motion_sources, old)
     if info.is_main:
         _check_finished_samples(layout, old, manifest)
@@ -300,6 +308,7 @@ class _Generation:
     motions: np.ndarray | None  # (num, L, 4) ego motion of each sample (u4d and baseline modes), else None
     layout: BankLayout
     scans: Scans | Windows | None  # completion mode: the real scans (or L-frame windows) x0_u is taken from
+    detail_stride: int = 1  # a cascade's s: the nets above make W / s columns, the detail level W (1: no cascade)
     started: float = field(default_factory=time.perf_counter)  # wall clock of this run (log.jsonl)
     last_block: float = field(default_factory=time.perf_counter)  # when this rank's previous block was written
     written: int = 0  # samples this rank has written in this run
@@ -322,6 +331,8 @@ def _bank_identity(cfg: GenerateConfig, hashes: dict[str, str], config: dict) ->
         sampling["mean_start_below"] = cfg.mean_start_below
     if cfg.propagate:
         sampling["propagate"] = True
+    if cfg.detail == NEAREST:  # a detail net is among the checkpoints
+        identity["detail"] = NEAREST
     if cfg.propagate_pin and cfg.mode == "u4d":  # the baseline's inpainting pins them anyway
         sampling["propagate_pin"] = True
     return identity
@@ -337,6 +348,18 @@ def _load_nets(cfg: GenerateConfig, paths: dict[str, Path], device: torch.device
             mean, mean_sources[name] = training_mean(net_cfg, name, cfg, paths[name], autoencoder_of(net))
             nets[name] = (MeanStart(net, mean.to(device), cfg.mean_start_below), net_cfg)
     return nets, mean_sources
+
+
+def nearest_stride(layout: DiffusionTrainConfig) -> int:
+    """detail=nearest: s, the sensor's own width over the layout nets' (their columns repeated s times); InputError
+    unless it is a whole number >= 2."""
+    width = get_sensor(layout.sensor).width
+    if width % layout.width or width // layout.width < 2:
+        raise InputError(
+            f"detail=nearest repeats the layout's columns up to the sensor's {width}: the {layout.width}-column nets "
+            "must have a whole fraction of it (W / s, s >= 2)"
+        )
+    return width // layout.width
 
 
 def _check_cascade(cfg: GenerateConfig, layout: DiffusionTrainConfig, detail: DiffusionTrainConfig) -> None:
@@ -496,11 +519,14 @@ def _sample_block(run: _Generation, block: list[int], generators: list[torch.Gen
         x0, side = _generate_baseline(run, block, generators, motion)
     else:
         return _complete_block(run, block, generators)
-    if "detail" not in run.nets:
+    stride = run.detail_stride
+    if stride == 1:
         return x0, side
     # the cascade's second level: the full-width scans, with the layout's side images spread over them
-    stride = run.train_cfg.detail_stride
-    x0 = refine(run.nets["detail"], x0, generators, run.cfg.sampling())["x0"]
+    if "detail" in run.nets:
+        x0 = refine(run.nets["detail"], x0, generators, run.cfg.sampling())["x0"]
+    else:
+        x0 = upsample_nearest(x0, stride)
     return x0, tuple(None if part is None else spread_columns(part, stride) for part in side)
 
 

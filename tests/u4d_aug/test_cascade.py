@@ -13,7 +13,7 @@ from tests.tiny_nets import PLAIN_SAMPLING, diffusion_config, plain_settings
 from tests.tiny_worlds import write_tiny_world
 from u4d_aug.bank import BankLayout
 from u4d_aug.batches import RangeImages, stage_inputs, training_batch
-from u4d_aug.cascade import check_stride, place_columns, spread_columns
+from u4d_aug.cascade import check_stride, place_columns, spread_columns, upsample_nearest
 from u4d_aug.config import load_config
 from u4d_aug.data.sensors import get_sensor
 from u4d_aug.diffusion import GaussianDiffusion
@@ -109,3 +109,33 @@ def test_cascade_bank_makes_full_width_scans_from_layout_scans(tiny_world, tmp_p
         generate_bank(load_config(GenerateConfig, None, [*base, f"detail={wrong}"]), tmp_path / "bank2")
     with pytest.raises(InputError, match="detail: a cascade's detail net completes generated layouts"):
         generate_bank(load_config(GenerateConfig, None, [*base, "mode=complete", f"detail={detail}"]), tmp_path / "b3")
+
+
+def test_nearest_detail_repeats_each_layout_column_up_to_the_sensor_width(tiny_world, tmp_path):
+    x_low = torch.rand(2, 3, 2, 4, 5)
+    up = upsample_nearest(x_low, 3)
+    assert up.shape == (2, 3, 2, 4, 15) and torch.equal(up[..., 1::3], x_low) and torch.equal(up[..., 2::3], x_low)
+    layout = tmp_path / "layout"
+    train(diffusion_config(tiny_world, layout, "baseline", "width=256"), progress=False)
+    base = [f"baseline={layout}", "mode=baseline", "num=2", "sampler=ddpm", "steps=2", *PLAIN_SAMPLING]
+    base += ["device=cpu", "batch_size=2", "labels=false"]
+    plain = generate_bank(load_config(GenerateConfig, None, base), tmp_path / "plain")
+    manifest = generate_bank(load_config(GenerateConfig, None, [*base, "detail=nearest"]), tmp_path / "bank")
+    assert (
+        manifest["width"] == 1024 and manifest["detail"] == "nearest" and set(manifest["checkpoints"]) == {"baseline"}
+    )
+    # the same samples (seed + i) as without the cascade, each point now at the 4 azimuths of its column's bin
+    for index in range(2):
+        low = np.fromfile(BankLayout(tmp_path / "plain", 1).scan_path(index), dtype=np.float32).reshape(-1, 4)
+        up = np.fromfile(BankLayout(tmp_path / "bank", 1).scan_path(index), dtype=np.float32).reshape(-1, 4)
+        assert len(up) == 4 * len(low)
+        np.testing.assert_allclose(np.sort(np.linalg.norm(up[:, :3], axis=1))[::4],
+                                   np.sort(np.linalg.norm(low[:, :3], axis=1)), rtol=1e-5)  # fmt: skip
+    assert plain["width"] == 256
+    # a bank made without the cascade is not continued with it
+    with pytest.raises(InputError, match="bank was generated with a different detail"):
+        generate_bank(load_config(GenerateConfig, None, [*base, "detail=nearest"]), tmp_path / "plain")
+    odd = tmp_path / "odd"
+    train(diffusion_config(tiny_world, odd, "baseline", "width=24"), progress=False)
+    with pytest.raises(InputError, match="detail=nearest repeats the layout's columns up to the sensor's 1024"):
+        generate_bank(load_config(GenerateConfig, None, [*base, f"baseline={odd}", "detail=nearest"]), tmp_path / "o")
