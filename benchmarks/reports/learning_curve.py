@@ -36,16 +36,20 @@ def read_gates(path: Path) -> dict:
     return data
 
 
-def method_curve(folder: Path, method: str) -> tuple[dict, dict]:
-    """({step: {key: value}}, the reference rows of the last file) of one method's milestone folder."""
+def method_curve(folder: Path, method: str, prefix: str = "") -> tuple[dict, dict]:
+    """({step: {key: value}}, the reference rows of the last file) of one method's milestone folder; `prefix`
+    ("cascade_"): its PREFIXgates_STEP.json, rows PREFIXMETHOD_STEP."""
     curve, reference = {}, {}
-    files = sorted(folder.glob("gates_*.json"), key=lambda p: int(re.sub(r"\D", "", p.stem) or 0))
+    files = sorted(folder.glob(f"{prefix}gates_*.json"), key=lambda p: int(re.sub(r"\D", "", p.stem) or 0))
     for path in files:
-        step = int(re.fullmatch(r"gates_(\d+)", path.stem).group(1))
+        match = re.fullmatch(rf"{re.escape(prefix)}gates_(\d+)", path.stem)
+        if match is None:  # another prefix's file (cascade_gates_N beside gates_N)
+            continue
+        step = int(match.group(1))
         rows = read_gates(path)["rows"]
-        row = rows.get(f"{method}_{step}")
+        row = rows.get(f"{prefix}{method}_{step}")
         if row is None:
-            raise InputError(f"{path}: no row '{method}_{step}'")
+            raise InputError(f"{path}: no row '{prefix}{method}_{step}'")
         curve[step] = {key: row.get(key) for key in KEYS}
         reference = {name: {key: rows[name].get(key) for key in KEYS} for name in REFERENCE_ROWS if name in rows}
     return curve, reference
@@ -54,7 +58,7 @@ def method_curve(folder: Path, method: str) -> tuple[dict, dict]:
 def to_markdown(result: dict) -> str:
     """One row per method and milestone step."""
     lines = [
-        "# Generator learning curves (64x1024, 16 scans per milestone)",
+        "# Generator learning curves (16 scans per milestone, scored at 64x1024)",
         "",
         f"Built by `{result['command']}`. Each milestone: the EMA net exported at that step, 16 scans (both stages 20 "
         "steps of DPM-Solver++(2M) SDE, the mean start), scored by `benchmarks/gates.py` against held-out places.",
@@ -111,17 +115,22 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--final", type=Path, required=True, help="folder of METHOD_milestones/ (generator_final.sh)")
     parser.add_argument("--methods", nargs="+", default=["u4d", "baseline"], help="the methods to draw")
+    parser.add_argument(
+        "--prefix", default="", help="cascade_: the milestones' cascade banks (generator_final.sh DETAIL=...)"
+    )
     parser.add_argument("--out", type=Path, required=True, help="OUT.json (and OUT.md, OUT.png)")
     args = parser.parse_args(argv)
     methods, reference = {}, {}
     try:
         for method in args.methods:
-            curve, ref = method_curve(args.final / f"{method}_milestones", method)
+            curve, ref = method_curve(args.final / f"{method}_milestones", method, args.prefix)
             if curve:
                 methods[method] = curve
                 reference = reference or ref
         if not methods:
-            raise InputError(f"{args.final}: no METHOD_milestones/gates_STEP.json for {' '.join(args.methods)}")
+            raise InputError(
+                f"{args.final}: no METHOD_milestones/{args.prefix}gates_STEP.json for {' '.join(args.methods)}"
+            )
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

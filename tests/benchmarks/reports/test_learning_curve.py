@@ -11,10 +11,10 @@ curve = load_script("reports/learning_curve")
 REAL = {"real": {"fpd": 106.0, "teacher_building_share": 0.227}, "real projected": {"fpd": 103.0}}
 
 
-def _milestone(folder, method, step, fpd, building):
+def _milestone(folder, method, step, fpd, building, prefix=""):
     folder.mkdir(parents=True, exist_ok=True)
-    rows = {**REAL, "reference": {}, f"{method}_{step}": {"fpd": fpd, "teacher_building_share": building}}
-    (folder / f"gates_{step}.json").write_text(json.dumps({"rows": rows}))
+    rows = {**REAL, "reference": {}, f"{prefix}{method}_{step}": {"fpd": fpd, "teacher_building_share": building}}
+    (folder / f"{prefix}gates_{step}.json").write_text(json.dumps({"rows": rows}))
 
 
 def test_curves_by_step_beside_the_real_rows(tmp_path):
@@ -42,3 +42,17 @@ def test_a_milestone_without_its_row_and_an_empty_folder_are_one_line(tmp_path, 
     (final / "u4d_milestones" / "gates_4.json").write_text(json.dumps({"rows": {"u4d_8": {}}}))
     assert curve.main(["--final", str(final), "--out", str(tmp_path / "c.json")]) == 2
     assert "gates_4.json: no row 'u4d_4'" in capsys.readouterr().err
+
+
+def test_a_prefix_reads_the_cascade_banks_and_the_plain_curve_skips_them(tmp_path):
+    final = tmp_path / "final"
+    _milestone(final / "u4d_milestones", "u4d", 2, 400.0, 0.01)
+    _milestone(final / "u4d_milestones", "u4d", 2, 300.0, 0.02, prefix="cascade_")
+    _milestone(final / "u4d_milestones", "u4d", 4, 200.0, 0.03, prefix="cascade_")
+    out = tmp_path / "c.json"
+    assert curve.main(["--final", str(final), "--methods", "u4d", "--prefix", "cascade_", "--out", str(out)]) == 0
+    assert {step: row["fpd"] for step, row in json.loads(out.read_text())["methods"]["u4d"].items()} == {
+        "2": 300.0, "4": 200.0,
+    }  # fmt: skip
+    assert curve.main(["--final", str(final), "--methods", "u4d", "--out", str(out)]) == 0
+    assert {step: row["fpd"] for step, row in json.loads(out.read_text())["methods"]["u4d"].items()} == {"2": 400.0}
