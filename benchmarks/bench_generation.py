@@ -179,6 +179,25 @@ def autoencoded_bank(bank: Path, autoencoder_path: Path, geometry: dict, out: Pa
     return projected_bank(bank, geometry, out, through)
 
 
+def layout_nearest_bank(bank: Path, stride: int, geometry: dict, out: Path) -> Path:
+    """`bank`'s scans as a cascade with a perfect layout and no detail net makes them: projected at W / s columns,
+    each column repeated s times (`cascade.upsample_nearest`, `u4d generate detail=nearest`), unprojected at W."""
+    from u4d_aug.cascade import check_stride, upsample_nearest
+
+    sensor = get_sensor(geometry["sensor"])
+    low_width = check_stride(geometry["width"], stride)
+    paths = sorted(bank.glob("sequences/*/velodyne/*.bin"))
+    if not paths:
+        raise InputError(f"{bank}: no scans to project")
+    for path in paths:
+        target = out / path.relative_to(bank)
+        if not target.exists():
+            layout = project(read_kitti_scan(path), sensor, geometry["height"], low_width, geometry["row_mode"])
+            image = upsample_nearest(to_image(layout, sensor)[None], stride)
+            write_kitti_scan(target, to_points(image, sensor, geometry["row_mode"])[0])
+    return out
+
+
 def detailed_bank(bank: Path, detail_path: Path, geometry: dict, out: Path, seed: int = 0) -> Path:
     """`bank`'s scans as a cascade with a perfect layout makes them: projected at the detail net's W / s columns (the
     layout net's image), completed to W by the detail net (`pipeline.refine`, `u4d generate`'s default sampling, scan

@@ -16,7 +16,8 @@ roughness = mean |encoded depth step| along a ring and down a column (`u4d_aug.m
 `u4d evaluate` against the reference with the shipped extractors. The teacher, density and roughness describe a
 row's own scans, so the reference row has them too; FRD / FPD of the reference against itself are not computed.
 `--autoencoder` adds the real row's scans through a latent generator's autoencoder, `--detail` the real row's
-layouts (their projection at W / s columns) completed by a cascade's detail net: the best either can do.
+layouts (their projection at W / s columns) completed by a cascade's detail net, `--layout-nearest S` those layouts
+with each column repeated S times (`u4d generate detail=nearest`): the best each can do.
 Writes OUT (json: `rows.<name>.<key>`, the keys of bench_generation's `methods`, plus `scans` and `seconds`) and
 OUT with .md; prints the table. 16 scans per bank take ~1 min on one core (FPD's point net is most of it).
 """
@@ -37,6 +38,7 @@ from bench_generation import (
     autoencoded_bank,
     detailed_bank,
     floor_bank,
+    layout_nearest_bank,
     parse_bench_metrics,
     projected_bank,
     score_bank,
@@ -121,9 +123,15 @@ def gate_rows(
         )
         for name, path in getattr(args, "details", {}).items()
     }
+    nearest = {
+        f"real layout nearest (1/{stride})": layout_nearest_bank(
+            real, stride, geometry, work / f"real_nearest_{stride}_n{args.num}"
+        )
+        for stride in getattr(args, "layout_nearest", [])
+    }
     own = tuple(m for m in metrics if m in STRUCTURE)  # the reference against itself: no FRD / FPD
     rows = {REFERENCE: score_row(reference, reference, own, args, geometry, teacher) if own else {}}
-    for name, bank in {REAL: real, PROJECTED: projected, **encoded, **detailed, **banks}.items():
+    for name, bank in {REAL: real, PROJECTED: projected, **encoded, **nearest, **detailed, **banks}.items():
         rows[name] = score_row(bank, reference, metrics, args, geometry, teacher)
         print(f"{name}: {summary_line(rows[name])}", flush=True)
     return rows
@@ -202,6 +210,10 @@ def run(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--detail", action="append", default=[], metavar="NAME=FILE",
         help="a cascade's detail net: adds the row of the real scans' layouts (W / s columns) completed by it",
+    )  # fmt: skip
+    parser.add_argument(
+        "--layout-nearest", action="append", type=int, default=[], metavar="S",
+        help="adds the row of the real scans' layouts at W / S columns, each column repeated S times (detail=nearest)",
     )  # fmt: skip
     parser.add_argument("--metrics", default=DEFAULT_METRICS, help=f"subset of {DEFAULT_METRICS} (bench_generation's)")
     add_scoring_arguments(parser, "the real row's sequences (default: the other ones)",

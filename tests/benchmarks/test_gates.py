@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import numpy as np
 import pytest
 
 from tests.tiny_nets import SEG_TINY, load_script
@@ -116,10 +117,17 @@ def test_the_real_layouts_completed_by_a_detail_net_are_a_row_of_their_own(world
     export_weights(tmp_path / "run", weights)
     work = tmp_path / "work"
     argv = ["--real", str(world["root"]), "--real-sequences", "00-01", "--num", "2", "--metrics", "bev_density",
-            "--work", str(work), "--detail", f"d={weights}", "--out", str(tmp_path / "g.json")]  # fmt: skip
+            "--work", str(work), "--detail", f"d={weights}", "--layout-nearest", "4",
+            "--out", str(tmp_path / "g.json")]  # fmt: skip
     assert gates.main(argv) == 0
     result = json.loads((tmp_path / "g.json").read_text())
-    assert list(result["rows"])[3:] == ["real layout detailed (d)"] and result["details"] == {"d": str(weights)}
+    assert list(result["rows"])[3:] == ["real layout nearest (1/4)", "real layout detailed (d)"]
+    assert result["details"] == {"d": str(weights)}
+    # the nearest row: every point of the quarter-width layout, 4 times (at the 4 azimuths of its column's bin)
+    for path in sorted((work / "real_nearest_4_n2").glob("sequences/*/velodyne/*.bin")):
+        ranges = np.sort(np.linalg.norm(np.fromfile(path, dtype=np.float32).reshape(-1, 4)[:, :3], axis=1))
+        assert len(ranges) % 4 == 0
+        np.testing.assert_allclose(ranges[::4], ranges[3::4], rtol=1e-5)
     assert result["rows"]["real layout detailed (d)"]["scans"] == 2
     (folder,) = work.glob("real_detail_*")
     assert len(list(folder.glob("sequences/*/velodyne/*.bin"))) == 2
