@@ -9,11 +9,16 @@
 #   nohup bash scripts/scarce_generators.sh > ../runs/scarce_generators.log 2>&1 &
 # Writes DATA/scarce_probs (the segmentor's probabilities on the 18 places), RUNS/scarce/{u4d,baseline}[_milestones]
 # (scripts/generator_final.sh: segments, milestones scored by the gates) and BANKS/scarce_{u4d,r2dm}_hdl64.
+# The cascade recipe (u4d_aug.cascade): LAYOUT, the layout nets' overrides, and DETAIL, the detail level of the
+# milestones and the banks (nearest, or a detail net trained on these places only):
+#   LAYOUT="height=64 width=256 crop_width=0 net.attention=true net.attention_heads=4" DETAIL=nearest bash ...
 set -euo pipefail
 RUNS=${RUNS:-../runs}
 STEPS=${STEPS:-8000}
 SEGMENT=${SEGMENT:-4000}
 NUM=${NUM:-512}
+LAYOUT=${LAYOUT:-}
+DETAIL=${DETAIL:-}
 SEGMENTOR=${SEGMENTOR:-$RUNS/design_scarce/runs/sup-only/minkunet/seed1/model.pt}
 DATA=${DATA:-data}  # the world (DATA/sim_seg) and where the probabilities go
 BANKS=${BANKS:-banks}  # where configs/experiment/design_scarce.yaml reads the banks
@@ -45,12 +50,14 @@ if [ ! -f "$PROBS/done" ]; then
   touch "$PROBS/done"
 fi
 quoted=$(printf '"%s",' "${places[@]}")
-NAME=scarce METHOD=both STEPS=$STEPS SEGMENT=$SEGMENT RUNS=$RUNS EXTRA="sequences=[${quoted%,}] probs_root=$PROBS" \
-  bash scripts/generator_final.sh
+NAME=scarce METHOD=both STEPS=$STEPS SEGMENT=$SEGMENT RUNS=$RUNS DETAIL=$DETAIL \
+  EXTRA="sequences=[${quoted%,}] probs_root=$PROBS $LAYOUT" bash scripts/generator_final.sh
+cascade=()
+[ -z "$DETAIL" ] || cascade=("detail=$DETAIL")
 done_bank() { python3 -c "import json,sys; sys.exit(0 if json.load(open('$1/manifest.json')).get('complete') else 1)" 2>/dev/null; }
 F=$RUNS/scarce
 done_bank "$BANKS/scarce_u4d_hdl64" || u4d generate configs/u4d/generate_hdl64.yaml --out "$BANKS/scarce_u4d_hdl64" \
-  mode=u4d "net=$F/u4d_milestones/step_$STEPS.pt" stage1= stage2= "num=$NUM" --no-progress
+  mode=u4d "net=$F/u4d_milestones/step_$STEPS.pt" stage1= stage2= "num=$NUM" ${cascade[@]+"${cascade[@]}"} --no-progress
 done_bank "$BANKS/scarce_r2dm_hdl64" || u4d generate configs/u4d/generate_hdl64.yaml --out "$BANKS/scarce_r2dm_hdl64" \
-  mode=baseline "baseline=$F/baseline_milestones/step_$STEPS.pt" "num=$NUM" --no-progress
+  mode=baseline "baseline=$F/baseline_milestones/step_$STEPS.pt" "num=$NUM" ${cascade[@]+"${cascade[@]}"} --no-progress
 echo "scarce generators done"

@@ -64,6 +64,26 @@ def test_probabilities_nets_and_banks_cover_the_scarce_places_only(tmp_path):
     assert recorded_calls(tmp_path) == calls  # everything there: no call
 
 
+def test_the_cascade_recipe_reaches_the_layout_nets_and_every_bank(tmp_path):
+    runs = tmp_path / "runs"
+    segmentor = str(segmentor_folder(tmp_path) / "model.pt")
+    env = stand_in_env(tmp_path, RUNS=str(runs), STEPS="2", SEGMENT="2", NUM="8", DATA=str(tmp_path / "data"),
+                       BANKS=str(tmp_path / "banks"), SEGMENTOR=segmentor, DETAIL="nearest",
+                       LAYOUT="height=64 width=256 crop_width=0")  # fmt: skip
+    done = run_script(env)
+    assert done.returncode == 0, done.stderr[-3000:]
+    generated = 0
+    for argv in recorded_calls(tmp_path):
+        if argv[0] == "train-diffusion":
+            _, cfg = check_call(argv, REPO)
+            assert (cfg.height, cfg.width, cfg.crop_width) == (64, 256, 0) and cfg.sequences == sorted(LABELLED + POOL)
+        elif argv[0] == "generate":
+            _, cfg = check_call(argv, REPO)
+            assert cfg.detail == "nearest"  # the milestones' banks and the two final banks alike
+            generated += 1
+    assert generated == 4
+
+
 def test_a_missing_segmentor_says_how_to_train_it(tmp_path):
     env = stand_in_env(tmp_path, RUNS=str(tmp_path / "runs"), SEGMENTOR=str(tmp_path / "none.pt"))
     done = run_script(env)
