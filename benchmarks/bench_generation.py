@@ -7,9 +7,11 @@
 
 The nets and extractors default to the shipped ones in weights/, U4D's the one net `weights/u4d.pt` for both stages
 (`--net --baseline --extractor-frd --extractor-fpd` take run folders, checkpoints or other weights; `--stage1 --stage2`
-a two-net U4D, one net per stage, instead of --net). Train the generators with one budget for each method (U4D's
-budget = its one net's steps, or stage 1 + stage 2, = the baseline's steps x batch on the same net); the training
-budgets read from the checkpoints (or the weights' training record) are printed with the table.
+a two-net U4D, one net per stage, instead of --net; `--detail nearest|FILE` a cascade: both methods' nets make the
+layout, the same detail level the scans, and the floor is projected to the scans' image). Train the generators with
+one budget for each method (U4D's budget = its one net's steps, or stage 1 + stage 2, = the baseline's steps x batch
+on the same net); the training budgets read from the checkpoints (or the weights' training record) are printed with
+the table.
 Per sampler setting and seed s: each method generates `--num` scans (sample i uses seed s * 100000 + i) into
 WORK/<method>_<sampler tag>_s<s>, scored by `u4d_aug.metrics.evaluate.evaluate` against the reference sequences;
 the floor draws `--num` real scans of the `--floor` sequences (disjoint from the reference) with seed s and
@@ -41,6 +43,7 @@ from typing import NamedTuple
 import numpy as np
 
 from segmentation.teacher_view import load_teacher, teacher_view
+from u4d_aug.cascade import NEAREST
 from u4d_aug.config import load_config
 from u4d_aug.data.datasets import expand_sequences, list_frames
 from u4d_aug.data.formats import read_kitti_scan, write_kitti_scan
@@ -117,6 +120,16 @@ def range_geometry(run: Path) -> dict:
     path = newest_checkpoint(run) if run.is_dir() else run
     cfg = load_checkpoint(path, "diffusion checkpoint")["config"]
     return {"sensor": cfg["sensor"], "height": cfg["height"], "width": cfg["width"], "row_mode": cfg["row_mode"]}
+
+
+def cascade_geometry(layout: dict, detail: str) -> dict:
+    """The scans' geometry: the layout nets' own without a cascade, the sensor's width with detail=nearest, a detail
+    net's image with detail=FILE (the floor is projected to it)."""
+    if not detail:
+        return layout
+    if detail == NEAREST:
+        return {**layout, "width": get_sensor(layout["sensor"]).width}
+    return range_geometry(Path(detail))
 
 
 def projected_points(bank: Path, geometry: dict) -> float:
@@ -337,6 +350,8 @@ def generate(method: str, args: argparse.Namespace, spec: SamplerSpec, seed: int
         overrides.append(f"stage1_mask_fraction={'null' if args.mask_fraction is None else args.mask_fraction}")
     else:
         overrides.append(f"baseline={args.baseline}")
+    if args.detail:  # a cascade: both methods' layouts through the same detail level
+        overrides.append(f"detail={args.detail}")
     if args.mean_start_below is None:  # the nets' own x0 at every step (generate's default is the preset's start)
         overrides.append("mean_start_below=null")
     else:  # the nets' training mean image as x0 at vanishing SNR
@@ -537,6 +552,10 @@ def main(argv: list[str] | None = None) -> int:
         "--mean-start-below", type=float, default=None,
         help="log-SNR under which the samplers take the nets' training mean image as x0 (generate's mean_start_below)",
     )  # fmt: skip
+    parser.add_argument(
+        "--detail", default="",
+        help="a cascade (u4d generate's detail): nearest, or a detail net's weights, after both methods' layout nets",
+    )  # fmt: skip
     parser.add_argument("--mean-data-root", default="", help="where the nets' training scans are (mean_data_root)")
     parser.add_argument("--mean-probs-root", default="", help="their probabilities, for stage 1 (mean_probs_root)")
     parser.add_argument(
@@ -570,7 +589,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             training = {"u4d stage 1": training_budget(args.stage1), "u4d stage 2": training_budget(args.stage2)}
         training["baseline"] = training_budget(args.baseline)
-        geometry = range_geometry(args.baseline)
+        geometry = cascade_geometry(range_geometry(args.baseline), args.detail)
         structure = any(m in STRUCTURE for m in metrics)
         floor_rows: dict[str, list] = {}
         projected_rows: dict[str, list] = {}

@@ -217,3 +217,28 @@ def test_a_one_net_u4d_samples_both_stages_and_reports_its_budget(tmp_path):
     assert result["methods"]["u4d"]["points"]["mean"] > 0
     manifest = json.loads((tmp_path / "work" / "u4d_ddpm_2_1_s0" / "manifest.json").read_text())
     assert str(net) in json.dumps(manifest)
+
+
+def test_a_cascade_scores_both_methods_through_one_detail_level(tmp_path):
+    rng = np.random.default_rng(0)
+    for seq in ("00", "01"):
+        points = np.concatenate([rng.uniform(-30, 30, (4000, 3)), rng.uniform(0, 1, (4000, 1))], 1)
+        write_kitti_scan(tmp_path / "real" / "sequences" / seq / "velodyne" / "000000.bin", points.astype("f4"))
+    layout = ("height=64", "width=256", "row_mode=beam")
+    net = save_checkpoint(tmp_path / "u4d.pt", overrides=("diffusion.stage=u4d", *layout))
+    baseline = save_checkpoint(tmp_path / "baseline.pt", overrides=("diffusion.stage=baseline", *layout))
+    out = tmp_path / "gen.json"
+    argv = ["--root", str(tmp_path / "real"), "--net", str(net), "--baseline", str(baseline), "--reference", "00"]
+    argv += ["--floor", "01", "--num", "1", "--seeds", "0", "--samplers", "ddpm:2:1", "--metrics", "points"]
+    argv += ["--work", str(tmp_path / "work"), "--out", str(out), "--device", "cpu", "--detail", "nearest"]
+    assert run_one_thread(argv) == 0
+    result = json.loads(out.read_text())
+    for method in ("u4d", "baseline"):
+        manifest = json.loads((tmp_path / "work" / f"{method}_ddpm_2_1_s0" / "manifest.json").read_text())
+        assert manifest["detail"] == "nearest" and (manifest["height"], manifest["width"]) == (64, 1024)
+    # the floor is projected to the scans' 64x1024 image, not to the layout's 64x256
+    (floor,) = (tmp_path / "work").glob("floor*")
+    geometry = {"sensor": "hdl64", "height": 64, "width": 1024, "row_mode": "beam"}
+    at_1024 = bench.projected_points(floor, geometry)
+    assert result["methods"]["floor"]["points_projected"]["mean"] == at_1024
+    assert at_1024 > bench.projected_points(floor, {**geometry, "width": 256})
