@@ -149,22 +149,23 @@ def projected_points(bank: Path, geometry: dict) -> float:
     return float(np.mean(counts))
 
 
-def projected_bank(bank: Path, geometry: dict, out: Path, through=None) -> Path:
+def projected_bank(bank: Path, geometry: dict, out: Path, through=None, width: int | None = None) -> Path:
     """`bank`'s scans as a generator makes its own: projected to its range image, encoded, unprojected at the
     bin-centre rays (`range_view.project` -> `to_image` -> `pipeline.to_points`), one folder in SemanticKITTI layout;
-    `through` (images (1, 2, H, W) -> images) changes each range image before it is unprojected."""
+    `through(image (1, 2, H, w), index)` changes the index-th scan's range image before it is unprojected; `width`:
+    project at these columns (a cascade's layout) instead of the geometry's, `through` then widens the image."""
     sensor = get_sensor(geometry["sensor"])
     paths = sorted(bank.glob("sequences/*/velodyne/*.bin"))
     if not paths:
         raise InputError(f"{bank}: no scans to project")
-    for path in paths:
+    for index, path in enumerate(paths):
         target = out / path.relative_to(bank)
         if not target.exists():
             projection = project(
-                read_kitti_scan(path), sensor, geometry["height"], geometry["width"], geometry["row_mode"]
+                read_kitti_scan(path), sensor, geometry["height"], width or geometry["width"], geometry["row_mode"]
             )
             image = to_image(projection, sensor)[None]  # (1, 2, H, W)
-            image = image if through is None else through(image)
+            image = image if through is None else through(image, index)
             write_kitti_scan(target, to_points(image, sensor, geometry["row_mode"])[0])
     return out
 
@@ -186,7 +187,7 @@ def autoencoded_bank(bank: Path, autoencoder_path: Path, geometry: dict, out: Pa
         )
 
     @torch.no_grad()
-    def through(image):
+    def through(image, index):
         return autoencoder.from_latent(autoencoder.to_latent(image))
 
     return projected_bank(bank, geometry, out, through)
@@ -197,18 +198,8 @@ def layout_nearest_bank(bank: Path, stride: int, geometry: dict, out: Path) -> P
     each column repeated s times (`cascade.upsample_nearest`, `u4d generate detail=nearest`), unprojected at W."""
     from u4d_aug.cascade import check_stride, upsample_nearest
 
-    sensor = get_sensor(geometry["sensor"])
-    low_width = check_stride(geometry["width"], stride)
-    paths = sorted(bank.glob("sequences/*/velodyne/*.bin"))
-    if not paths:
-        raise InputError(f"{bank}: no scans to project")
-    for path in paths:
-        target = out / path.relative_to(bank)
-        if not target.exists():
-            layout = project(read_kitti_scan(path), sensor, geometry["height"], low_width, geometry["row_mode"])
-            image = upsample_nearest(to_image(layout, sensor)[None], stride)
-            write_kitti_scan(target, to_points(image, sensor, geometry["row_mode"])[0])
-    return out
+    low_width = check_stride(geometry["width"], stride, "--layout-nearest")
+    return projected_bank(bank, geometry, out, lambda image, index: upsample_nearest(image, stride), low_width)
 
 
 def detailed_bank(bank: Path, detail_path: Path, geometry: dict, out: Path, seed: int = 0) -> Path:
@@ -235,19 +226,12 @@ def detailed_bank(bank: Path, detail_path: Path, geometry: dict, out: Path, seed
             f"{detail_path}: no stored training mean (the default sampling starts from it); export the net with "
             "`u4d export-weights RUN --out FILE`"
         )
-    sensor = get_sensor(cfg.sensor)
-    paths = sorted(bank.glob("sequences/*/velodyne/*.bin"))
-    if not paths:
-        raise InputError(f"{bank}: no scans to complete")
-    for index, path in enumerate(paths):
-        target = out / path.relative_to(bank)
-        if not target.exists():
-            layout = project(read_kitti_scan(path), sensor, cfg.height, cfg.width // cfg.detail_stride, cfg.row_mode)
-            generator = torch.Generator().manual_seed(seed + index)
-            with torch.no_grad():
-                image = refine(detail, to_image(layout, sensor)[None], [generator])["x0"]
-            write_kitti_scan(target, to_points(image, sensor, cfg.row_mode)[0])
-    return out
+
+    @torch.no_grad()
+    def through(image, index):
+        return refine(detail, image, [torch.Generator().manual_seed(seed + index)])["x0"]
+
+    return projected_bank(bank, geometry, out, through, cfg.width // cfg.detail_stride)
 
 
 def parse_bench_metrics(text: str) -> tuple[str, ...]:

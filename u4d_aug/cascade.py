@@ -17,10 +17,11 @@ from torch import Tensor
 from u4d_aug.errors import InputError
 
 
-def check_stride(width: int, stride: int, what: str = "width") -> int:
-    """The layout width W / s of a detail net of `width` W columns and stride s; InputError unless s >= 2 divides W."""
+def check_stride(width: int, stride: int, key: str = "detail_stride") -> int:
+    """The layout width W / s of a detail net of `width` W columns and stride s; InputError naming the option `key`
+    unless s >= 2 divides W."""
     if stride < 2 or width % stride:
-        raise InputError(f"detail_stride must be >= 2 and divide {what} {width}, got {stride}")
+        raise InputError(f"{key} must be >= 2 and divide width {width}, got {stride}")
     return width // stride
 
 

@@ -135,3 +135,8 @@ def test_the_real_layouts_completed_by_a_detail_net_are_a_row_of_their_own(world
     argv[argv.index(f"d={weights}")] = f"d={sorted((tmp_path / 'run' / 'checkpoints').glob('*.pt'))[-1]}"
     assert gates.main(argv) == 2
     assert "export the net with `u4d export-weights" in capsys.readouterr().err
+    # a stride that does not divide the sensor's width names the option
+    argv[argv.index("--detail") : argv.index("--detail") + 2] = []
+    argv[argv.index("--layout-nearest") + 1] = "3"
+    assert gates.main(argv) == 2
+    assert capsys.readouterr().err.strip() == "error: --layout-nearest must be >= 2 and divide width 1024, got 3"
